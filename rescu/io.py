@@ -1,0 +1,325 @@
+"""File input and output: images, datasets, per-image JSON, HDF5 — all writes atomic.
+
+Every writer here writes to a temporary file in the destination folder and renames it
+into place (``os.replace``), so a killed process never leaves a truncated file that a
+later step would read as valid.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .types import BBox, ImageResult
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+
+
+class InputError(ValueError):
+    """Bad input: the message names the file and what is wrong with it."""
+
+
+# ----------------------------------------------------------------------------- atomic
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
+
+    On an exception the temporary file is removed and ``path`` is left untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
+                               dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_json(path: str | os.PathLike[str], obj: Any) -> None:
+    """Write ``obj`` as JSON (sorted keys, 1-space indent, deterministic) atomically."""
+    if isinstance(obj, ImageResult):
+        obj = obj.to_json()
+    text = json.dumps(obj, indent=1, sort_keys=True, default=_jsonable, allow_nan=False)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text + "\n")
+
+
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """Read a JSON file; a malformed file raises :class:`InputError` naming it."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: malformed JSON ({e.msg} at line {e.lineno}, "
+                         f"column {e.colno})") from None
+
+
+def read_result(path: str | os.PathLike[str]) -> ImageResult:
+    """Read a per-image result JSON into an :class:`ImageResult`."""
+    d = read_json(path)
+    try:
+        return ImageResult.from_json(d)
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{path}: not a per-image result ({type(e).__name__}: {e})") from None
+
+
+def write_h5(path: str | os.PathLike[str], arrays: dict[str, Any],
+             attrs: dict[str, Any] | None = None) -> None:
+    """Write a flat or nested ``{name: array | dict}`` mapping to HDF5 atomically.
+
+    Nested dicts become groups. ``attrs`` are stored on the root. Datasets are written
+    without timestamps so the bytes depend only on the content.
+    """
+    import h5py
+
+    def put(group: Any, mapping: dict[str, Any]) -> None:
+        for k, v in mapping.items():
+            if isinstance(v, dict):
+                put(group.create_group(k, track_order=True), v)
+            else:
+                group.create_dataset(k, data=np.asarray(v), track_times=False)
+
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w", track_order=True) as f:
+            put(f, arrays)
+            for k, v in (attrs or {}).items():
+                f.attrs[k] = v
+
+
+def read_h5(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Read an HDF5 file written by :func:`write_h5` into ``(arrays, attrs)``."""
+    import h5py
+
+    def get(group: Any) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in group.items():
+            out[k] = get(v) if isinstance(v, h5py.Group) else v[()]
+        return out
+
+    try:
+        with h5py.File(path, "r") as f:
+            return get(f), dict(f.attrs)
+    except OSError as e:
+        raise InputError(f"{path}: unreadable HDF5 file ({e})") from None
+
+
+def write_image(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 RGB or (H, W) uint8 image as PNG, atomically."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise IOError(f"{path}: PNG encoding failed")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
+
+
+# ----------------------------------------------------------------------------- images
+@dataclass
+class LoadedImage:
+    """A photo ready for processing.
+
+    Attributes
+    ----------
+    rgb : (H, W, 3) uint8
+        Displayed orientation, downscaled so that max(H, W) <= max_side.
+    original_size : (int, int)
+        ``(width, height)`` of the full-resolution photo in displayed orientation.
+    scale_factor : float
+        processed = original * scale_factor.
+    notes : list of str
+        What was done to the input (mode conversion, rotation, downscale).
+    """
+
+    rgb: np.ndarray
+    original_size: tuple[int, int]
+    scale_factor: float
+    notes: list[str]
+
+
+def load_image(path: str | os.PathLike[str], max_side: int = 1600,
+               min_side: int = 16) -> LoadedImage:
+    """Load a photo in displayed orientation as 8-bit RGB, downscaled to ``max_side``.
+
+    Handles grayscale, RGBA (composited on white), 16-bit, palette and EXIF-rotated
+    images. Raises :class:`InputError` naming the file for empty, truncated, unreadable
+    or non-image files and images smaller than ``min_side`` pixels on a side.
+    """
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: empty file (0 bytes)")
+    Image.MAX_IMAGE_PIXELS = None  # huge photos are downscaled below, not refused
+    notes: list[str] = []
+    try:
+        with Image.open(path) as im:
+            im.load()
+            transposed = ImageOps.exif_transpose(im)
+            if transposed is not im:
+                notes.append("exif-rotated")
+            im = transposed
+            mode = im.mode
+            if mode in ("I;16", "I;16B", "I;16L", "I"):
+                arr = np.asarray(im, dtype=np.float64)
+                hi = arr.max() if arr.size else 1.0
+                arr8 = (arr / (hi if hi > 0 else 1.0) * 255.0 + 0.5).astype(np.uint8)
+                im = Image.fromarray(arr8, "L")
+                notes.append(f"{mode}->8bit")
+            if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
+                im = im.convert("RGBA")
+                bg = Image.new("RGBA", im.size, (255, 255, 255, 255))
+                im = Image.alpha_composite(bg, im)
+                notes.append("alpha-composited")
+            if im.mode != "RGB":
+                notes.append(f"{im.mode}->RGB")
+                im = im.convert("RGB")
+            rgb = np.asarray(im, dtype=np.uint8).copy()
+    except UnidentifiedImageError:
+        raise InputError(f"{path}: not an image file (format not recognised)") from None
+    except (OSError, SyntaxError, ValueError) as e:
+        raise InputError(f"{path}: unreadable or truncated image ({e})") from None
+    h, w = rgb.shape[:2]
+    if min(h, w) < min_side:
+        raise InputError(f"{path}: image too small ({w}x{h} pixels; at least {min_side} "
+                         f"pixels per side are needed)")
+    scale = 1.0
+    if max(h, w) > max_side:
+        import cv2
+
+        scale = max_side / float(max(h, w))
+        nw, nh = max(1, round(w * scale)), max(1, round(h * scale))
+        rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA)
+        scale = nw / float(w)
+        notes.append(f"downscaled x{scale:.4f}")
+    return LoadedImage(rgb=rgb, original_size=(w, h), scale_factor=scale, notes=notes)
+
+
+def list_images(folder: str | os.PathLike[str]) -> list[Path]:
+    """Image files directly in ``folder`` (sorted by name; other files are ignored)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder")
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+                  and not p.name.startswith("."))
+
+
+# ----------------------------------------------------------------------------- datasets
+@dataclass
+class GroundTruthRP:
+    """A ground-truth recurring pattern: the boxes of one category (>= 2) in one image."""
+
+    category: str
+    boxes: list[BBox]
+    extra: dict[str, Any]
+
+
+def load_coco_rps(path: str | os.PathLike[str]) -> dict[str, list[GroundTruthRP]]:
+    """Ground-truth RPs per image from a COCO ``annotations.json``.
+
+    Returns ``{file_name: [GroundTruthRP, ...]}`` for every image listed (images with no
+    RP map to an empty list). Within an image, the boxes of one category with two or
+    more boxes form one RP. Raises :class:`InputError` naming the file and field.
+    """
+    d = read_json(path)
+    if not isinstance(d, dict):
+        raise InputError(f"{path}: top level must be an object with 'images' and 'annotations'")
+    for key in ("images", "annotations"):
+        if not isinstance(d.get(key), list):
+            raise InputError(f"{path}: field '{key}' missing or not a list")
+    cats = {}
+    for c in d.get("categories", []) or []:
+        if isinstance(c, dict) and "id" in c:
+            cats[c["id"]] = str(c.get("name", c["id"]))
+    files: dict[Any, str] = {}
+    for i, im in enumerate(d["images"]):
+        if not isinstance(im, dict) or "id" not in im or "file_name" not in im:
+            raise InputError(f"{path}: images[{i}] needs 'id' and 'file_name'")
+        files[im["id"]] = str(im["file_name"])
+    groups: dict[tuple[str, Any], list[tuple[BBox, dict[str, Any]]]] = {}
+    for i, a in enumerate(d["annotations"]):
+        if not isinstance(a, dict):
+            raise InputError(f"{path}: annotations[{i}] is not an object")
+        for key in ("image_id", "bbox", "category_id"):
+            if key not in a:
+                raise InputError(f"{path}: annotations[{i}] has no field '{key}'")
+        b = a["bbox"]
+        if (not isinstance(b, (list, tuple)) or len(b) != 4
+                or not all(isinstance(v, (int, float)) for v in b)):
+            raise InputError(f"{path}: annotations[{i}].bbox must be [x, y, width, height]")
+        if a["image_id"] not in files:
+            raise InputError(f"{path}: annotations[{i}].image_id {a['image_id']!r} "
+                             f"is not in 'images'")
+        extra = {k: v for k, v in a.items() if k not in ("bbox", "image_id", "id", "area",
+                                                          "segmentation", "iscrowd")}
+        groups.setdefault((files[a["image_id"]], a["category_id"]), []).append(
+            (tuple(float(v) for v in b), extra))  # type: ignore[arg-type]
+    out: dict[str, list[GroundTruthRP]] = {f: [] for f in files.values()}
+    for (fname, cid), items in sorted(groups.items(), key=lambda kv: (kv[0][0], str(kv[0][1]))):
+        if len(items) >= 2:
+            out[fname].append(GroundTruthRP(category=cats.get(cid, str(cid)),
+                                            boxes=[b for b, _ in items],
+                                            extra=items[0][1]))
+    return out
+
+
+def load_vanishing_points(path: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
+    """Ground-truth VPs per image from ``vanishing_points.json``.
+
+    Returns ``{file_name: {"width", "height", "focal_px" (or None), "principal_point"
+    (or None), "vanishing_points": [(3,) homogeneous arrays]}}``.
+    """
+    d = read_json(path)
+    if not isinstance(d, dict) or not isinstance(d.get("images"), list):
+        raise InputError(f"{path}: field 'images' missing or not a list")
+    out: dict[str, dict[str, Any]] = {}
+    for i, im in enumerate(d["images"]):
+        if not isinstance(im, dict):
+            raise InputError(f"{path}: images[{i}] is not an object")
+        for key in ("file_name", "width", "height", "vanishing_points"):
+            if key not in im:
+                raise InputError(f"{path}: images[{i}] has no field '{key}'")
+        vps = []
+        for j, vp in enumerate(im["vanishing_points"]):
+            h = vp.get("homogeneous") if isinstance(vp, dict) else None
+            if not isinstance(h, list) or len(h) != 3:
+                raise InputError(f"{path}: images[{i}].vanishing_points[{j}].homogeneous "
+                                 f"must be [x, y, w]")
+            vps.append(np.asarray(h, float))
+        out[str(im["file_name"])] = {
+            "width": int(im["width"]), "height": int(im["height"]),
+            "focal_px": im.get("focal_px"), "principal_point": im.get("principal_point"),
+            "vanishing_points": vps, "extra": {k: v for k, v in im.items()
+                                               if k not in ("vanishing_points",)},
+        }
+    return out
