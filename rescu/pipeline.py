@@ -1,0 +1,382 @@
+"""Per-image steps of the RESCU pipeline, file to file.
+
+Each function here is one step of the data flow (one Snakemake rule, or one call of the
+``rescu discover`` command): it reads the files the previous step wrote, calls the
+algorithms of the other ``rescu`` modules, and writes its outputs atomically.
+
+Failure isolation (documented empty results): when a step fails on an image (bad file,
+no features, an exception inside an algorithm), it still writes all its outputs, empty,
+with a ``failure`` record ``{"stage", "message", "type"}`` (a JSON field, or an HDF5 root
+attribute). Every later step sees the failure in its input and passes it on, so the
+final per-image JSON says where and why the image failed, the failures table collects
+it, and the other images are unaffected. Errors in the pipeline's own configuration
+are not caught: they stop the run with a message.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from . import io
+from .types import ImageResult
+
+log = logging.getLogger("rescu")
+
+Failure = dict[str, str]
+
+
+# --------------------------------------------------------------------------- failures
+def failure_record(stage: str, exc: BaseException) -> Failure:
+    """A failure record for ``exc`` raised in ``stage``."""
+    return {"stage": stage, "type": type(exc).__name__, "message": str(exc)}
+
+
+def _json_failure(path: str | os.PathLike[str]) -> Failure | None:
+    d = io.read_json(path)
+    return d.get("failure") if isinstance(d, dict) else None
+
+
+def _h5_failure(path: str | os.PathLike[str]) -> Failure | None:
+    _, attrs = io.read_h5(path)
+    f = attrs.get("failure")
+    return json.loads(f) if f else None
+
+
+def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
+           write_empty: Callable[[Failure], None]) -> Failure | None:
+    """Run a step; on an upstream failure or an exception write empty outputs instead."""
+    if upstream is not None:
+        log.warning("skipping %s: upstream failure in %s: %s", stage, upstream.get("stage"),
+                    upstream.get("message"))
+        write_empty(upstream)
+        return upstream
+    try:
+        run()
+        return None
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as e:  # noqa: BLE001 - isolation is the point
+        log.error("%s failed: %s\n%s", stage, e, traceback.format_exc())
+        rec = failure_record(stage, e)
+        write_empty(rec)
+        return rec
+
+
+def empty_result(meta: dict[str, Any], method: str, failure: Failure | None) -> ImageResult:
+    """A result with no pattern for the image described by ``meta``."""
+    w, h = meta.get("original_size", [0, 0])
+    extra = {"failure": failure} if failure else {}
+    return ImageResult(image=meta.get("image", ""), width=int(w), height=int(h),
+                       method=method, extra=extra)
+
+
+# --------------------------------------------------------------------------- prepare
+def prepare(image_path: str, out_png: str, out_meta: str, *, image_name: str,
+            max_side: int, min_side: int) -> Failure | None:
+    """Load a photo (orientation, mode, downscale) and write the processed PNG + meta.
+
+    ``out_meta`` JSON: ``{"image": image_name, "source": image_path, "original_size":
+    [w, h], "processed_size": [w, h], "scale_factor": s, "notes": [...], "failure"?}``.
+    A bad image gets a 1x1 placeholder PNG and a meta with ``failure`` set.
+    """
+    meta: dict[str, Any] = {"image": image_name, "source": str(image_path)}
+
+    def run() -> None:
+        im = io.load_image(image_path, max_side=max_side, min_side=min_side)
+        meta.update(original_size=list(im.original_size),
+                    processed_size=[int(im.rgb.shape[1]), int(im.rgb.shape[0])],
+                    scale_factor=float(im.scale_factor), notes=im.notes)
+        io.write_image(out_png, im.rgb)
+        io.write_json(out_meta, meta)
+
+    def empty(f: Failure) -> None:
+        meta.update(original_size=[0, 0], processed_size=[1, 1], scale_factor=1.0, notes=[],
+                    failure=f)
+        io.write_image(out_png, np.zeros((1, 1, 3), np.uint8))
+        io.write_json(out_meta, meta)
+
+    return _guard("prepare", None, run, empty)
+
+
+def read_prepared(png: str, meta_path: str) -> tuple[np.ndarray, dict[str, Any]]:
+    """The processed RGB image (H, W, 3) uint8 and its meta dict."""
+    import cv2
+
+    meta = io.read_json(meta_path)
+    bgr = cv2.imread(str(png), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise io.InputError(f"{png}: unreadable processed image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), meta
+
+
+# --------------------------------------------------------------------------- features
+def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> Failure | None:
+    """SIFT features of the processed image to HDF5 (:func:`rescu.features.save_features`)."""
+    from . import features as F
+    from .types import Features
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        feats = F.extract_features(rgb, F.FeatureParams.from_dict(params),
+                                   scale_factor=float(meta["scale_factor"]))
+        F.save_features(out_h5, feats)
+
+    def empty(f: Failure) -> None:
+        size = tuple(meta.get("processed_size", [1, 1]))
+        F.save_features(out_h5, Features.empty(size, float(meta.get("scale_factor", 1.0))),
+                        attrs={"failure": json.dumps(f)})
+
+    return _guard("features", meta.get("failure"), run, empty)
+
+
+# --------------------------------------------------------------------------- stage I
+def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
+           params: dict[str, Any], method: str = "rescu-i") -> Failure | None:
+    """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features.
+
+    Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
+    matrices (feature indices) to HDF5.
+    """
+    from . import features as F
+    from . import stage1 as S
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        feats = F.load_features(features_h5)
+        if method == "grasp":
+            from . import grasp as G
+
+            out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
+        else:
+            out = S.discover(feats, S.Stage1Params.from_dict(params))
+        S.save_rps(out_h5, out)
+        res = empty_result(meta, method, None)
+        res.patterns = S.rps_to_patterns(feats, out.rps)
+        res.extra.update(chosen_params=out.chosen, objective=out.objective,
+                         n_features=len(feats))
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        io.write_h5(out_h5, {}, attrs={"failure": json.dumps(f)})
+        io.write_json(out_json, empty_result(meta, method, f))
+
+    return _guard(method, _h5_failure(features_h5), run, empty)
+
+
+def ablation(features_h5: str, meta_path: str, out_json: str, params: dict[str, Any],
+             variants: dict[str, list[str]]) -> Failure | None:
+    """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive).
+
+    Writes ``{"image", "variants": {name: per-image result JSON}}``.
+    """
+    from . import features as F
+    from . import stage1 as S
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        feats = F.load_features(features_h5)
+        out: dict[str, Any] = {}
+        for name, adaptive in variants.items():
+            p = S.Stage1Params.from_dict({**params, "adaptive": list(adaptive)})
+            o = S.discover(feats, p)
+            res = empty_result(meta, f"rescu-i[{name}]", None)
+            res.patterns = S.rps_to_patterns(feats, o.rps)
+            res.extra.update(chosen_params=o.chosen, objective=o.objective)
+            out[name] = res.to_json()
+        io.write_json(out_json, {"image": meta.get("image"), "variants": out})
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, {"image": meta.get("image"), "failure": f,
+                                 "variants": {n: empty_result(meta, f"rescu-i[{n}]", f).to_json()
+                                              for n in variants}})
+
+    return _guard("ablation", _h5_failure(features_h5), run, empty)
+
+
+# --------------------------------------------------------------------------- stage II
+def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
+                    params: dict[str, Any]) -> Failure | None:
+    """Proposals and pooled backbone features of one image to HDF5."""
+    from . import stage2 as S2
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        s1 = io.read_result(stage1_json)
+        feats = S2.compute_stage2_features(rgb, float(meta["scale_factor"]), s1,
+                                           S2.Stage2Params.from_dict(params))
+        io.write_h5(out_h5, feats, attrs={"backbone": str(params.get("backbone", ""))})
+
+    def empty(f: Failure) -> None:
+        io.write_h5(out_h5, {}, attrs={"failure": json.dumps(f)})
+
+    return _guard("stage2-features", _json_failure(stage1_json), run, empty)
+
+
+def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
+                 params: dict[str, Any]) -> Failure | None:
+    """Train the per-image head on cached features; save the checkpoint."""
+    from . import stage2 as S2
+
+    def run() -> None:
+        feats, _ = io.read_h5(feats_h5)
+        ckpt, info = S2.train_heads(feats, io.read_result(stage1_json),
+                                    S2.Stage2Params.from_dict(params))
+        S2.save_checkpoint(out_ckpt, {"head": ckpt, "info": info})
+
+    def empty(f: Failure) -> None:
+        S2.save_checkpoint(out_ckpt, {"failure": f})
+
+    return _guard("stage2-train", _h5_failure(feats_h5), run, empty)
+
+
+def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,
+                   meta_path: str, params: dict[str, Any]) -> Failure | None:
+    """RESCU-II instances: stage-I instances plus the head's positive proposals."""
+    from . import stage2 as S2
+
+    meta = io.read_json(meta_path)
+    ckpt = S2.load_checkpoint(ckpt_path)
+
+    def run() -> None:
+        feats, _ = io.read_h5(feats_h5)
+        res = S2.predict_stage2(feats, ckpt["head"], io.read_result(stage1_json),
+                                S2.Stage2Params.from_dict(params))
+        res.method = "rescu-ii"
+        res.extra["stage2"] = ckpt.get("info", {})
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, "rescu-ii", f))
+
+    return _guard("stage2-predict", ckpt.get("failure"), run, empty)
+
+
+# --------------------------------------------------------------------------- scene
+def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
+          params: dict[str, Any]) -> Failure | None:
+    """Vanishing points, translation symmetry, counts; rectified views as PNGs.
+
+    ``out_rectified_dir`` receives ``rp<id>.png`` for every pattern that has a VP (the
+    folder may be empty).
+    """
+    from . import scene as SC
+
+    meta = io.read_json(meta_path)
+    Path(out_rectified_dir).mkdir(parents=True, exist_ok=True)
+    src = io.read_result(in_json)
+
+    def run() -> None:
+        p = SC.SceneParams.from_dict(params)
+        res = SC.analyse_scene(src, p)
+        rgb, _ = read_prepared(png, meta_path)
+        for pat in res.patterns:
+            if pat.vanishing_point is None:
+                continue
+            view = SC.rectify_pattern(rgb, float(meta["scale_factor"]), pat, p)
+            if view is not None:
+                io.write_image(Path(out_rectified_dir) / f"rp{pat.id}.png", view)
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, src.method, f))
+
+    return _guard("scene", src.extra.get("failure"), run, empty)
+
+
+def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
+    """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
+    from . import scene as SC
+    from . import vp as V
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        p = SC.SceneParams.from_dict(params)
+        vp = V.line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
+        res = empty_result(meta, "lsd", None)
+        res.vanishing_point = vp
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, "lsd", f))
+
+    return _guard("lsd-vp", meta.get("failure"), run, empty)
+
+
+# --------------------------------------------------------------------------- captions
+def caption(png: str, meta_path: str, in_json: str, out_json: str,
+            params: dict[str, Any]) -> Failure | None:
+    """Base and enhanced caption into the final per-image JSON."""
+    from . import caption as C
+
+    meta = io.read_json(meta_path)
+    src = io.read_result(in_json)
+
+    def run() -> None:
+        p = C.CaptionParams.from_dict(params)
+        captioner = C.make_captioner(p, log=log.warning)
+        rgb, _ = read_prepared(png, meta_path)
+        res = ImageResult.from_json(src.to_json())
+        res.caption = C.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        res = ImageResult.from_json(src.to_json())
+        res.extra["failure"] = f
+        io.write_json(out_json, res)
+
+    return _guard("caption", src.extra.get("failure"), run, empty)
+
+
+def overlay(png: str, meta_path: str, result_json: str, out_png: str,
+            rectified_dir: str | None = None) -> None:
+    """Picture of what was found (:func:`rescu.visualize.overlay`)."""
+    from . import visualize
+
+    rgb, meta = read_prepared(png, meta_path)
+    res = io.read_result(result_json)
+    img = visualize.overlay(rgb, float(meta.get("scale_factor", 1.0)), res)
+    io.write_image(out_png, img)
+
+
+# --------------------------------------------------------------------------- logging
+def setup_logging(log_path: str | None = None, level: int = logging.INFO) -> None:
+    """Send the ``rescu`` logger (and warnings) to ``log_path`` or stderr."""
+    handler: logging.Handler
+    if log_path:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(log_path, mode="w")
+    else:
+        handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("rescu")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    logging.captureWarnings(True)
+
+
+def limit_threads(n: int) -> None:
+    """Use at most ``n`` CPU threads in OpenCV and torch (one Snakemake job's share)."""
+    import cv2
+
+    cv2.setNumThreads(max(1, int(n)))
+    try:
+        import torch
+
+        torch.set_num_threads(max(1, int(n)))
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass

@@ -1,0 +1,31 @@
+# Captions (base + enhanced) into the final per-image JSON, and the overlay picture.
+
+
+rule caption:
+    input:
+        **prepared(),
+        result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
+        code=code("caption"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
+    params:
+        caption=config["caption"],
+    log:
+        "logs/{dataset}/caption/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/caption/{{image}}.tsv"
+    script:
+        "../scripts/caption.py"
+
+
+rule overlay:
+    input:
+        **prepared(),
+        result=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
+        code=code("visualize"),
+    output:
+        png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
+    log:
+        "logs/{dataset}/overlay/{image}.log",
+    script:
+        "../scripts/overlay.py"

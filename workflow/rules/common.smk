@@ -1,0 +1,68 @@
+# What every rule file needs: the image table built once from the config, wildcard
+# constraints, the library files each rule depends on, and the final targets.
+import sys
+from pathlib import Path
+
+from rescu.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
+from rescu.synth import synthetic_image_names
+
+RESULTS = config["results_dir"]
+BASEDIR = Path(workflow.basedir)
+
+wildcard_constraints:
+    dataset=r"[A-Za-z0-9_\-]+",
+    image=r"[^/]+",
+    method=r"grasp|rescu-i|rescu-ii",
+
+
+# dataset name -> {"root": folder with images/ (+ ground truth), "images": {stem: path},
+#                  "kind": ..., "has_rps": bool, "has_vps": bool}
+DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m, file=sys.stderr))
+
+
+def code(*modules):
+    """The rescu/ source files a rule depends on (a code change reruns the rule)."""
+    base = ["types", "io", "pipeline"]
+    return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
+
+
+def images(dataset):
+    return sorted(DATASETS[dataset]["images"])
+
+
+def source_image(wildcards):
+    return DATASETS[wildcards.dataset]["images"][wildcards.image]
+
+
+def per_image(pattern, datasets=None):
+    """Expand ``pattern`` (with {dataset} and {image}) over the chosen datasets' images."""
+    out = []
+    for ds in datasets if datasets is not None else DATASETS:
+        out += expand(pattern, dataset=ds, image=images(ds), allow_missing=True)
+    return out
+
+
+def rp_datasets():
+    return [d for d, v in DATASETS.items() if v["has_rps"]]
+
+
+def vp_datasets():
+    return [d for d, v in DATASETS.items() if v["has_vps"]]
+
+
+def ablation_datasets():
+    return [d for d in config["ablation"]["datasets"] if d in DATASETS and DATASETS[d]["has_rps"]]
+
+
+def prepared(wildcards=None):
+    return {
+        "png": f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
+        "meta": f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+    }
+
+
+def final_targets():
+    t = per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json")
+    t += per_image(f"{RESULTS}/{{dataset}}/overlay/{{image}}.png")
+    t += [f"{RESULTS}/tables/summary.md", f"{RESULTS}/report/index.html"]
+    return t

@@ -1,0 +1,61 @@
+# Data: the synthetic benchmark and the package-shipped photos (generated once), and the
+# per-image preparation (orientation, mode, downscale) every later step reads.
+
+
+rule generate_synthetic:
+    output:
+        images=expand(
+            f"{RESULTS}/{SYNTHETIC_DIR}/images/{{name}}",
+            name=synthetic_image_names(
+                config["synthetic"]["n_images"]
+            ),
+        ),
+        annotations=f"{RESULTS}/{SYNTHETIC_DIR}/annotations.json",
+        vps=f"{RESULTS}/{SYNTHETIC_DIR}/vanishing_points.json",
+        truth=f"{RESULTS}/{SYNTHETIC_DIR}/truth.json",
+    input:
+        code("synth"),
+    params:
+        synth=config["synthetic"],
+    log:
+        "logs/data/generate_synthetic.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/data/generate_synthetic.tsv"
+    script:
+        "../scripts/generate_synthetic.py"
+
+
+rule export_photos:
+    output:
+        images=expand(
+            f"{RESULTS}/{PHOTOS_DIR}/images/{{name}}", name=config["package_photos"]["names"]
+        ),
+    input:
+        code("photos"),
+    params:
+        names=config["package_photos"]["names"],
+    log:
+        "logs/data/export_photos.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/data/export_photos.tsv"
+    script:
+        "../scripts/export_photos.py"
+
+
+rule prepare:
+    input:
+        image=source_image,
+        code=code(),
+    output:
+        png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+    params:
+        image_name=lambda w: DATASETS[w.dataset]["names"][w.image],
+        max_side=config["image"]["max_side"],
+        min_side=config["image"]["min_side"],
+    log:
+        "logs/{dataset}/prepare/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/prepare/{{image}}.tsv"
+    script:
+        "../scripts/prepare.py"

@@ -1,0 +1,17 @@
+# SIFT features of every prepared image, to HDF5.
+
+
+rule features:
+    input:
+        **prepared(),
+        code=code("features"),
+    output:
+        h5=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
+    params:
+        features=config["features"],
+    log:
+        "logs/{dataset}/features/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/features/{{image}}.tsv"
+    script:
+        "../scripts/features.py"

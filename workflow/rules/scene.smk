@@ -1,0 +1,62 @@
+# Scene understanding from the RPs: vanishing points, 3D translation symmetry, counts and
+# rectified views; the explicit-line baseline and the no-angular-constraint variant for
+# the VP evaluation.
+
+
+def scene_source(wildcards):
+    return f"{RESULTS}/{wildcards.dataset}/{config['scene']['source']}/{wildcards.image}.json"
+
+
+rule scene:
+    input:
+        **prepared(),
+        result=scene_source,
+        code=code("scene", "vp", "symmetry", "counting"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
+        rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
+    params:
+        scene=config["scene"],
+    log:
+        "logs/{dataset}/scene/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/scene/{{image}}.tsv"
+    script:
+        "../scripts/scene.py"
+
+
+rule scene_no_ac:
+    input:
+        **prepared(),
+        result=scene_source,
+        code=code("scene", "vp", "symmetry", "counting"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
+        rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
+    params:
+        scene=lambda w: {
+            **config["scene"],
+            "vp": {**config["scene"]["vp"], "angular_constraint": False},
+        },
+    log:
+        "logs/{dataset}/scene_no_ac/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/scene_no_ac/{{image}}.tsv"
+    script:
+        "../scripts/scene.py"
+
+
+rule line_vp:
+    input:
+        **prepared(),
+        code=code("scene", "vp"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
+    params:
+        scene=config["scene"],
+    log:
+        "logs/{dataset}/line_vp/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/line_vp/{{image}}.tsv"
+    script:
+        "../scripts/line_vp.py"

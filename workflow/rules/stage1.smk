@@ -1,0 +1,57 @@
+# Stage I: RESCU-I (URP search, adaptive parameters), the GRASP baseline, and the
+# ablation of the adaptive parameters (all eight variants in one job per image, reusing
+# features and affinities).
+
+
+rule rescu_i:
+    input:
+        features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        code=code("features", "urp", "search", "stage1"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+        h5=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.rp.h5",
+    params:
+        stage1=config["stage1"],
+    log:
+        "logs/{dataset}/rescu-i/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/rescu-i/{{image}}.tsv"
+    script:
+        "../scripts/stage1.py"
+
+
+rule grasp:
+    input:
+        features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        code=code("features", "urp", "search", "stage1", "grasp"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/grasp/{{image}}.json",
+        h5=f"{RESULTS}/{{dataset}}/grasp/{{image}}.rp.h5",
+    params:
+        grasp=config["grasp"],
+    log:
+        "logs/{dataset}/grasp/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/grasp/{{image}}.tsv"
+    script:
+        "../scripts/grasp.py"
+
+
+rule ablation:
+    input:
+        features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        code=code("features", "urp", "search", "stage1"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/ablation/{{image}}.json",
+    params:
+        stage1=config["stage1"],
+        variants=config["ablation"]["variants"],
+    log:
+        "logs/{dataset}/ablation/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/ablation/{{image}}.tsv"
+    script:
+        "../scripts/ablation.py"

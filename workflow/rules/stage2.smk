@@ -1,0 +1,58 @@
+# Stage II: proposals + pooled frozen-backbone features (HDF5), the per-image head
+# (checkpoint), and the RESCU-II instances (JSON).
+
+
+rule stage2_features:
+    input:
+        **prepared(),
+        stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+        code=code("stage2", "proposals", "backbone"),
+    output:
+        h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
+    params:
+        stage2=config["stage2"],
+    threads: 2
+    resources:
+        mem_mb=4000,
+    log:
+        "logs/{dataset}/stage2_features/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/stage2_features/{{image}}.tsv"
+    script:
+        "../scripts/stage2_features.py"
+
+
+rule stage2_train:
+    input:
+        feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
+        stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+        code=code("stage2"),
+    output:
+        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+    params:
+        stage2=config["stage2"],
+    log:
+        "logs/{dataset}/stage2_train/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/stage2_train/{{image}}.tsv"
+    script:
+        "../scripts/stage2_train.py"
+
+
+rule stage2_predict:
+    input:
+        feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
+        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+        stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        code=code("stage2"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
+    params:
+        stage2=config["stage2"],
+    log:
+        "logs/{dataset}/stage2_predict/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict/{{image}}.tsv"
+    script:
+        "../scripts/stage2_predict.py"

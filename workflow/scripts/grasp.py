@@ -1,0 +1,7 @@
+"""Snakemake adapter: the GRASP baseline on one image (rescu.pipeline.stage1)."""
+from rescu import pipeline
+
+pipeline.setup_logging(snakemake.log[0])
+pipeline.limit_threads(snakemake.threads)
+pipeline.stage1(snakemake.input.features, snakemake.input.meta, snakemake.output.json,
+                snakemake.output.h5, snakemake.params.grasp, method="grasp")

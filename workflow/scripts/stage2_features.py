@@ -1,0 +1,7 @@
+"""Snakemake adapter: proposals + pooled backbone features (rescu.pipeline.stage2_features)."""
+from rescu import pipeline
+
+pipeline.setup_logging(snakemake.log[0])
+pipeline.limit_threads(snakemake.threads)
+pipeline.stage2_features(snakemake.input.png, snakemake.input.meta, snakemake.input.stage1,
+                         snakemake.output.h5, snakemake.params.stage2)

@@ -1,0 +1,7 @@
+"""Snakemake adapter: train the per-image head (rescu.pipeline.stage2_train)."""
+from rescu import pipeline
+
+pipeline.setup_logging(snakemake.log[0])
+pipeline.limit_threads(snakemake.threads)
+pipeline.stage2_train(snakemake.input.feats, snakemake.input.stage1, snakemake.output.ckpt,
+                      snakemake.params.stage2)
