@@ -7,3 +7,11 @@ translation symmetry and counts; the caption module says so in words.
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):  # lazy: importing rescu stays cheap
+    if name == "discover":
+        from .api import discover
+
+        return discover
+    raise AttributeError(f"module 'rescu' has no attribute {name!r}")

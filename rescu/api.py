@@ -1,0 +1,94 @@
+"""A small Python API: run RESCU on one photo without Snakemake.
+
+>>> from rescu import discover                       # doctest: +SKIP
+>>> result = discover("shelf.jpg", out_dir="out")    # doctest: +SKIP
+>>> result.patterns[0].count, result.caption["enhanced"]   # doctest: +SKIP
+
+It runs the same per-image steps as the pipeline (:mod:`rescu.pipeline`), in order, in a
+work folder, and returns the final :class:`~rescu.types.ImageResult`.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from . import io, pipeline
+from .config import load_config
+from .types import ImageResult
+
+METHODS = ("rescu-ii", "rescu-i", "grasp")
+
+
+def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
+             config: dict[str, Any] | None = None, keep_work: bool = False) -> ImageResult:
+    """Discover the recurring patterns of one photo and describe the scene.
+
+    Parameters
+    ----------
+    image : path
+        The photo (any format Pillow reads).
+    out_dir : path, optional
+        When given, ``<stem>.json`` (the per-image result), ``<stem>.png`` (the overlay
+        picture) and ``<stem>_rectified/`` (rectified views) are written there.
+    method : {"rescu-ii", "rescu-i", "grasp"}
+        Which instances the scene analysis and caption use.
+    config : dict, optional
+        A full configuration (see :func:`rescu.config.load_config`); the default
+        configuration when omitted.
+    keep_work : bool
+        Keep the intermediate files (features, RP matrices, checkpoints) in
+        ``out_dir/.work/<stem>``.
+
+    Returns
+    -------
+    ImageResult
+        With ``extra["failure"]`` set (and no pattern) when the image could not be
+        processed: this function does not raise for a bad image.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    cfg = config if config is not None else load_config()
+    image = Path(image)
+    stem = image.stem
+    tmp = None
+    if out_dir is not None and keep_work:
+        work = Path(out_dir) / ".work" / stem
+        work.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="rescu-")
+        work = Path(tmp.name)
+    try:
+        w = lambda name: str(work / name)  # noqa: E731
+        pipeline.prepare(str(image), w("image.png"), w("meta.json"), image_name=image.name,
+                         max_side=cfg["image"]["max_side"], min_side=cfg["image"]["min_side"])
+        pipeline.features(w("image.png"), w("meta.json"), w("features.h5"), cfg["features"])
+        s1 = "grasp" if method == "grasp" else "rescu-i"
+        pipeline.stage1(w("features.h5"), w("meta.json"), w(f"{s1}.json"), w(f"{s1}.rp.h5"),
+                        cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1)
+        source = w(f"{s1}.json")
+        if method == "rescu-ii":
+            pipeline.stage2_features(w("image.png"), w("meta.json"), source, w("stage2.h5"),
+                                     cfg["stage2"])
+            pipeline.stage2_train(w("stage2.h5"), source, w("head.pt"), cfg["stage2"])
+            pipeline.stage2_predict(w("stage2.h5"), w("head.pt"), source, w("rescu-ii.json"),
+                                    w("meta.json"), cfg["stage2"])
+            source = w("rescu-ii.json")
+        rect = Path(out_dir) / f"{stem}_rectified" if out_dir is not None else work / "rect"
+        pipeline.scene(w("image.png"), w("meta.json"), source, w("scene.json"), str(rect),
+                       cfg["scene"])
+        pipeline.caption(w("image.png"), w("meta.json"), w("scene.json"), w("final.json"),
+                         cfg["caption"])
+        result = io.read_result(w("final.json"))
+        if out_dir is not None:
+            out = Path(out_dir)
+            io.write_json(out / f"{stem}.json", result)
+            pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
+                             str(out / f"{stem}.png"))
+            if rect.is_dir() and not any(rect.iterdir()):
+                rect.rmdir()
+        return result
+    finally:
+        if tmp is not None:
+            tmp.cleanup()

@@ -1,0 +1,73 @@
+"""A self-contained HTML report: tables, curves, and pictures of what was found."""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+from typing import Any, Sequence
+
+from .io import atomic_path
+
+
+def _img_tag(path: str | Path, width: int | None = None) -> str:
+    data = base64.b64encode(Path(path).read_bytes()).decode("ascii")
+    w = f' width="{width}"' if width else ""
+    return f'<img src="data:image/png;base64,{data}"{w} alt="{html.escape(Path(path).name)}">'
+
+
+def _table_html(tsv: str | Path) -> str:
+    import pandas as pd
+
+    p = Path(tsv)
+    if not p.exists() or p.stat().st_size == 0:
+        return "<p><em>(no rows)</em></p>"
+    df = pd.read_csv(p, sep="\t")
+    if df.empty:
+        return "<p><em>(no rows)</em></p>"
+    return df.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.3f}", border=0,
+                      classes="t")
+
+
+def build_report(out_html: str | Path, title: str, intro: str,
+                 tables: Sequence[tuple[str, str | Path]], figures: Sequence[str | Path],
+                 samples: Sequence[dict[str, Any]]) -> None:
+    """Write one HTML file with everything embedded (no external files).
+
+    Parameters
+    ----------
+    tables : list of ``(heading, tsv_path)``
+    figures : list of PNG paths (curves)
+    samples : list of ``{"dataset", "image", "overlay": png, "rectified": [png, ...],
+        "caption": str, "summary": str}``
+    """
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
+             "</title><style>body{font-family:sans-serif;max-width:1200px;margin:auto;"
+             "padding:1em}table.t{border-collapse:collapse;font-size:13px;margin:0.5em 0 1.5em}"
+             "table.t td,table.t th{border-bottom:1px solid #ddd;padding:3px 8px;"
+             "text-align:right}figure{display:inline-block;margin:6px;vertical-align:top;"
+             "max-width:560px}figcaption{font-size:13px}</style></head><body>",
+             f"<h1>{html.escape(title)}</h1>", f"<p>{intro}</p>", "<h2>Tables</h2>"]
+    for heading, tsv in tables:
+        parts.append(f"<h3>{html.escape(heading)}</h3>")
+        parts.append(_table_html(tsv))
+    if figures:
+        parts.append("<h2>Curves</h2>")
+        for f in figures:
+            if Path(f).exists():
+                parts.append(f"<figure>{_img_tag(f, 540)}<figcaption>{html.escape(Path(f).stem)}"
+                             "</figcaption></figure>")
+    parts.append("<h2>What was found (sample images)</h2>")
+    current = None
+    for s in samples:
+        if s["dataset"] != current:
+            current = s["dataset"]
+            parts.append(f"<h3>{html.escape(current)}</h3>")
+        rect = "".join(_img_tag(r, 160) for r in s.get("rectified", []))
+        parts.append(
+            f"<figure>{_img_tag(s['overlay'], 540)}<figcaption><b>{html.escape(s['image'])}</b>: "
+            f"{html.escape(s.get('summary', ''))}<br><i>{html.escape(s.get('caption', ''))}</i>"
+            f"{'<br>rectified: ' + rect if rect else ''}</figcaption></figure>")
+    parts.append("</body></html>")
+    with atomic_path(out_html) as tmp:
+        tmp.write_text("\n".join(parts))

@@ -1,0 +1,169 @@
+"""Bad input gets a clear error naming the file, or a documented result; writes are atomic."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from rescu import io
+from rescu.config import load_config
+from rescu.io import InputError
+
+
+def _photo(h=120, w=160, seed=0):
+    return np.random.default_rng(seed).integers(0, 255, (h, w, 3), dtype=np.uint8)
+
+
+def test_zero_byte_file(tmp_path):
+    p = tmp_path / "empty.jpg"
+    p.write_bytes(b"")
+    with pytest.raises(InputError, match=r"empty\.jpg: empty file"):
+        io.load_image(p)
+
+
+def test_truncated_file(tmp_path):
+    p = tmp_path / "cut.jpg"
+    Image.fromarray(_photo()).save(p, quality=90)
+    p.write_bytes(p.read_bytes()[:300])
+    with pytest.raises(InputError, match=r"cut\.jpg: unreadable or truncated"):
+        io.load_image(p)
+
+
+def test_non_image_file(tmp_path):
+    p = tmp_path / "notes.jpg"
+    p.write_text("this is not an image")
+    with pytest.raises(InputError, match=r"notes\.jpg: not an image file"):
+        io.load_image(p)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match="file not found"):
+        io.load_image(tmp_path / "nope.png")
+
+
+@pytest.mark.parametrize("mode", ["L", "RGBA", "P", "I;16", "RGB"])
+def test_modes_become_rgb(tmp_path, mode):
+    rgb = _photo()
+    im = Image.fromarray(rgb)
+    if mode == "I;16":
+        im = Image.fromarray(rgb[..., 0].astype(np.uint16) * 257)  # 16-bit gray
+    elif mode != "RGB":
+        im = im.convert(mode)
+    p = tmp_path / f"x_{mode.replace(';', '')}.png"
+    im.save(p)
+    out = io.load_image(p)
+    assert out.rgb.dtype == np.uint8 and out.rgb.shape == (120, 160, 3)
+    assert out.original_size == (160, 120) and out.scale_factor == 1.0
+    if mode == "I;16":  # 16-bit rescaled to the 8-bit range, not clipped
+        assert out.rgb.max() > 200
+
+
+def test_rgba_composited_on_white(tmp_path):
+    a = np.zeros((40, 40, 4), np.uint8)  # fully transparent
+    p = tmp_path / "t.png"
+    Image.fromarray(a, "RGBA").save(p)
+    assert (io.load_image(p).rgb == 255).all()
+
+
+def test_exif_rotation_gives_displayed_orientation(tmp_path):
+    rgb = _photo(100, 200)
+    p = tmp_path / "rot.jpg"
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise for display
+    Image.fromarray(rgb).save(p, exif=exif)
+    out = io.load_image(p)
+    assert out.original_size == (100, 200)  # width, height as displayed
+    assert "exif-rotated" in out.notes
+
+
+def test_tiny_image_rejected(tmp_path):
+    p = tmp_path / "tiny.png"
+    Image.fromarray(_photo(10, 10)).save(p)
+    with pytest.raises(InputError, match=r"tiny\.png: image too small \(10x10"):
+        io.load_image(p, min_side=16)
+
+
+def test_huge_image_downscaled_with_scale_factor(tmp_path):
+    p = tmp_path / "huge.png"
+    Image.new("RGB", (12000, 9000), (120, 130, 140)).save(p)
+    out = io.load_image(p, max_side=1600)
+    assert max(out.rgb.shape[:2]) == 1600
+    assert out.original_size == (12000, 9000)
+    assert out.scale_factor == pytest.approx(1600 / 12000)
+
+
+def test_list_images_skips_other_files(tmp_path):
+    Image.fromarray(_photo()).save(tmp_path / "a.png")
+    (tmp_path / "readme.txt").write_text("x")
+    (tmp_path / ".hidden.png").write_bytes(b"")
+    assert [p.name for p in io.list_images(tmp_path)] == ["a.png"]
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path):
+    p = tmp_path / "r.json"
+    io.write_json(p, {"a": 1})
+    with pytest.raises(TypeError):
+        io.write_json(p, {"a": object()})
+    assert json.loads(p.read_text()) == {"a": 1}
+    assert [f.name for f in tmp_path.iterdir()] == ["r.json"]  # no temp file left
+
+
+def test_malformed_json_names_file(tmp_path):
+    p = tmp_path / "annotations.json"
+    p.write_text("{not json")
+    with pytest.raises(InputError, match=r"annotations\.json: malformed JSON"):
+        io.load_coco_rps(p)
+
+
+@pytest.mark.parametrize("doc,field", [
+    ({"images": []}, "'annotations'"),
+    ({"images": [{"id": 1, "file_name": "images/a.jpg"}],
+      "annotations": [{"image_id": 1, "category_id": 0}]}, "'bbox'"),
+    ({"images": [{"id": 1, "file_name": "images/a.jpg"}],
+      "annotations": [{"image_id": 1, "category_id": 0, "bbox": [1, 2, 3]}]}, r"bbox must be"),
+    ({"images": [{"id": 1, "file_name": "images/a.jpg"}],
+      "annotations": [{"image_id": 7, "category_id": 0, "bbox": [1, 2, 3, 4]}]}, "image_id 7"),
+])
+def test_malformed_annotations_name_field(tmp_path, doc, field):
+    p = tmp_path / "annotations.json"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=field):
+        io.load_coco_rps(p)
+
+
+def test_coco_rps_group_categories_with_two_or_more_boxes(tmp_path):
+    doc = {"images": [{"id": 1, "file_name": "images/a.jpg"}, {"id": 2, "file_name": "images/b.jpg"}],
+           "categories": [{"id": 0, "name": "pawn"}, {"id": 1, "name": "king"}],
+           "annotations": [{"image_id": 1, "category_id": 0, "bbox": [0, 0, 5, 5]},
+                           {"image_id": 1, "category_id": 0, "bbox": [10, 0, 5, 5]},
+                           {"image_id": 1, "category_id": 1, "bbox": [20, 0, 5, 5]}]}
+    p = tmp_path / "annotations.json"
+    p.write_text(json.dumps(doc))
+    rps = io.load_coco_rps(p)
+    assert rps["images/b.jpg"] == []
+    assert len(rps["images/a.jpg"]) == 1 and rps["images/a.jpg"][0].category == "pawn"
+    assert len(rps["images/a.jpg"][0].boxes) == 2
+
+
+def test_malformed_vanishing_points_name_field(tmp_path):
+    p = tmp_path / "vanishing_points.json"
+    p.write_text(json.dumps({"images": [{"file_name": "a.jpg", "width": 4, "height": 3,
+                                         "vanishing_points": [{"homogeneous": [1, 2]}]}]}))
+    with pytest.raises(InputError, match=r"vanishing_points\.json: images\[0\]\.vanishing_points\[0\]"):
+        io.load_vanishing_points(p)
+
+
+def test_malformed_config_names_file_and_field(tmp_path):
+    p = tmp_path / "my.yaml"
+    p.write_text("image:\n  max_side: big\n")
+    with pytest.raises(InputError, match=r"my\.yaml: field 'image\.max_side'"):
+        load_config(p)
+    p.write_text("image: [unclosed\n")
+    with pytest.raises(InputError, match=r"my\.yaml: malformed YAML"):
+        load_config(p)
+    p.write_text("datasets:\n  mine: {kind: folder}\n")
+    with pytest.raises(InputError, match=r"datasets\.mine"):
+        load_config(p)
