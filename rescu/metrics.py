@@ -15,7 +15,11 @@ Protocol (the paper's, with the choices it leaves open stated here):
   ground-truth RP alone is computed; the RP is assigned the GT RP with the highest one
   (ties: higher recall). It is *accepted* when that precision is >= 0.5 and at least two
   of its instances match (an RP is a recurrence). precision = accepted RPs / detected
-  RPs; recall = distinct GT RPs that some accepted RP is assigned to / GT RPs.
+  RPs; recall = GT RPs covered by a one-to-one matching of detected RPs to GT RPs /
+  GT RPs, where a detected RP may be matched to any GT RP it would be accepted for
+  (maximum bipartite matching; so two detections of one GT RP count once, and the
+  recall does not depend on the order of the RPs when a detection is acceptable for
+  several GT RPs, e.g. overlapping boxes at a low h).
 * A ratio with a zero denominator is undefined (NaN) and left out of the mean over
   images (e.g. precision of an image with no detection); the number of images that
   entered each mean is reported beside it.
@@ -99,6 +103,17 @@ def match_boxes(det: np.ndarray, gt: np.ndarray, h: float = 0.5) -> list[tuple[i
     return pairs
 
 
+def _max_bipartite_matching(adj: np.ndarray) -> int:
+    """Size of a maximum matching of a (D, G) bool biadjacency matrix."""
+    if adj.size == 0 or not adj.any():
+        return 0
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    match = maximum_bipartite_matching(csr_matrix(adj.astype(np.int8)), perm_type="column")
+    return int((match >= 0).sum())
+
+
 def _ratio(num: float, den: float) -> float:
     return float(num) / float(den) if den > 0 else float("nan")
 
@@ -143,9 +158,9 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
     ip = _ratio(len(pairs), len(det_all))
     ir = _ratio(len(pairs), len(gt_all))
     assignment: list[int | None] = []
-    accepted_gt: set[int] = set()
+    acceptable = np.zeros((len(det_rps), len(gt_rps)), bool)  # det RP i ok for GT RP g
     n_accepted = 0
-    for rp in det_rps:
+    for i, rp in enumerate(det_rps):
         best: tuple[float, float, int] | None = None
         n_matched_best = 0
         for g, gt in enumerate(gt_rps):
@@ -154,19 +169,20 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
             r = _ratio(len(m), len(gt))
             if np.isnan(p):
                 continue
+            acceptable[i, g] = p >= min_rp_precision and len(m) >= 2
             key = (p, r if not np.isnan(r) else 0.0, -g)
             if best is None or key > best:
                 best, n_matched_best = key, len(m)
         if best is not None and best[0] >= min_rp_precision and n_matched_best >= 2:
             n_accepted += 1
             assignment.append(-best[2])
-            accepted_gt.add(-best[2])
         else:
             assignment.append(None)
+    n_recalled = _max_bipartite_matching(acceptable)
     return ImageScores(
         instance_precision=ip, instance_recall=ir,
         rp_precision=_ratio(n_accepted, len(det_rps)),
-        rp_recall=_ratio(len(accepted_gt), len(gt_rps)),
+        rp_recall=_ratio(n_recalled, len(gt_rps)),
         n_det_instances=len(det_all), n_gt_instances=len(gt_all),
         n_det_rps=len(det_rps), n_gt_rps=len(gt_rps), rp_assignment=assignment)
 

@@ -1,0 +1,483 @@
+"""RESCU-I: recurring-pattern discovery from SIFT features with a URP-based search and
+adaptive parameters.
+
+Pipeline of :func:`discover`:
+
+1. candidate correspondences (:func:`rescu.urp.match_candidates`, once);
+2. URP precomputation (:func:`precompute_urps`, once): for every correspondence
+   ``(a, b)`` and every spatial neighbour ``c`` of ``a`` the copy ``d`` of ``c`` near
+   ``b`` is looked up among ``c``'s correspondences, and the URP ``(a, b, c, d)`` with its
+   affinity u and its gate quantities (within-instance distances, size difference,
+   orientation difference) is stored. The support of a correspondence (sum of u of its
+   URPs) ranks the initial URPs;
+3. for every parameter set of the adaptive grid (the product of the grids of the names
+   in ``adaptive``, the others fixed), the table is only *filtered* by the gates
+   (P_d, P_s, P_theta) and a search from the best initials yields Omega*; the set with
+   the largest U(Omega*) is chosen (the paper's rule);
+4. with the chosen set, RPs are found one after the other: ``initials_per_pattern``
+   searches from the best available initial URPs, the matrix with the largest U is
+   accepted, its features and every feature inside its instance boxes are removed, and
+   the search repeats (at most ``max_patterns``). Matrices with fewer than
+   ``min_instances`` columns, ``min_words`` rows or U below ``min_objective`` are no RP.
+
+P_d is a fraction of the image *diagonal* (processed pixels).
+
+An instance box is the bounding box of the positions of its column's features, grown
+on every side by ``box_grow`` times the median keypoint radius of the column.
+
+Known property (as in the paper): U = sum / (M N) grows with the matrix, so looser
+gates never lower U(Omega*); the grid then tends to pick loose values unless the
+non-overlap of instances stops larger matrices.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .features import _from_dict
+from .io import read_h5, write_h5
+from .search import SearchContext, matrix_objective, search
+from .types import Features, Instance, Pattern, RPMatrix
+from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
+
+ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
+
+
+@dataclass(frozen=True)
+class Stage1Params:
+    """Parameters of RESCU-I (see module docstring).
+
+    Attributes
+    ----------
+    sigma_s, sigma_theta : float
+        Affinity bandwidths of the paper (0.2).
+    orientation_mode : str
+        "wrapped" (default), "relative" or "paper" (see :mod:`rescu.urp`).
+    P_d : float
+        Max distance between features of one instance, fraction of the image diagonal.
+    P_s : float
+        Max size difference among instances, ``1 - min(r, 1/r)``.
+    P_theta : float
+        Max orientation difference among instances, degrees.
+    grid_P_d, grid_P_s, grid_P_theta : list of float
+        Adaptive grids.
+    adaptive : list of str
+        Which of P_d / P_s / P_theta are chosen per image from their grid.
+    max_patterns : int
+        Most RPs per image.
+    min_instances, min_words : int
+        Smallest RP matrix accepted (columns, rows).
+    min_objective : float
+        Smallest U(Omega) accepted.
+    n_initials : int
+        Most searches in the final discovery.
+    initials_per_pattern : int
+        Searches (from distinct initial URPs) per accepted RP; the best is kept.
+    grid_initials : int
+        Searches per parameter set when choosing the adaptive parameters.
+    match_k, match_max_dist, match_min_sep : candidate correspondences (RootSIFT kNN).
+    spatial_k : int
+        Spatial neighbours per feature when forming initial URPs.
+    pos_tol : float
+        Position tolerance of a predicted copy, fraction of the instance size.
+    u_min : float
+        Least mean affinity of a new row / column (and twice the least of an entry).
+    min_fill : float
+        A new row needs entries in this fraction of the instances (a new column in half
+        this fraction of the words).
+    max_overlap : float
+        Max IoU between feature boxes of two instances.
+    row_expand : float
+        New words are searched within the reference instance box grown by this
+        fraction of its size.
+    max_rows, max_cols, max_iters : size and iteration limits of one search.
+    box_grow : float
+        Instance box = feature hull grown by box_grow * median keypoint radius.
+    seed : int
+        Random seed (the search is deterministic; kept for the interface).
+    """
+
+    sigma_s: float = 0.2
+    sigma_theta: float = 0.2
+    orientation_mode: str = "wrapped"
+    P_d: float = 0.2
+    P_s: float = 0.5
+    P_theta: float = 30.0
+    grid_P_d: tuple[float, ...] = (0.1, 0.15, 0.2)
+    grid_P_s: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5)
+    grid_P_theta: tuple[float, ...] = (30.0, 90.0, 180.0)
+    adaptive: tuple[str, ...] = ("P_d", "P_s", "P_theta")
+    max_patterns: int = 5
+    min_instances: int = 2
+    min_words: int = 4
+    min_objective: float = 0.0
+    n_initials: int = 40
+    initials_per_pattern: int = 3
+    grid_initials: int = 1
+    match_k: int = 12
+    match_max_dist: float = 0.5
+    match_min_sep: float = 1.0
+    spatial_k: int = 8
+    pos_tol: float = 0.15
+    u_min: float = 0.5
+    min_fill: float = 0.5
+    max_overlap: float = 0.1
+    row_expand: float = 0.25
+    max_rows: int = 60
+    max_cols: int = 200
+    max_iters: int = 30
+    box_grow: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        bad = [a for a in self.adaptive if a not in ADAPTIVE_NAMES]
+        if bad:
+            raise ValueError(f"Stage1Params.adaptive: unknown name(s) {bad}; "
+                             f"allowed {list(ADAPTIVE_NAMES)}")
+        if self.orientation_mode not in ("wrapped", "relative", "paper"):
+            raise ValueError("Stage1Params.orientation_mode must be 'wrapped', 'relative' "
+                             f"or 'paper', got {self.orientation_mode!r}")
+        if self.min_instances < 2 or self.min_words < 2:
+            raise ValueError("Stage1Params: min_instances and min_words must be >= 2")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Stage1Params":
+        """Build from a mapping; raises ValueError naming any unknown key."""
+        return _from_dict(cls, d)
+
+    def grid(self) -> list[dict[str, float]]:
+        """The parameter sets of the adaptive grid (one set when ``adaptive`` is empty)."""
+        axes = []
+        for name in ADAPTIVE_NAMES:
+            if name in self.adaptive:
+                axes.append([(name, float(v)) for v in getattr(self, "grid_" + name)])
+            else:
+                axes.append([(name, float(getattr(self, name)))])
+        return [dict(c) for c in itertools.product(*axes)]
+
+
+@dataclass
+class Stage1Output:
+    """Result of stage I on one image.
+
+    Attributes
+    ----------
+    rps : list of RPMatrix
+        Sorted by objective, best first.
+    chosen : dict
+        The parameter set chosen (``P_d``, ``P_s``, ``P_theta``).
+    objective : float
+        U(Omega*) of the best RP (0 when there is none).
+    timings : dict
+        Seconds per step.
+    """
+
+    rps: list[RPMatrix]
+    chosen: dict[str, float]
+    objective: float
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class URPTable:
+    """Precomputed initial URPs ``(a, b, c, d)`` with affinity and gate quantities.
+
+    All arrays have length T. ``u`` is the ungated affinity; ``dist`` the larger
+    within-instance distance (pixels), ``size_diff`` and ``rot`` (degrees) as in
+    :func:`rescu.urp.urp_terms`.
+    """
+
+    abcd: np.ndarray
+    u: np.ndarray
+    dist: np.ndarray
+    size_diff: np.ndarray
+    rot: np.ndarray
+
+    def seeds(self, gates: Gates) -> np.ndarray:
+        """Initial URPs ranked by the support of their correspondence ``(a, b)`` under
+        ``gates``: (S, 4) int, best first, one per correspondence."""
+        ok = (self.dist <= gates.max_dist) & (self.size_diff <= gates.max_size_diff) & \
+            (self.rot <= gates.max_rot) & (self.u > 0)
+        if not ok.any():
+            return np.zeros((0, 4), np.int64)
+        abcd, u = self.abcd[ok], self.u[ok]
+        key = abcd[:, 0] * (abcd[:, 1].max() + 1) + abcd[:, 1]
+        uk, inv = np.unique(key, return_inverse=True)
+        support = np.bincount(inv, weights=u)
+        # best partner per correspondence
+        o = np.lexsort((-u, inv))
+        first = np.r_[True, inv[o][1:] != inv[o][:-1]]
+        best = o[first]                       # index per unique key, in uk order
+        order = np.lexsort((uk, -support))
+        return abcd[best[order]]
+
+
+def _context(features: Features, params: Stage1Params) -> tuple[SearchContext, float]:
+    xy = features.xy.astype(np.float64)
+    nbr, _ = match_candidates(features.descriptors, features.xy, features.scale,
+                              params.match_k, params.match_max_dist, params.match_min_sep)
+    ctx = SearchContext(
+        xy=xy, scale=features.scale.astype(np.float64), angle=features.angle.astype(np.float64),
+        rs=root_sift(features.descriptors), nbr=nbr, tree=cKDTree(xy),
+        sigma_s=params.sigma_s, sigma_theta=params.sigma_theta,
+        orientation_mode=params.orientation_mode, desc_max_dist=params.match_max_dist,
+        pos_tol=params.pos_tol, u_min=params.u_min, min_fill=params.min_fill,
+        max_overlap=params.max_overlap, row_expand=params.row_expand,
+        max_rows=params.max_rows, max_cols=params.max_cols, max_iters=params.max_iters)
+    w, h = features.image_size
+    return ctx, float(np.hypot(w, h))
+
+
+def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
+                    pos_tol: float = 0.15) -> URPTable:
+    """All initial URPs of the image (vectorised).
+
+    Parameters
+    ----------
+    ctx : SearchContext
+    max_dist : float
+        Loosest P_d of the grid times the diagonal, pixels.
+    spatial_k : int
+        Spatial neighbours ``c`` of each ``a``.
+    pos_tol : float
+        ``d`` must lie within ``pos_tol * d(a, c) + 2`` pixels of the predicted copy
+        ``b + (c - a) * s_b / s_a``.
+    """
+    k = len(ctx.xy)
+    empty = URPTable(np.zeros((0, 4), np.int64), *(np.zeros(0) for _ in range(4)))
+    if k < 4:
+        return empty
+    a, j = np.nonzero(ctx.nbr >= 0)
+    b = ctx.nbr[a, j]
+    keep = a < b
+    a, b = a[keep], b[keep]
+    if len(a) == 0:
+        return empty
+    kq = min(spatial_k + 1, k)
+    dd, cc = ctx.tree.query(ctx.xy, k=kq, distance_upper_bound=max_dist)
+    cc = cc[:, 1:]
+    dd = dd[:, 1:]
+    A = np.repeat(a, kq - 1)
+    B = np.repeat(b, kq - 1)
+    C = cc[a].ravel()
+    ok = np.isfinite(dd[a].ravel())
+    A, B, C = A[ok], B[ok], C[ok]
+    ok = (C != B)
+    A, B, C = A[ok], B[ok], C[ok]
+    ratio = ctx.scale[B] / ctx.scale[A]
+    pred = ctx.xy[B] + (ctx.xy[C] - ctx.xy[A]) * ratio[:, None]
+    dn = ctx.nbr[C]                                    # (T, k) candidate copies of c
+    dv = dn >= 0
+    dpos = ctx.xy[np.where(dv, dn, 0)]
+    err = np.where(dv, np.hypot(dpos[..., 0] - pred[:, None, 0], dpos[..., 1] - pred[:, None, 1]),
+                   np.inf)
+    err = np.where((dn == A[:, None]) | (dn == B[:, None]), np.inf, err)
+    jb = np.argmin(err, axis=1)
+    e = err[np.arange(len(jb)), jb]
+    tol = pos_tol * np.hypot(*(ctx.xy[C] - ctx.xy[A]).T) * ratio + 2.0
+    ok = e <= tol
+    A, B, C, D = A[ok], B[ok], C[ok], dn[np.arange(len(jb)), jb][ok]
+    if len(A) == 0:
+        return empty
+    t = urp_terms(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.orientation_mode)
+    u = urp_affinity(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.sigma_s, ctx.sigma_theta,
+                     ctx.orientation_mode)
+    return URPTable(np.stack([A, B, C, D], 1).astype(np.int64), u,
+                    np.maximum(t["d1"], t["d2"]), t["size_diff"], t["rot"])
+
+
+def _valid(omega: np.ndarray, U: float, params: Stage1Params) -> bool:
+    return (omega.ndim == 2 and omega.shape[0] >= params.min_words
+            and omega.shape[1] >= params.min_instances and U >= params.min_objective
+            and U > 0)
+
+
+def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5) -> np.ndarray:
+    """Instance boxes of an RP matrix, processed pixels.
+
+    Parameters
+    ----------
+    omega : (M, N) int
+        Feature indices, -1 for missing.
+    box_grow : float
+        The feature hull is grown by ``box_grow`` times the median keypoint radius.
+
+    Returns
+    -------
+    (N, 4) float
+        ``[x, y, w, h]`` clipped to the image.
+    """
+    w, h = features.image_size
+    out = np.zeros((omega.shape[1], 4))
+    for j in range(omega.shape[1]):
+        idx = omega[:, j][omega[:, j] >= 0]
+        p = features.xy[idx].astype(np.float64)
+        g = box_grow * float(np.median(features.scale[idx])) / 2.0
+        x0, y0 = max(0.0, p[:, 0].min() - g), max(0.0, p[:, 1].min() - g)
+        x1, y1 = min(float(w), p[:, 0].max() + g), min(float(h), p[:, 1].max() + g)
+        out[j] = [x0, y0, max(x1 - x0, 0.0), max(y1 - y0, 0.0)]
+    return out
+
+
+def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
+                  params: Stage1Params, pset: dict[str, float], diag: float,
+                  first_only: bool = False) -> list[RPMatrix]:
+    """Find RPs one after the other with one parameter set (module docstring, step 4)."""
+    gates = Gates(pset["P_d"] * diag, pset["P_s"], pset["P_theta"])
+    seeds = table.seeds(gates)
+    k = len(ctx.xy)
+    available = np.ones(k, bool)
+    rps: list[RPMatrix] = []
+    tried = 0
+    budget = params.grid_initials if first_only else params.n_initials
+    per = params.grid_initials if first_only else params.initials_per_pattern
+    consumed = np.zeros(len(seeds), bool)
+    for _ in range(1 if first_only else params.max_patterns):
+        best: tuple[float, np.ndarray] | None = None
+        blocked = ~available.copy()
+        n_this = 0
+        for s_ptr in range(len(seeds)):
+            if n_this >= per or tried >= budget:
+                break
+            sd = seeds[s_ptr]
+            if consumed[s_ptr] or blocked[sd].any():
+                continue
+            consumed[s_ptr] = True
+            om = search(ctx, sd, available, gates)
+            tried += 1
+            n_this += 1
+            if om.ndim == 2 and om.shape[0] >= 2 and om.shape[1] >= 2:
+                blocked[om[om >= 0]] = True
+                U = matrix_objective(ctx, om, gates)
+                if _valid(om, U, params) and (best is None or U > best[0]):
+                    best = (U, om)
+            blocked[sd] = True
+        if best is None:
+            break
+        U, om = best
+        rps.append(RPMatrix(om.astype(np.int64), float(U),
+                            dict(pset, box_grow=params.box_grow)))
+        available[om[om >= 0]] = False
+        boxes = instance_boxes(features, om, params.box_grow)
+        x, y = ctx.xy[:, 0], ctx.xy[:, 1]
+        for bx in boxes:
+            available &= ~((x >= bx[0]) & (x <= bx[0] + bx[2]) & (y >= bx[1]) & (y <= bx[1] + bx[3]))
+        if tried >= budget:
+            break
+    rps.sort(key=lambda r: -r.objective)
+    return rps
+
+
+def discover(features: Features, params: Stage1Params | None = None) -> Stage1Output:
+    """RESCU-I on one image's features.
+
+    Parameters
+    ----------
+    features : Features
+        SIFT features of the processed image.
+    params : Stage1Params
+
+    Returns
+    -------
+    Stage1Output
+        ``rps`` best first. An image with fewer than 4 features or without recurrence
+        gives ``rps == []``, ``objective == 0`` and the fixed parameters as ``chosen``.
+    """
+    params = params or Stage1Params()
+    if not isinstance(features, Features):
+        raise TypeError(f"discover: features must be a Features, got {type(features).__name__}")
+    timings: dict[str, float] = {}
+    fixed = {"P_d": float(params.P_d), "P_s": float(params.P_s), "P_theta": float(params.P_theta)}
+    if len(features) < 4:
+        return Stage1Output([], fixed, 0.0, {"match": 0.0, "precompute": 0.0, "grid": 0.0,
+                                             "search": 0.0})
+    t0 = time.perf_counter()
+    ctx, diag = _context(features, params)
+    t1 = time.perf_counter()
+    grid = params.grid()
+    pd_max = max(p["P_d"] for p in grid)
+    table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol)
+    t2 = time.perf_counter()
+    chosen = grid[0]
+    if len(grid) > 1:
+        best_u = -1.0
+        for pset in grid:
+            rps = run_discovery(ctx, table, features, params, pset, diag, first_only=True)
+            u = rps[0].objective if rps else 0.0
+            if u > best_u + 1e-12:
+                best_u, chosen = u, pset
+    t3 = time.perf_counter()
+    rps = run_discovery(ctx, table, features, params, chosen, diag)
+    t4 = time.perf_counter()
+    timings = {"match": t1 - t0, "precompute": t2 - t1, "grid": t3 - t2, "search": t4 - t3}
+    return Stage1Output(rps, dict(chosen), rps[0].objective if rps else 0.0, timings)
+
+
+def rps_to_patterns(features: Features, rps: list[RPMatrix]) -> list[Pattern]:
+    """RP matrices as :class:`Pattern` records in ORIGINAL pixels.
+
+    Instance score = fraction of the RP's words present in that instance. Boxes (``box_grow`` from ``rp.params``, default 0.5) and ``feature_points``
+    (M, N, 2; NaN where missing) are divided by ``features.scale_factor``; the score is
+    the objective U; instances have source "stage1"; sorted by score (desc), ids 0...
+    """
+    sf = float(features.scale_factor)
+    out = []
+    for rp in sorted(rps, key=lambda r: -r.objective):
+        om = np.asarray(rp.feature_index, np.int64)
+        if om.ndim != 2 or om.shape[1] == 0:
+            continue
+        boxes = instance_boxes(features, om, float(rp.params.get("box_grow", 0.5))) / sf
+        fp = np.where((om >= 0)[..., None], features.xy[np.where(om >= 0, om, 0)].astype(float) / sf,
+                      np.nan)
+        fill = (om >= 0).mean(axis=0)  # instance score: fraction of the words present
+        insts = [Instance(bbox=(float(b[0]), float(b[1]), float(b[2]), float(b[3])),
+                          score=float(fl), source="stage1") for b, fl in zip(boxes, fill)]
+        out.append(Pattern(id=len(out), score=float(rp.objective), instances=insts,
+                           feature_points=fp))
+    return out
+
+
+def save_rps(path: str | os.PathLike[str], out: Stage1Output) -> None:
+    """Write stage-I output to HDF5 (atomic): group ``rp_<i>`` per RP with
+    ``feature_index`` (M, N) int64 and ``objective``; attrs ``chosen`` / ``params``
+    (JSON), ``objective``, ``timings`` (JSON), ``n_rps``."""
+    import json
+
+    arrays: dict[str, Any] = {}
+    for i, rp in enumerate(out.rps):
+        arrays[f"rp_{i:03d}"] = {"feature_index": np.asarray(rp.feature_index, np.int64),
+                                 "objective": np.float64(rp.objective)}
+    write_h5(path, arrays, attrs={
+        "n_rps": len(out.rps), "objective": float(out.objective),
+        "chosen": json.dumps(out.chosen, sort_keys=True),
+        "params": json.dumps([rp.params for rp in out.rps], sort_keys=True),
+        "timings": json.dumps(out.timings, sort_keys=True)})
+
+
+def load_rps(path: str | os.PathLike[str]) -> Stage1Output:
+    """Read a file written by :func:`save_rps`."""
+    import json
+
+    arrays, attrs = read_h5(path)
+    n = int(attrs["n_rps"])
+    plist = json.loads(attrs["params"])
+    rps = [RPMatrix(np.asarray(arrays[f"rp_{i:03d}"]["feature_index"], np.int64),
+                    float(arrays[f"rp_{i:03d}"]["objective"]), dict(plist[i]))
+           for i in range(n)]
+    return Stage1Output(rps, json.loads(attrs["chosen"]), float(attrs["objective"]),
+                        json.loads(attrs["timings"]))
+
+
+def params_dict(params: Stage1Params) -> dict[str, Any]:
+    """The parameters as a plain dict (lists for the grids)."""
+    d = asdict(params)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}

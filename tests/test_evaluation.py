@@ -1,0 +1,353 @@
+"""Dataset evaluation (rescu.evaluation) on tiny datasets built in tmp_path."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rescu import evaluation as E
+from rescu.io import load_coco_rps, write_json
+from rescu.metrics import METRICS
+from rescu.types import (ImageResult, Instance, Pattern, TranslationSymmetry,
+                         VanishingPoint)
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def _row(n, x0=10.0, y0=10.0, size=20.0, gap=40.0):
+    return [[x0 + k * gap, y0, size, size] for k in range(n)]
+
+
+# image -> list of (category_id, boxes, equal_spacing)
+SCENE = {
+    "images/a.png": [(1, _row(5), True), (2, _row(3, y0=100), False)],
+    "images/b.png": [(1, _row(4, y0=50), True)],
+    "images/c.png": [(3, [[10, 10, 20, 20]], True)],  # one box: not an RP
+}
+SUBSET = {"images/a.png": ("frontal", False), "images/b.png": ("projective", True),
+          "images/c.png": ("frontal", False)}
+GT_VP = {"images/a.png": [[0.6, 0.8, 0.0], [300.0, 100.0, 1.0]],
+         "images/b.png": [[1000.0, 120.0, 1.0]],
+         "images/c.png": [[100.0, 100.0, 1.0]],
+         "images/d.png": []}  # listed in vanishing_points.json only, without a VP
+
+
+def make_dataset(root: Path) -> Path:
+    ds = root / "tiny"
+    ds.mkdir()
+    images, anns = [], []
+    for i, (f, rps) in enumerate(SCENE.items(), start=1):
+        images.append({"id": i, "file_name": f, "width": 400, "height": 300})
+        for cid, boxes, _ in rps:
+            for b in boxes:
+                anns.append({"id": len(anns) + 1, "image_id": i, "category_id": cid,
+                             "bbox": b})
+    cats = [{"id": c, "name": f"cat{c}"} for c in (1, 2, 3)]
+    (ds / "annotations.json").write_text(json.dumps(
+        {"images": images, "annotations": anns, "categories": cats}))
+    truth = {"images": [{"file_name": f, "width": 400, "height": 300,
+                         "subset": SUBSET[f][0], "hard": SUBSET[f][1],
+                         "patterns": [{"category_id": cid, "category": f"cat{cid}",
+                                       "count": len(b), "layout": "row",
+                                       "equal_spacing": eq, "translation_symmetry": eq,
+                                       "rows": [], "vanishing_point": None}
+                                      for cid, b, eq in rps if len(b) >= 2]}
+                        for f, rps in SCENE.items()]}
+    (ds / "truth.json").write_text(json.dumps(truth))
+    vps = {"images": [{"file_name": f, "width": 400, "height": 300, "focal_px": None,
+                       "principal_point": None,
+                       "vanishing_points": [{"homogeneous": list(np.array(v) /
+                                                                 np.linalg.norm(v))}
+                                            for v in GT_VP[f]]}
+                      for f in GT_VP]}
+    (ds / "vanishing_points.json").write_text(json.dumps(vps))
+    return ds
+
+
+def write_preds(folder: Path, method: str, jitter: float = 0.0, drop: set[str] = frozenset(),
+                count_delta: int = 0, reverse: bool = False, vp_shift: float = 0.0) -> Path:
+    """Ground truth turned into predictions (optionally degraded)."""
+    folder.mkdir(parents=True)
+    for f, rps in SCENE.items():
+        if f in drop:
+            continue
+        pats = []
+        for k, (cid, boxes, eq) in enumerate(r for r in rps if len(r[1]) >= 2):
+            bx = [(b[0] + jitter, b[1] + jitter, b[2], b[3]) for b in boxes]
+            if count_delta > 0:
+                bx = bx + [(b[0] + 500, b[1] + 500, b[2], b[3]) for b in bx[:count_delta]]
+            elif count_delta < 0:
+                bx = bx[:count_delta]
+            if reverse:
+                bx = bx[::-1]
+            ts = TranslationSymmetry(eq, 4 / 3 if eq else 1.6, 2)
+            pats.append(Pattern(k, 1.0, [Instance(b) for b in bx], translation_symmetry=ts))
+        if reverse:
+            pats = pats[::-1]
+        v = np.array(GT_VP[f][-1], float)
+        if vp_shift:
+            v = v / v[2] + np.array([vp_shift, 0, 0])
+        res = ImageResult(f, 400, 300, method, pats,
+                          dominant_pattern=0 if pats else None,
+                          vanishing_point=VanishingPoint(v / np.linalg.norm(v), True))
+        write_json(folder / (Path(f).stem + ".json"), res)
+    return folder
+
+
+@pytest.fixture()
+def tiny(tmp_path: Path):
+    ds = make_dataset(tmp_path)
+    preds = {"gt": write_preds(tmp_path / "p_gt", "gt"),
+             "jitter": write_preds(tmp_path / "p_jit", "jitter", jitter=8.0,
+                                   drop={"images/b.png"}),
+             "reversed": write_preds(tmp_path / "p_rev", "reversed", reverse=True)}
+    return ds, preds, tmp_path
+
+
+def test_ground_truth_as_prediction_gives_one_everywhere(tiny) -> None:
+    ds, preds, _ = tiny
+    df = E.evaluate_rp_dataset(ds, {"gt": preds["gt"], "reversed": preds["reversed"]})
+    assert len(df) == 6
+    with_gt = df[df["n_gt_rps"] > 0]
+    for m in METRICS:
+        assert (with_gt[m] == 1.0).all()
+    c = df[df["image"] == "images/c.png"].iloc[0]
+    assert math.isnan(c["instance_precision"]) and math.isnan(c["instance_recall"])
+    assert set(df["subset"]) == {"frontal", "projective"}
+    assert not df["prediction_missing"].any()
+    a = df[(df["image"] == "images/a.png") & (df["method"] == "gt")].iloc[0]
+    assert (a["n_gt_rps"], a["n_gt_instances"], a["gt_categories"]) == (2, 8, "cat1;cat2")
+
+
+def test_missing_prediction_is_no_detection(tiny) -> None:
+    ds, preds, _ = tiny
+    df = E.evaluate_rp_dataset(ds, {"jitter": preds["jitter"]})
+    b = df[df["image"] == "images/b.png"].iloc[0]
+    assert bool(b["prediction_missing"]) is True
+    assert b["instance_recall"] == 0.0 and b["rp_recall"] == 0.0
+    assert math.isnan(b["instance_precision"])
+    a = df[df["image"] == "images/a.png"].iloc[0]
+    # jitter 8 px on 20 px boxes: IOD = 12*12/400 = 0.36 < 0.5
+    assert a["instance_precision"] == 0.0 and not a["prediction_missing"]
+
+
+def test_bad_pred_dir_raises(tiny) -> None:
+    ds, _, tmp = tiny
+    with pytest.raises(Exception, match="prediction folder"):
+        E.evaluate_rp_dataset(ds, {"x": tmp / "nope"})
+    with pytest.raises(ValueError, match="pred_dirs"):
+        E.evaluate_rp_dataset(ds, {})
+
+
+def test_summary_tables_written_and_parse_back(tiny) -> None:
+    ds, preds, tmp = tiny
+    df = E.evaluate_rp_dataset(ds, preds)
+    s = E.summary_table(df)
+    assert set(s["subset"]) == {"all", "frontal", "projective", "hard", "not hard"}
+    allrows = s[s["subset"] == "all"].set_index("method")
+    assert allrows.loc["gt", "instance_recall_mean"] == 1.0
+    assert allrows.loc["gt", "instance_recall_std"] == 0.0
+    assert allrows.loc["gt", "instance_recall_n"] == 2
+    assert allrows.loc["jitter", "instance_recall_mean"] == 0.0
+    assert allrows.loc["jitter", "instance_precision_n"] == 1  # b missing, c empty
+    assert bool(allrows.loc["gt", "instance_recall_best"])
+    assert math.isnan(allrows.loc["gt", "instance_recall_p_vs_best"])
+    # reversed order = identical values -> p = 1 (not significant)
+    assert allrows.loc["reversed", "instance_recall_p_vs_best"] == 1.0
+    E.write_tsv(s, tmp / "out" / "summary.tsv")
+    back = E.read_tsv(tmp / "out" / "summary.tsv")
+    pd.testing.assert_frame_equal(back, s, check_dtype=False)
+    md = E.summary_markdown(s)
+    E.write_markdown(md, tmp / "out" / "summary.md")
+    text = (tmp / "out" / "summary.md").read_text()
+    assert "## tiny — all" in text
+    assert "**1.00 ± 0.00**" in text and "*1.00 ± 0.00*" in text
+    # two paired images cannot make a Wilcoxon test significant -> italics
+    assert "| jitter | 3 | *0.00 ± 0.00* |" in text
+    sig = E.significance_table(df)
+    assert len(sig) == 5 * 4 * 3  # groups x metrics x method pairs
+    one = sig[(sig["subset"] == "all") & (sig["metric"] == "instance_recall")
+              & (sig["method_a"] == "gt") & (sig["method_b"] == "reversed")].iloc[0]
+    assert one["p_value"] == 1.0 and one["n_pairs"] == 2
+
+
+def test_paired_wilcoxon() -> None:
+    from scipy.stats import wilcoxon
+
+    a = [0.9, 0.8, 0.7, 0.95, 0.85, 0.6, np.nan]
+    b = [0.5, 0.4, 0.6, 0.5, 0.3, 0.2, 0.1]
+    p, n = E.paired_wilcoxon(a, b)
+    assert n == 6 and p == pytest.approx(wilcoxon(a[:6], b[:6]).pvalue)
+    assert E.paired_wilcoxon([1, 2], [1, 2]) == (1.0, 2)
+    assert math.isnan(E.paired_wilcoxon([np.nan], [1.0])[0])
+    with pytest.raises(ValueError, match="same shape"):
+        E.paired_wilcoxon([1, 2], [1])
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 1), st.floats(0, 1)), min_size=1, max_size=12))
+def test_summary_mean_matches_numpy_and_p_symmetric(pairs) -> None:
+    rows = []
+    for i, (x, y) in enumerate(pairs):
+        rows.append({"dataset": "d", "image": f"i{i}", "method": "A",
+                     **{m: x for m in METRICS}})
+        rows.append({"dataset": "d", "image": f"i{i}", "method": "B",
+                     **{m: y for m in METRICS}})
+    df = pd.DataFrame(rows)
+    s = E.summary_table(df).set_index("method")
+    xs = np.array([p[0] for p in pairs])
+    assert s.loc["A", "rp_recall_mean"] == pytest.approx(xs.mean())
+    p1 = E.paired_wilcoxon(xs, [p[1] for p in pairs])[0]
+    p2 = E.paired_wilcoxon([p[1] for p in pairs], xs)[0]
+    assert p1 == pytest.approx(p2)
+
+
+def test_curves_monotone_and_png(tiny) -> None:
+    ds, _, tmp = tiny
+    pd_ = {"gt": tmp / "p_gt", "jit4": write_preds(tmp / "p_j4", "jit4", jitter=4.0)}
+    c = E.metric_curves(ds, pd_)
+    assert sorted(c["h"].unique()) == pytest.approx([0.1 * k for k in range(1, 10)])
+    assert (c[c["method"] == "gt"]["mean"] == 1.0).all()
+    j = c[c["method"] == "jit4"]
+    for met in ("instance_precision", "instance_recall"):
+        v = j[j["metric"] == met].sort_values("h")["mean"].to_numpy()
+        assert np.all(np.diff(v) <= 1e-12)
+        # jitter 4 px on 20 px boxes: IOD = 16*16/400 = 0.64
+        assert v[5] == 1.0 and v[6] == 0.0
+    E.plot_metric_curves(c, tmp / "fig" / "curves.png", title="tiny")
+    assert (tmp / "fig" / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_ablation_table_eight_rows_in_order(tiny) -> None:
+    ds, preds, tmp = tiny
+    dirs = {}
+    for k, name in enumerate(reversed(E.ABLATION_ROWS)):
+        d = tmp / f"abl{k}"
+        shutil.copytree(preds["gt"] if name == "all" else preds["jitter"], d)
+        dirs[name] = d
+    t = E.ablation_table(ds, dirs)
+    assert list(t["adaptive"]) == list(E.ABLATION_ROWS)
+    assert t.set_index("adaptive").loc["all", "rp_recall_mean"] == 1.0
+    assert t.set_index("adaptive").loc["none", "rp_recall_mean"] == 0.0
+    with pytest.raises(ValueError, match="unknown ablation row"):
+        E.ablation_table(ds, {"P_x": preds["gt"]})
+
+
+def test_counting_table(tiny) -> None:
+    ds, preds, tmp = tiny
+    more = write_preds(tmp / "p_more", "more", count_delta=1)  # one extra far instance
+    less = write_preds(tmp / "p_less", "less", count_delta=-1)
+    t = E.counting_table(ds, {"gt": preds["gt"], "more": more, "less": less}).set_index("method")
+    assert t.loc["gt", "n_matched"] == 3
+    assert t.loc["gt", "count_mae"] == 0.0 and t.loc["gt", "exact_rate"] == 1.0
+    assert t.loc["gt", "dominant_exact_rate"] == 1.0 and t.loc["gt", "n_dominant"] == 2
+    assert t.loc["more", "count_mae"] == 1.0 and t.loc["more", "exact_rate"] == 0.0
+    # less: 5->4, 3->2, 4->3 all still accepted (>= 2 matches)
+    assert t.loc["less", "n_matched"] == 3 and t.loc["less", "count_mae"] == 1.0
+    assert t.loc["gt", "instance_precision_pooled"] == 1.0
+    assert t.loc["more", "instance_precision_pooled"] == pytest.approx(12 / 15)
+    cf = E.count_frame(ds, {"gt": preds["gt"]})
+    assert sorted(cf["gt_count"].tolist()) == [3, 4, 5]
+
+
+def test_vp_tables(tiny) -> None:
+    ds, preds, tmp = tiny
+    shifted = write_preds(tmp / "p_vps", "shift", vp_shift=7.0)
+    f = E.vp_frame(ds, {"gt": preds["gt"], "shift": shifted, "jitter": preds["jitter"]})
+    assert "images/d.png" not in set(f["image"])  # no GT VP: left out
+    g = f[f["method"] == "gt"]
+    # JSON keeps 9 decimals of the unit homogeneous vector: ~1e-4 px at 1000 px
+    assert (g["point_error_px"] < 1e-3).all() and (g["angle_error_deg"] < 1e-4).all()
+    assert (g["focal_source"] == "assumed").all() and (g["focal_px"] == 175.0).all()
+    sh = f[f["method"] == "shift"].set_index("image")["point_error_px"]
+    assert sh["images/a.png"] == pytest.approx(7.0, abs=1e-4)
+    j = f[f["method"] == "jitter"].set_index("image")
+    assert j.loc["images/b.png", "vp_missing"] and math.isinf(j.loc["images/b.png",
+                                                                    "point_error_px"])
+    s = E.vp_success_table(f, px_thresholds=(5, 10), deg_thresholds=(1, 20))
+    pt = s[s["kind"] == "point_px"].set_index(["method", "threshold"])["success_rate"]
+    assert pt[("gt", 5.0)] == 1.0 and pt[("shift", 5.0)] == 0.0 and pt[("shift", 10.0)] == 1.0
+    assert pt[("jitter", 10.0)] == pytest.approx(2 / 3)
+    sig = E.vp_significance(f)
+    assert len(sig) == 2 * 3 and sig["p_value"].between(0, 1).all()
+    md = E.vp_markdown(s)
+    assert "≤ 5 px" in md and "| shift | 0.00 | 1.00 |" in md
+    E.plot_vp_curves(s, tmp / "vp.png")
+    assert (tmp / "vp.png").stat().st_size > 1000
+
+
+def test_ts_sweep_rates(tiny) -> None:
+    ds, preds, _ = tiny
+    fr = E.ts_frame(ds, {"gt": preds["gt"], "jitter": preds["jitter"]})
+    sw = E.ts_sweep(fr, t_values=(0.1, 0.3)).set_index(["method", "t"])
+    # a: CR 4/3 and 1.6, b: 4/3, c: no pattern -> 2 of 3 images
+    assert sw.loc[("gt", 0.1), "sr_ts"] == pytest.approx(2 / 3)
+    assert sw.loc[("gt", 0.1), "tpr"] == 1.0 and sw.loc[("gt", 0.1), "fpr"] == 0.0
+    assert sw.loc[("gt", 0.3), "fpr"] == 1.0  # |1.6 - 4/3| = 0.267
+    assert (sw.loc[("gt", 0.1), "n_equal"], sw.loc[("gt", 0.1), "n_unequal"]) == (2, 1)
+    assert sw.loc[("gt", 0.1), "sr_ts_flag"] == pytest.approx(2 / 3)
+    # jitter: no pattern is accepted -> no known truth; b missing
+    assert math.isnan(sw.loc[("jitter", 0.1), "tpr"])
+    assert sw.loc[("jitter", 0.1), "sr_ts"] == pytest.approx(1 / 3)
+    dom = E.ts_sweep(fr, t_values=(0.1,), which="dominant").set_index("method")
+    assert dom.loc["gt", "sr_ts"] == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="which"):
+        E.ts_sweep(fr, which="all")
+
+
+def test_collect_failures(tmp_path: Path) -> None:
+    d = tmp_path / "failures" / "chess"
+    d.mkdir(parents=True)
+    (d / "x.failed.json").write_text(json.dumps({"image": "images/x.jpg",
+                                                 "stage": "stage1", "message": "no SIFT"}))
+    (d / "y.failed.json").write_text(json.dumps({"image": "images/y.jpg",
+                                                 "stage": "vp", "message": "a|b\nc",
+                                                 "dataset": "other"}))
+    (d / "z.failed.json").write_text("{broken")
+    (d / "ignored.json").write_text("{}")
+    df = E.collect_failures(tmp_path / "failures")
+    assert df[["dataset", "image", "stage"]].values.tolist() == [
+        ["chess", "images/x.jpg", "stage1"], ["other", "images/y.jpg", "vp"],
+        ["chess", "z", "unreadable"]]
+    E.write_tsv(df, tmp_path / "f.tsv")
+    assert E.read_tsv(tmp_path / "f.tsv")["message"].tolist()[0] == "no SIFT"
+    md = E.failures_markdown(df)
+    assert "a\\|b c" in md
+    assert E.failures_markdown(df.iloc[:0]) == "No failures.\n"
+    with pytest.raises(Exception, match="not found"):
+        E.collect_failures(tmp_path / "nothing")
+
+
+def test_params_from_dict() -> None:
+    p = E.EvaluationParams.from_dict({"iod_h": 0.4, "vp_px_thresholds": [5, 50],
+                                      "significance_alpha": 0.01})
+    assert p.iod_h == 0.4 and p.vp_px_thresholds == (5.0, 50.0)
+    assert p.significance_alpha == 0.01
+    with pytest.raises(ValueError, match="bogus"):
+        E.EvaluationParams.from_dict({"bogus": 1})
+    with pytest.raises(ValueError, match="iod_h must"):
+        E.EvaluationParams(iod_h=1.5)
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not (SHARED / "chess" / "annotations.json").exists(),
+                    reason="../shared/data/chess is absent")
+def test_real_annotations_as_predictions(tmp_path: Path) -> None:
+    ds = SHARED / "chess"
+    gt = load_coco_rps(ds / "annotations.json")
+    out = tmp_path / "pred"
+    for f, rps in gt.items():
+        pats = [Pattern(k, 1.0, [Instance(b) for b in r.boxes]) for k, r in enumerate(rps)]
+        write_json(out / (Path(f).stem + ".json"), ImageResult(f, 640, 640, "gt", pats))
+    df = E.evaluate_rp_dataset(ds, {"gt": out})
+    for m in METRICS:
+        v = df[m].dropna()
+        assert len(v) > 0 and (v == 1.0).all()

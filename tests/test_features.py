@@ -1,0 +1,50 @@
+"""Tests of SIFT feature extraction and storage (rescu.features)."""
+
+import numpy as np
+import pytest
+
+from rescu.features import FeatureParams, extract_features, load_features, save_features
+
+
+def _image(seed=0, h=120, w=160):
+    import cv2
+    g = np.random.default_rng(seed).integers(0, 256, (h // 8, w // 8)).astype(np.uint8)
+    g = cv2.resize(g, (w, h), interpolation=cv2.INTER_NEAREST)
+    return np.dstack([g] * 3)
+
+
+def test_extract_shapes_order_and_scale_factor():
+    f = extract_features(_image(), FeatureParams(n_features=50), scale_factor=0.5)
+    k = len(f)
+    assert 0 < k <= 50
+    assert f.xy.shape == (k, 2) and f.descriptors.shape == (k, 128)
+    assert f.image_size == (160, 120) and f.scale_factor == 0.5
+    assert np.all(np.diff(f.response) <= 0)           # sorted by response
+    assert np.all((f.angle >= 0) & (f.angle < 360))
+    assert np.all(f.scale >= FeatureParams().min_size)
+
+
+def test_deterministic_and_uniform_image_is_empty():
+    a = extract_features(_image())
+    b = extract_features(_image())
+    assert np.array_equal(a.xy, b.xy) and np.array_equal(a.descriptors, b.descriptors)
+    e = extract_features(np.full((64, 64, 3), 128, np.uint8))
+    assert len(e) == 0 and e.image_size == (64, 64)
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="rgb"):
+        extract_features(np.zeros((10, 10, 4), np.uint8))
+    with pytest.raises(ValueError, match="uint8"):
+        extract_features(np.zeros((10, 10, 3), np.float32))
+    with pytest.raises(ValueError, match="n_feat"):
+        FeatureParams.from_dict({"n_feat": 3})
+
+
+def test_save_load_roundtrip(tmp_path):
+    f = extract_features(_image(), scale_factor=0.25)
+    save_features(tmp_path / "f.h5", f)
+    g = load_features(tmp_path / "f.h5")
+    assert g.image_size == f.image_size and g.scale_factor == 0.25
+    for name in ("xy", "scale", "angle", "response", "descriptors"):
+        assert np.array_equal(getattr(g, name), getattr(f, name))

@@ -1,0 +1,40 @@
+"""Tests of the GRASP baseline (rescu.grasp)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_stage1 import make_scene  # noqa: E402
+
+from rescu.features import extract_features  # noqa: E402
+from rescu.grasp import GraspParams, discover_grasp  # noqa: E402
+from rescu.metrics import score_image  # noqa: E402
+from rescu.stage1 import rps_to_patterns  # noqa: E402
+from rescu.types import Features  # noqa: E402
+
+P = GraspParams(iterations=2, max_steps=15, max_candidates=15, max_patterns=1)
+
+
+def test_grasp_finds_the_row_of_squares():
+    img, gt = make_scene()
+    f = extract_features(img)
+    out = discover_grasp(f, P)
+    pats = rps_to_patterns(f, out.rps)
+    s = score_image([[i.bbox for i in p.instances] for p in pats], gt)
+    assert s.rp_recall == 1.0 and s.instance_precision == 1.0
+    assert s.instance_recall >= 0.8
+    assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
+
+
+def test_grasp_deterministic_and_empty():
+    img, _ = make_scene(n=3)
+    f = extract_features(img)
+    a = discover_grasp(f, P)
+    b = discover_grasp(f, P)
+    assert [r.feature_index.tolist() for r in a.rps] == [r.feature_index.tolist() for r in b.rps]
+    assert discover_grasp(Features.empty((50, 50)), P).rps == []
+    with pytest.raises(ValueError, match="bogus"):
+        GraspParams.from_dict({"bogus": 1})

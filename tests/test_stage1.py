@@ -1,0 +1,150 @@
+"""Tests of RESCU-I (rescu.stage1, rescu.search) on small synthetic scenes."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from rescu.features import extract_features
+from rescu.metrics import iod_matrix, score_image
+from rescu.stage1 import (Stage1Output, Stage1Params, discover, load_rps, rps_to_patterns,
+                          save_rps)
+from rescu.types import Features
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def textured_patch(seed: int, size: int = 60) -> np.ndarray:
+    p = np.random.default_rng(seed).integers(0, 256, (size // 6, size // 6)).astype(np.uint8)
+    p = cv2.resize(p, (size, size), interpolation=cv2.INTER_NEAREST)
+    cv2.rectangle(p, (2, 2), (size - 3, size - 3), 255, 2)
+    return p
+
+
+def make_scene(n: int = 5, rows=((90, 0),), size: int = 60, gap: int = 40, h: int = 240,
+               bg_seed: int = 1) -> tuple[np.ndarray, list[list[tuple]]]:
+    """``n`` copies of a textured square per row on a smooth noise background.
+    rows: (y, texture seed) per row. Returns (H, W, 3) uint8 and GT boxes per row."""
+    w = n * (size + gap) + gap
+    bg = np.random.default_rng(bg_seed).integers(90, 140, (h // 4, w // 4)).astype(np.uint8)
+    img = cv2.GaussianBlur(cv2.resize(bg, (w, h), interpolation=cv2.INTER_LINEAR), (0, 0), 2)
+    boxes = []
+    for y, ts in rows:
+        p = textured_patch(ts, size)
+        bb = []
+        for i in range(n):
+            x = gap + i * (size + gap)
+            img[y:y + size, x:x + size] = p
+            bb.append((float(x), float(y), float(size), float(size)))
+        boxes.append(bb)
+    return np.dstack([img] * 3), boxes
+
+
+FAST = Stage1Params(adaptive=())   # fixed parameters: fast
+
+
+def _run(img, params=FAST):
+    f = extract_features(img)
+    out = discover(f, params)
+    return f, out, rps_to_patterns(f, out.rps)
+
+
+def test_row_of_five_squares_gives_one_rp_with_five_instances():
+    img, gt = make_scene()
+    f, out, pats = _run(img)
+    assert len(pats) == 1
+    assert pats[0].count == 5
+    iod = iod_matrix(np.array([i.bbox for i in pats[0].instances]), np.array(gt[0]))
+    assert (iod.max(axis=1) > 0.5).all()
+    assert sorted(iod.argmax(axis=1).tolist()) == [0, 1, 2, 3, 4]
+    assert pats[0].feature_points.shape[1] == 5
+    assert out.objective == pytest.approx(pats[0].score)
+
+
+def test_adaptive_grid_also_finds_it_and_reports_choice():
+    img, gt = make_scene()
+    f, out, pats = _run(img, Stage1Params())
+    s = score_image([[i.bbox for i in p.instances] for p in pats], gt)
+    assert s.instance_precision == 1.0 and s.instance_recall == 1.0 and s.rp_recall == 1.0
+    assert set(out.chosen) == {"P_d", "P_s", "P_theta"}
+    assert out.chosen["P_d"] in (0.1, 0.15, 0.2)
+    assert set(out.timings) == {"match", "precompute", "grid", "search"}
+
+
+def test_two_textures_in_two_rows_give_two_rps():
+    img, gt = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
+    f, out, pats = _run(img)
+    s = score_image([[i.bbox for i in p.instances] for p in pats], gt)
+    assert len(pats) == 2
+    assert s.rp_recall == 1.0 and s.rp_precision == 1.0
+    assert s.instance_recall == 1.0 and s.instance_precision == 1.0
+
+
+def test_single_object_gives_no_rp():
+    img, _ = make_scene(n=1)
+    _, out, pats = _run(img)
+    assert pats == [] and out.rps == [] and out.objective == 0.0
+
+
+def test_empty_features_give_documented_empty_result():
+    out = discover(Features.empty((100, 80)), Stage1Params())
+    assert out.rps == [] and out.objective == 0.0
+    assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
+    assert rps_to_patterns(Features.empty((100, 80)), out.rps) == []
+
+
+def test_deterministic():
+    img, _ = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
+    f = extract_features(img)
+    a = discover(f, Stage1Params(adaptive=("P_d",)))
+    b = discover(f, Stage1Params(adaptive=("P_d",)))
+    assert len(a.rps) == len(b.rps) and a.chosen == b.chosen
+    for x, y in zip(a.rps, b.rps):
+        assert np.array_equal(x.feature_index, y.feature_index)
+        assert x.objective == y.objective
+
+
+@pytest.mark.parametrize("mode", ["wrapped", "relative", "paper"])
+def test_orientation_modes_find_the_row(mode):
+    img, gt = make_scene()
+    _, out, pats = _run(img, Stage1Params(adaptive=(), orientation_mode=mode))
+    s = score_image([[i.bbox for i in p.instances] for p in pats], gt)
+    assert s.instance_recall == 1.0 and s.rp_recall == 1.0
+
+
+def test_original_pixels_and_save_load(tmp_path):
+    img, gt = make_scene()
+    f = extract_features(img, scale_factor=0.5)   # processed = original * 0.5
+    out = discover(f, FAST)
+    pats = rps_to_patterns(f, out.rps)
+    b = np.array([i.bbox for i in pats[0].instances])
+    assert b[:, 0].max() > img.shape[1] * 0.75      # boxes are in original (2x) pixels
+    save_rps(tmp_path / "rps.h5", out)
+    back = load_rps(tmp_path / "rps.h5")
+    assert isinstance(back, Stage1Output) and back.chosen == out.chosen
+    assert np.array_equal(back.rps[0].feature_index, out.rps[0].feature_index)
+    assert back.rps[0].params == out.rps[0].params
+
+
+def test_params_from_dict_and_grid():
+    p = Stage1Params.from_dict({"P_d": 0.1, "adaptive": ["P_s"]})
+    assert p.P_d == 0.1 and len(p.grid()) == 5
+    assert len(Stage1Params().grid()) == 45 and len(Stage1Params(adaptive=[]).grid()) == 1
+    with pytest.raises(ValueError, match="bogus"):
+        Stage1Params.from_dict({"bogus": 1})
+    with pytest.raises(ValueError, match="adaptive"):
+        Stage1Params(adaptive=("P_x",))
+    with pytest.raises(TypeError, match="features"):
+        discover(np.zeros((3, 2)), p)  # type: ignore[arg-type]
+
+
+@pytest.mark.skipif(not (SHARED / "cmp_facade").is_dir(), reason="../shared/data absent")
+def test_runs_on_a_real_facade():
+    from rescu.io import load_image
+    img = load_image(sorted((SHARED / "cmp_facade" / "images").iterdir())[0], max_side=600)
+    f = extract_features(img.rgb, scale_factor=img.scale_factor)
+    out = discover(f, FAST)
+    assert len(out.rps) >= 1
+    for p in rps_to_patterns(f, out.rps):
+        assert p.count >= 2

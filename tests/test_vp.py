@@ -1,0 +1,308 @@
+"""Tests of rescu.vp: RP-based VPD, the LSD baseline, the angular constraint, VP errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rescu import vp as V
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+# visual words: 4 corners, the centre and an off-centre point of a unit-ish square
+WORDS = np.array([[0, 0], [0.6, 0], [0.6, 0.6], [0, 0.6], [0.3, 0.3], [0.18, 0.42]])
+
+
+def project(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    q = np.c_[pts, np.ones(len(pts))] @ h.T
+    return q[:, :2] / q[:, 2:]
+
+
+def grid(h: np.ndarray, nx: int, ny: int, noise: float = 0.0, seed: int = 0,
+         xs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes (N, 4) and feature points (M, N, 2) of squares at (x, j) on a plane seen by h.
+
+    Instance n = j * nx + i (row j, column i); the row direction is the plane's X axis.
+    """
+    rng = np.random.default_rng(seed)
+    xs = np.arange(nx, dtype=float) if xs is None else np.asarray(xs, float)
+    boxes, fps = [], []
+    for j in range(ny):
+        for x in xs:
+            ph = project(h, WORDS + [x, j])
+            ph = ph + rng.normal(0.0, noise, ph.shape)
+            q = ph[:4]
+            boxes.append([q[:, 0].min(), q[:, 1].min(), np.ptp(q[:, 0]), np.ptp(q[:, 1])])
+            fps.append(ph)
+    return np.array(boxes), np.transpose(np.array(fps), (1, 0, 2))
+
+
+H_PERSP = np.array([[60.0, 5, 100], [2, 60, 150], [0.08, 0.005, 1.0]])
+H_FRONTAL = np.array([[60.0, 0, 100], [0, 60, 150], [0, 0, 1.0]])
+SIZE = (640, 480)
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+# ----------------------------------------------------------------------------- params
+def test_params_from_dict_rejects_unknown_key():
+    assert V.VPParams.from_dict({"inlier_angle_deg": 2.0}).inlier_angle_deg == 2.0
+    with pytest.raises(ValueError, match="bogus"):
+        V.VPParams.from_dict({"bogus": 1})
+    with pytest.raises(ValueError, match="min_lines"):
+        V.VPParams(min_lines=1)
+
+
+# ----------------------------------------------------------------------------- rows
+def test_group_rows_wide_grid_gives_rows_in_order():
+    b, _ = grid(H_FRONTAL, nx=5, ny=3)
+    c, sz = V.instance_centres_sizes(b)
+    rows = V.group_rows(c, sz)
+    assert sorted(r.tolist() for r in rows) == [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9],
+                                                [10, 11, 12, 13, 14]]
+
+
+def test_group_rows_tall_grid_gives_columns_no_diagonals():
+    b, _ = grid(H_FRONTAL, nx=3, ny=5)
+    c, sz = V.instance_centres_sizes(b)
+    rows = V.group_rows(c, sz)
+    assert sorted(r.tolist() for r in rows) == [[0, 3, 6, 9, 12], [1, 4, 7, 10, 13],
+                                                [2, 5, 8, 11, 14]]
+
+
+def test_group_rows_square_grid_prefers_horizontal_rows():
+    b, _ = grid(H_FRONTAL, nx=4, ny=4)
+    c, sz = V.instance_centres_sizes(b)
+    rows = V.group_rows(c, sz)
+    assert sorted(r.tolist() for r in rows) == [[4 * j + i for i in range(4)]
+                                                for j in range(4)]
+
+
+def test_group_rows_two_instances_is_one_row_and_scatter_is_none():
+    c = np.array([[10.0, 10], [50, 12]])
+    assert [r.tolist() for r in V.group_rows(c, np.array([5.0, 5]))] == [[0, 1]]
+    tri = np.array([[0.0, 0], [100, 0], [50, 80]])
+    assert V.group_rows(tri, np.full(3, 10.0)) == []
+
+
+def test_group_rows_bad_shape_names_argument():
+    with pytest.raises(ValueError, match="centres"):
+        V.group_rows(np.zeros((3, 3)), np.ones(3))
+
+
+# ----------------------------------------------------------------------------- VPD
+@pytest.mark.parametrize("seed", range(5))
+def test_rp_vp_recovers_finite_vp_under_noise(seed):
+    b, fp = grid(H_PERSP, nx=6, ny=3, noise=1.0, seed=seed)
+    vp, rows = V.rp_vanishing_point(b, fp, SIZE)
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    assert vp is not None and len(rows) == 3
+    assert V.vector_error(vp.homogeneous, gt, SIZE) < 1.5
+    assert vp.support >= 15
+    assert np.isclose(np.linalg.norm(vp.homogeneous), 1.0)
+    assert vp.inside_image is False
+
+
+def test_rp_vp_exact_without_noise():
+    b, fp = grid(H_PERSP, nx=6, ny=2)
+    vp, _ = V.rp_vanishing_point(b, fp, SIZE)
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    assert V.point_error(vp.homogeneous, gt) < 1e-6 * np.linalg.norm(gt[:2] / gt[2])
+
+
+def test_frontal_row_vp_at_infinity():
+    b, fp = grid(H_FRONTAL, nx=5, ny=1, noise=0.5, seed=3)
+    vp, rows = V.rp_vanishing_point(b, fp, SIZE)
+    assert [r.tolist() for r in rows] == [[0, 1, 2, 3, 4]]
+    assert vp is not None and vp.homogeneous[2] == 0.0 and not vp.inside_image
+    assert abs(vp.homogeneous[1]) < np.sin(np.radians(1.0))
+
+
+def test_exactly_parallel_lines_give_infinity_and_ac_blocks_their_pairs():
+    lines = V.Lines(np.array([[0.0, 0], [0, 10], [0, 20]]), np.tile([1.0, 0.0], (3, 1)),
+                    np.ones(3))
+    vp = V.ransac_vp(lines, (100, 100))
+    assert vp is not None
+    np.testing.assert_allclose(vp.homogeneous, [1.0, 0.0, 0.0], atol=1e-12)
+    assert vp.support == 3
+
+
+def test_angular_constraint_rejects_near_parallel_pairs():
+    a = np.array([[1.0, 0.0]] * 3)
+    ang = np.radians([1.0, 1.99, 2.01])
+    b = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    assert V.ac_mask(a, b, 2.0).tolist() == [False, False, True]
+    assert V.ac_mask(a, -b, 2.0).tolist() == [False, False, True]  # orientation-free
+
+
+def test_ac_keeps_outlier_pair_from_hypothesising():
+    # two nearly parallel outlier lines would meet at a spurious point; the three
+    # inliers meet at (500, 0)
+    p = np.array([500.0, 0.0])
+    mids = np.array([[0.0, 0], [0, 100], [0, 200]])
+    dirs = p - mids
+    lines = V.Lines(mids, dirs, np.ones(3))
+    vp = V.ransac_vp(lines, (200, 200), V.VPParams(infinity_alpha=0))
+    assert V.point_error(vp.homogeneous, np.array([500.0, 0, 1])) < 1e-6
+
+
+def test_too_few_lines_none():
+    assert V.ransac_vp(V.Lines.empty(), (10, 10)) is None
+    one = V.Lines(np.zeros((1, 2)), np.array([[1.0, 0]]), np.ones(1))
+    assert V.ransac_vp(one, (10, 10)) is None
+    b = np.array([[0.0, 0, 10, 10]])
+    assert V.rp_vanishing_point(b, None, (100, 100)) == (None, [])
+
+
+def test_rp_vp_without_features_uses_box_centres():
+    b, _ = grid(H_PERSP, nx=6, ny=3)
+    vp, rows = V.rp_vanishing_point(b, None, SIZE)
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    assert vp is not None and vp.support == 3
+    assert V.vector_error(vp.homogeneous, gt, SIZE) < 2.0
+
+
+def test_deterministic():
+    b, fp = grid(H_PERSP, nx=7, ny=4, noise=1.0)
+    p = V.VPParams(ransac_iterations=50, seed=7)
+    v1, _ = V.rp_vanishing_point(b, fp, SIZE, p)
+    v2, _ = V.rp_vanishing_point(b, fp, SIZE, p)
+    assert np.array_equal(v1.homogeneous, v2.homogeneous) and v1.support == v2.support
+
+
+@settings(max_examples=40, deadline=None)
+@given(x=st.floats(-3000, 3000), y=st.floats(-3000, 3000),
+       seed=st.integers(0, 2 ** 16))
+def test_ransac_recovers_random_finite_vp(x, y, seed):
+    rng = np.random.default_rng(seed)
+    vp_true = np.array([x, y, 1.0])
+    mids = rng.uniform([50, 50], [590, 430], (12, 2))
+    if np.min(np.linalg.norm(mids - [x, y], axis=1)) < 150:
+        return  # VP on top of the segments: ill-posed
+    dirs = np.array([x, y]) - mids
+    # 0.5 px noise on the ends of 200 px segments
+    ends = np.concatenate([mids - 100 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True),
+                           mids + 100 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)],
+                          axis=1) + rng.normal(0, 0.5, (12, 4))
+    vp = V.ransac_vp(V.Lines.from_segments(ends), SIZE)
+    assert vp is not None
+    assert V.vector_error(vp.homogeneous, vp_true, SIZE) < 1.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(theta=st.floats(0, np.pi), seed=st.integers(0, 2 ** 16))
+def test_ransac_recovers_vp_at_infinity(theta, seed):
+    rng = np.random.default_rng(seed)
+    d = np.array([np.cos(theta), np.sin(theta)])
+    mids = rng.uniform([50, 50], [590, 430], (10, 2))
+    ends = np.concatenate([mids - 100 * d, mids + 100 * d], axis=1) + rng.normal(0, 0.3,
+                                                                                (10, 4))
+    vp = V.ransac_vp(V.Lines.from_segments(ends), SIZE)
+    assert vp is not None
+    assert V.vector_error(vp.homogeneous, np.array([d[0], d[1], 0.0]), SIZE) < 0.5
+
+
+# ----------------------------------------------------------------------------- baseline
+def test_lsd_baseline_finds_drawn_vp():
+    import cv2
+
+    img = np.full((240, 320), 255, np.uint8)
+    vp_true = np.array([700.0, 100.0])
+    for y0 in range(20, 230, 25):
+        p0 = np.array([10.0, y0])
+        p1 = p0 + 0.5 * (vp_true - p0)
+        cv2.line(img, tuple(int(v) for v in p0), tuple(int(v) for v in p1), 0, 2,
+                 cv2.LINE_AA)
+    rgb = np.repeat(img[:, :, None], 3, axis=2)
+    vp = V.line_vanishing_point(rgb, V.VPParams())
+    assert vp is not None
+    assert V.vector_error(vp.homogeneous, np.r_[vp_true, 1.0], (320, 240)) < 2.0
+    # a downscaled copy gives the VP in original pixels
+    small = cv2.resize(rgb, (160, 120), interpolation=cv2.INTER_AREA)
+    vp2 = V.line_vanishing_point(small, V.VPParams(), scale_factor=0.5)
+    assert vp2 is not None
+    assert V.vector_error(vp2.homogeneous, np.r_[vp_true, 1.0], (320, 240)) < 3.0
+
+
+def test_lsd_blank_image_no_vp():
+    assert V.line_vanishing_point(np.zeros((50, 60, 3), np.uint8)) is None
+
+
+# ----------------------------------------------------------------------------- errors
+def test_point_error_cases():
+    a = np.array([3.0, 4.0, 1.0])
+    assert V.point_error(a, np.array([0.0, 0, 1])) == pytest.approx(5.0)
+    assert V.point_error(2 * a, -a) == pytest.approx(0.0)
+    assert V.point_error(a, np.array([1.0, 0, 0])) == np.inf
+    assert V.point_error(np.array([1.0, 0, 0]), np.array([-1.0, 0, 0])) == 0.0
+    assert V.point_error(np.array([1.0, 0, 0]), np.array([0.0, 1, 0])) == np.inf
+
+
+def test_vector_error_known_values():
+    size = (400, 400)  # centre (200, 200), f = 200
+    # VP at the centre -> direction (0, 0, 1); VP at infinity along x -> (1, 0, 0)
+    assert V.vector_error(np.array([200.0, 200, 1]), np.array([1.0, 0, 0]), size) == \
+        pytest.approx(90.0)
+    # (400, 200) -> (200, 0, 200): 45 degrees from the optical axis
+    assert V.vector_error(np.array([400.0, 200, 1]), np.array([200.0, 200, 1]), size) == \
+        pytest.approx(45.0)
+    # true focal / principal point
+    assert V.vector_error(np.array([100.0, 0, 1]), np.array([0.0, 0, 1]), size, focal=100,
+                          principal_point=(0, 0)) == pytest.approx(45.0)
+    # antipodal directions are the same VP
+    assert V.vector_error(np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]), size) == 0.0
+    # continuity at infinity: a point 1e9 px away vs the point at infinity
+    assert V.vector_error(np.array([1e9, 200, 1]), np.array([1.0, 0, 0]), size) == \
+        pytest.approx(np.degrees(np.arctan2(200.0, 1e9 - 200.0)), rel=1e-9)
+
+
+def test_closest_gt_error_takes_min():
+    gts = [np.array([1.0, 0, 0]), np.array([0.0, 1, 0]), np.array([200.0, 200, 1])]
+    e = V.closest_gt_error(np.array([0.0, 1, 0]), gts, "vector", (400, 400))
+    assert e == 0.0
+    assert np.isnan(V.closest_gt_error(np.array([0.0, 1, 0]), [], "vector", (4, 4)))
+    with pytest.raises(ValueError, match="kind"):
+        V.closest_gt_error(np.zeros(3), gts, "angle", (4, 4))
+
+
+def test_success_rate_and_paired_test():
+    e = [0.5, 1.0, 2.0, np.inf, np.nan]
+    np.testing.assert_allclose(V.success_rate(e, [0.5, 1.0, 5.0]), [0.2, 0.4, 0.6])
+    assert np.isnan(V.success_rate([], [1.0])).all()
+    assert V.paired_test([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]) == 1.0
+    assert V.paired_test([], []) == 1.0
+    a = np.linspace(0.1, 1.0, 20)
+    assert V.paired_test(a, a + 1.0) < 0.001
+    # infinite (missing) errors are ranked last, not dropped
+    assert V.paired_test(a, np.full(20, np.inf)) < 0.001
+    with pytest.raises(ValueError, match="same length"):
+        V.paired_test([1.0], [1.0, 2.0])
+
+
+@pytest.mark.skipif(not (SHARED / "york_urban").is_dir(), reason="../shared/data absent")
+def test_lsd_baseline_on_one_york_urban_image():
+    from rescu import io
+
+    gt = io.load_vanishing_points(SHARED / "york_urban" / "vanishing_points.json")
+    name = sorted(gt)[0]
+    im = io.load_image(SHARED / "york_urban" / name)
+    vp = V.line_vanishing_point(im.rgb, V.VPParams(), im.scale_factor)
+    assert vp is not None and np.isclose(np.linalg.norm(vp.homogeneous), 1.0)
+
+
+def test_group_rows_prefers_horizontal_rows_over_slightly_tighter_columns():
+    # 3 x 3 grid, column pitch 0.85 x the row pitch: still rows (no diagonals)
+    c = np.array([[100.0 * i, 85.0 * j] for j in range(3) for i in range(3)])
+    rows = V.group_rows(c, np.full(9, 40.0))
+    assert sorted(r.tolist() for r in rows) == [[0, 1, 2], [3, 4, 5], [6, 7, 8]]
+    # columns twice as tight: columns
+    c2 = np.array([[100.0 * i, 45.0 * j] for j in range(3) for i in range(3)])
+    rows2 = V.group_rows(c2, np.full(9, 30.0))
+    assert sorted(r.tolist() for r in rows2) == [[0, 3, 6], [1, 4, 7], [2, 5, 8]]
