@@ -173,11 +173,12 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     return _guard(method, _h5_failure(features_h5), run, empty)
 
 
-def ablation(features_h5: str, meta_path: str, out_json: str, params: dict[str, Any],
-             variants: dict[str, list[str]]) -> Failure | None:
+def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
+             params: dict[str, Any], variants: dict[str, list[str]]) -> Failure | None:
     """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive).
 
-    Writes ``{"image", "variants": {name: per-image result JSON}}``.
+    ``out_jsons`` maps each variant name to its per-image result JSON (method
+    ``rescu-i[<variant>]``). Features and descriptor matching are loaded once.
     """
     from . import features as F
     from . import stage1 as S
@@ -186,20 +187,17 @@ def ablation(features_h5: str, meta_path: str, out_json: str, params: dict[str, 
 
     def run() -> None:
         feats = F.load_features(features_h5)
-        out: dict[str, Any] = {}
         for name, adaptive in variants.items():
             p = S.Stage1Params.from_dict({**params, "adaptive": list(adaptive)})
             o = S.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
             res.patterns = S.rps_to_patterns(feats, o.rps)
             res.extra.update(chosen_params=o.chosen, objective=o.objective)
-            out[name] = res.to_json()
-        io.write_json(out_json, {"image": meta.get("image"), "variants": out})
+            io.write_json(out_jsons[name], res)
 
     def empty(f: Failure) -> None:
-        io.write_json(out_json, {"image": meta.get("image"), "failure": f,
-                                 "variants": {n: empty_result(meta, f"rescu-i[{n}]", f).to_json()
-                                              for n in variants}})
+        for name in variants:
+            io.write_json(out_jsons[name], empty_result(meta, f"rescu-i[{name}]", f))
 
     return _guard("ablation", _h5_failure(features_h5), run, empty)
 

@@ -71,3 +71,45 @@ def build_report(out_html: str | Path, title: str, intro: str,
     parts.append("</body></html>")
     with atomic_path(out_html) as tmp:
         tmp.write_text("\n".join(parts))
+
+
+def build_run_report(out_html: str | Path, results: str | Path,
+                     samples: dict[str, list[str]]) -> None:
+    """The report of a pipeline run from its results folder.
+
+    ``samples`` maps each dataset to the image stems whose overlays are shown.
+    """
+    from .io import read_result
+
+    results = Path(results)
+    t = results / "tables"
+    tables = [("RP discovery (mean, std, n per metric)", t / "rp_discovery.tsv"),
+              ("Stage-I ablation of the adaptive parameters", t / "ablation.tsv"),
+              ("Counting", t / "counting.tsv"),
+              ("Vanishing-point detection: success rates", t / "vpd.tsv"),
+              ("Vanishing points: paired tests", t / "vpd_tests.tsv"),
+              ("Translation symmetry: SR_ts vs t", t / "ts.tsv"),
+              ("Failures (image, stage, message)", t / "failures.tsv"),
+              ("Captions", t / "captions.tsv")]
+    figures = sorted((results / "figures").glob("*.png"))
+    items = []
+    for ds, stems in samples.items():
+        for stem in stems:
+            res = read_result(results / ds / "final" / f"{stem}.json")
+            rect_dir = results / ds / "rectified" / stem
+            rect = sorted(rect_dir.glob("*.png")) if rect_dir.is_dir() else []
+            f = res.extra.get("failure")
+            summary = (f"failed in {f.get('stage')}: {f.get('message')}" if f else
+                       f"{len(res.patterns)} pattern(s), counts "
+                       f"{', '.join(str(p.count) for p in res.patterns) or '-'}")
+            items.append({"dataset": ds, "image": res.image or stem,
+                          "overlay": results / ds / "overlay" / f"{stem}.png",
+                          "rectified": rect, "summary": summary,
+                          "caption": (res.caption or {}).get("enhanced", "")})
+    summary_md = t / "summary.md"
+    intro = ("Recurring patterns found without training data or labels; vanishing points from "
+             "the implicit lines of the patterns; translation symmetry by the cross ratio; "
+             "counts; captions. Tables: mean ± std over images. " +
+             (html.escape(summary_md.read_text().splitlines()[2]) if summary_md.exists()
+              and len(summary_md.read_text().splitlines()) > 2 else ""))
+    build_report(out_html, "RESCU report", intro, tables, figures, items)

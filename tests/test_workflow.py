@@ -26,7 +26,7 @@ def tiny_config(tmp: Path, **overrides) -> Path:
     datasets["synthetic"] = {"kind": "synthetic", "enabled": True}
     cfg = {
         "datasets": datasets,
-        "synthetic": {"n_images": 3, "sizes": [[400, 300]]},
+        "synthetic": {"n_images": 3, "sizes": [[480, 360]]},
         "ablation": {"datasets": ["synthetic"]},
         "stage2": {"max_epochs": 2, "max_proposals": 200},
         "report": {"samples_per_dataset": 2},
@@ -107,7 +107,7 @@ def test_second_run_does_nothing(finished_run):
 
 def test_parameter_change_reruns_only_dependants(finished_run):
     work, _ = finished_run
-    changed = tiny_config(work, **{"scene.ts.threshold": 0.05})
+    changed = tiny_config(work, **{"scene.symmetry.threshold": 0.05})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs, "a changed scene parameter must rerun something"
     assert jobs.get("scene") == 3 and jobs.get("caption") == 3

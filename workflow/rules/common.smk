@@ -34,11 +34,12 @@ def source_image(wildcards):
     return DATASETS[wildcards.dataset]["images"][wildcards.image]
 
 
-def per_image(pattern, datasets=None):
-    """Expand ``pattern`` (with {dataset} and {image}) over the chosen datasets' images."""
+def per_image(pattern, datasets=None, **more):
+    """Expand ``pattern`` (with {dataset}, {image} and the wildcards named in ``more``)
+    over the chosen datasets' images."""
     out = []
     for ds in datasets if datasets is not None else DATASETS:
-        out += expand(pattern, dataset=ds, image=images(ds), allow_missing=True)
+        out += expand(pattern, dataset=ds, image=images(ds), **more)
     return out
 
 
@@ -65,4 +66,5 @@ def final_targets():
     t = per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json")
     t += per_image(f"{RESULTS}/{{dataset}}/overlay/{{image}}.png")
     t += [f"{RESULTS}/tables/summary.md", f"{RESULTS}/report/index.html"]
+    t += per_image(f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json", vp_datasets())
     return t

@@ -3,6 +3,13 @@
 # the VP evaluation.
 
 
+def scene_params(**vp_overrides):
+    """The scene section minus `source` (that one picks the input file)."""
+    p = {k: v for k, v in config["scene"].items() if k != "source"}
+    p["vp"] = {**p["vp"], **vp_overrides}
+    return p
+
+
 def scene_source(wildcards):
     return f"{RESULTS}/{wildcards.dataset}/{config['scene']['source']}/{wildcards.image}.json"
 
@@ -16,7 +23,7 @@ rule scene:
         json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
         rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
     params:
-        scene=config["scene"],
+        scene=scene_params(),
     log:
         "logs/{dataset}/scene/{image}.log",
     benchmark:
@@ -34,10 +41,7 @@ rule scene_no_ac:
         json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
         rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
     params:
-        scene=lambda w: {
-            **config["scene"],
-            "vp": {**config["scene"]["vp"], "angular_constraint": False},
-        },
+        scene=scene_params(ac_threshold_deg=0.0),
     log:
         "logs/{dataset}/scene_no_ac/{image}.log",
     benchmark:
@@ -53,7 +57,7 @@ rule line_vp:
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:
-        scene=config["scene"],
+        scene=scene_params(),
     log:
         "logs/{dataset}/line_vp/{image}.log",
     benchmark:

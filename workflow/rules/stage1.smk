@@ -45,7 +45,10 @@ rule ablation:
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
         code=code("features", "urp", "search", "stage1"),
     output:
-        json=f"{RESULTS}/{{dataset}}/ablation/{{image}}.json",
+        expand(
+            f"{RESULTS}/{{{{dataset}}}}/ablation/{{variant}}/{{{{image}}}}.json",
+            variant=config["ablation"]["variants"],
+        ),
     params:
         stage1=config["stage1"],
         variants=config["ablation"]["variants"],

@@ -3,5 +3,7 @@ from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])
 pipeline.limit_threads(snakemake.threads)
-pipeline.ablation(snakemake.input.features, snakemake.input.meta, snakemake.output.json,
-                  snakemake.params.stage1, snakemake.params.variants)
+variants = snakemake.params.variants
+outputs = dict(zip(variants, snakemake.output))  # output order = variant order
+pipeline.ablation(snakemake.input.features, snakemake.input.meta, outputs,
+                  snakemake.params.stage1, variants)

@@ -1,0 +1,62 @@
+"""Tests of rescu.backbone: frozen backbones, RoI pooling, missing-weights error."""
+
+import os
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from rescu.backbone import BackboneWeightsError, FrozenBackbone, pool_boxes  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def lite0():
+    torch.set_num_threads(1)
+    return FrozenBackbone("efficientnet-lite0", feature_stride=16)
+
+
+def test_feature_map_shape_64(lite0):
+    x = np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)
+    f = lite0.feature_map(x)
+    assert tuple(f.shape) == (1, 112, 4, 4)
+    assert lite0.name == "efficientnet-lite0"
+
+
+def test_identical_crops_pool_nearly_equal(lite0):
+    rng = np.random.default_rng(1)
+    tex = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
+    img = np.full((64, 160, 3), 128, np.uint8)
+    img[16:48, 16:48] = tex
+    img[16:48, 112:144] = tex        # same texture 96 px (6 cells at stride 16) away
+    f = lite0.feature_map(img)
+    p = pool_boxes(f, np.array([[16, 16, 32, 32], [112, 16, 32, 32], [64, 16, 32, 32]],
+                               np.float32), (160, 64))
+    assert p.shape == (3, 112 * 4)
+    assert np.allclose(np.linalg.norm(p, axis=1), 1.0, atol=1e-5)
+    same = float(p[0] @ p[1])
+    other = float(p[0] @ p[2])
+    assert same > 0.95
+    assert same > other
+
+
+def test_pool_empty(lite0):
+    f = lite0.feature_map(np.zeros((64, 64, 3), np.uint8))
+    assert pool_boxes(f, np.zeros((0, 4)), (64, 64)).shape == (0, 448)
+
+
+def test_densenet_without_weights_names_places(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    monkeypatch.setenv("HOME", str(tmp_path))
+    missing = tmp_path / "nope" / "densenet121.pth"
+    with pytest.raises(BackboneWeightsError) as e:
+        FrozenBackbone("densenet121", weights_path=str(missing))
+    msg = str(e.value)
+    assert str(missing) in msg and "densenet121-*.pth" in msg and str(tmp_path / "hub") in msg
+
+
+def test_bad_backbone_and_stride():
+    with pytest.raises(ValueError, match="backbone"):
+        FrozenBackbone("resnet50")
+    with pytest.raises(ValueError, match="feature_stride"):
+        FrozenBackbone(feature_stride=8)

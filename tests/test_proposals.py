@@ -1,0 +1,71 @@
+"""Tests of rescu.proposals: EdgeBoxes on computed edges and instance-scale windows."""
+
+import numpy as np
+import pytest
+
+from rescu.metrics import iod_matrix
+from rescu.proposals import (ProposalParams, edge_and_orientation, edgeboxes_proposals,
+                             instance_scale_proposals, propose)
+
+
+def _squares_image(n=5, sz=24, gap=16, h=80, seed=0):
+    rng = np.random.default_rng(seed)
+    tex = rng.integers(0, 255, (sz, sz, 3), dtype=np.uint8)
+    w = gap + n * (sz + gap)
+    img = np.full((h, w, 3), 128, np.uint8)
+    boxes = []
+    for i in range(n):
+        x, y = gap + i * (sz + gap), (h - sz) // 2
+        img[y:y + sz, x:x + sz] = tex
+        boxes.append([x, y, sz, sz])
+    return img, np.array(boxes, np.float32)
+
+
+def test_edge_maps_shape_and_range():
+    img, _ = _squares_image()
+    e, o = edge_and_orientation(img)
+    assert e.shape == img.shape[:2] and o.shape == img.shape[:2]
+    assert e.dtype == np.float32 and o.dtype == np.float32
+    assert e.min() >= 0 and e.max() <= 1 and e.max() > 0.5
+    assert o.min() >= 0 and o.max() < np.pi
+
+
+def test_edgeboxes_inside_image():
+    img, _ = _squares_image()
+    b, s = edgeboxes_proposals(img, ProposalParams(method="edgeboxes", max_boxes=200))
+    h, w = img.shape[:2]
+    assert len(b) > 0 and len(b) == len(s)
+    assert np.all(b[:, 0] >= 0) and np.all(b[:, 1] >= 0)
+    assert np.all(b[:, 0] + b[:, 2] <= w + 1e-3) and np.all(b[:, 1] + b[:, 3] <= h + 1e-3)
+    assert np.all(b[:, 2] >= 8) and np.all(b[:, 3] >= 8)
+
+
+def test_instance_scale_covers_held_out_instance():
+    img, boxes = _squares_image()
+    held_out = boxes[4:5]
+    q = instance_scale_proposals(boxes[:3], (img.shape[1], img.shape[0]))
+    assert len(q) > 0
+    assert iod_matrix(q, held_out).max() > 0.9
+    h, w = img.shape[:2]
+    assert np.all(q[:, 0] >= 0) and np.all(q[:, 0] + q[:, 2] <= w + 1e-3)
+
+
+def test_instance_scale_cap_and_empty():
+    q = instance_scale_proposals(np.array([[0, 0, 10, 10.]]), (1000, 1000),
+                                 ProposalParams(max_windows=300))
+    assert 0 < len(q) <= 300
+    assert instance_scale_proposals(np.zeros((0, 4)), (100, 100)).shape == (0, 4)
+
+
+def test_propose_methods_and_bad_input():
+    img, boxes = _squares_image()
+    bi, _ = propose(img, [boxes[:3]], ProposalParams(method="instance_scale"))
+    be, _ = propose(img, [boxes[:3]], ProposalParams(method="edgeboxes"))
+    bb, sb = propose(img, [boxes[:3]], ProposalParams(method="both"))
+    assert len(bb) >= max(len(bi), len(be)) and len(bb) == len(sb)
+    with pytest.raises(ValueError, match="rgb"):
+        propose(img[..., 0], [], ProposalParams())
+    with pytest.raises(ValueError, match="method"):
+        ProposalParams(method="selective")
+    with pytest.raises(ValueError, match="unknown proposal parameter"):
+        ProposalParams.from_dict({"nope": 1})

@@ -1,0 +1,156 @@
+# Evaluation: the paper's tables (TSV + Markdown) and curves (PNG) over all datasets.
+TABLES = f"{RESULTS}/tables"
+FIGURES = f"{RESULTS}/figures"
+EVAL_CODE = code("evaluation", "metrics", "tables", "vp")
+
+
+def dataset_params(names):
+    return {n: {"root": str(DATASETS[n]["root"]), "names": DATASETS[n]["names"]} for n in names}
+
+
+def gt_files(names, filename):
+    return [f"{DATASETS[n]['root']}/{filename}" for n in names]
+
+
+rule rp_tables:
+    input:
+        preds=per_image(
+            f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
+            rp_datasets(),
+            method=["grasp", "rescu-i", "rescu-ii"],
+        ),
+        gt=gt_files(rp_datasets(), "annotations.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/rp_discovery.tsv",
+        md=f"{TABLES}/rp_discovery.md",
+        scores=f"{TABLES}/rp_scores.tsv",
+        curves=f"{TABLES}/rp_curves.tsv",
+        figures=expand(f"{FIGURES}/rp_curves_{{ds}}.png", ds=rp_datasets()),
+    params:
+        datasets=dataset_params(rp_datasets()),
+        evaluation=config["evaluation"],
+    log:
+        "logs/tables/rp_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule ablation_tables:
+    input:
+        preds=per_image(
+            f"{RESULTS}/{{dataset}}/ablation/{{variant}}/{{image}}.json",
+            ablation_datasets(),
+            variant=list(config["ablation"]["variants"]),
+        ),
+        gt=gt_files(ablation_datasets(), "annotations.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/ablation.tsv",
+        md=f"{TABLES}/ablation.md",
+    params:
+        datasets=dataset_params(ablation_datasets()),
+        evaluation=config["evaluation"],
+        variants=list(config["ablation"]["variants"]),
+    log:
+        "logs/tables/ablation_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule counting_tables:
+    input:
+        preds=per_image(
+            f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
+            rp_datasets(),
+            method=["rescu-i", "final"],
+        ),
+        gt=gt_files(rp_datasets(), "annotations.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/counting.tsv",
+        md=f"{TABLES}/counting.md",
+    params:
+        datasets=dataset_params(rp_datasets()),
+        evaluation=config["evaluation"],
+    log:
+        "logs/tables/counting_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule vp_tables:
+    input:
+        preds=per_image(
+            f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
+            vp_datasets(),
+            method=["scene", "scene-noac", "vp-lsd"],
+        ),
+        gt=gt_files(vp_datasets(), "vanishing_points.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/vpd.tsv",
+        md=f"{TABLES}/vpd.md",
+        errors=f"{TABLES}/vpd_errors.tsv",
+        tests=f"{TABLES}/vpd_tests.tsv",
+        figures=expand(f"{FIGURES}/vpd_{{ds}}.png", ds=vp_datasets()),
+    params:
+        datasets=dataset_params(vp_datasets()),
+        evaluation=config["evaluation"],
+    log:
+        "logs/tables/vp_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule ts_tables:
+    input:
+        preds=per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json", rp_datasets()),
+        gt=gt_files(rp_datasets(), "annotations.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/ts.tsv",
+        md=f"{TABLES}/ts.md",
+        figure=f"{FIGURES}/ts_sweep.png",
+    params:
+        datasets=dataset_params(rp_datasets()),
+        evaluation=config["evaluation"],
+    log:
+        "logs/tables/ts_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule result_tables:
+    input:
+        preds=per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json"),
+        code=EVAL_CODE,
+    output:
+        captions=f"{TABLES}/captions.tsv",
+        failures=f"{TABLES}/failures.tsv",
+        md=f"{TABLES}/failures.md",
+    params:
+        datasets={d: per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json", [d]) for d in DATASETS},
+    log:
+        "logs/tables/result_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule summary:
+    input:
+        rp=f"{TABLES}/rp_discovery.md",
+        ablation=f"{TABLES}/ablation.md",
+        counting=f"{TABLES}/counting.md",
+        vpd=f"{TABLES}/vpd.md",
+        ts=f"{TABLES}/ts.md",
+        failures=f"{TABLES}/failures.md",
+        code=EVAL_CODE,
+    output:
+        md=f"{TABLES}/summary.md",
+    params:
+        backbone=config["stage2"].get("backbone", ""),
+    log:
+        "logs/tables/summary.log",
+    script:
+        "../scripts/tables.py"

@@ -1,0 +1,39 @@
+# The HTML report: tables, curves, and for a sample of images per dataset the overlay
+# picture, the rectified views and the caption.
+
+
+def report_samples():
+    k = config["report"]["samples_per_dataset"]
+    return {d: images(d)[:k] for d in DATASETS}
+
+
+def sample_files(pattern):
+    return [pattern.format(dataset=d, image=i) for d, imgs in report_samples().items() for i in imgs]
+
+
+rule report:
+    input:
+        tables=rules.rp_tables.output
+        + rules.ablation_tables.output
+        + rules.counting_tables.output
+        + rules.vp_tables.output
+        + rules.ts_tables.output
+        + rules.result_tables.output,
+        overlays=sample_files(f"{RESULTS}/{{dataset}}/overlay/{{image}}.png"),
+        finals=sample_files(f"{RESULTS}/{{dataset}}/final/{{image}}.json"),
+        rectified=sample_files(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
+        summary=f"{TABLES}/summary.md",
+        code=code("report", "tables"),
+    output:
+        html=report(
+            f"{RESULTS}/report/index.html",
+            caption="../report/report.rst",
+            category="RESCU report",
+        ),
+    params:
+        samples=report_samples(),
+        results=RESULTS,
+    log:
+        "logs/report.log",
+    script:
+        "../scripts/report.py"

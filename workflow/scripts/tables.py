@@ -1,0 +1,37 @@
+"""Snakemake adapter: the evaluation tables (rescu.tables), one function per rule."""
+from pathlib import Path
+
+from rescu import tables as T
+from rescu.evaluation import EvaluationParams, write_markdown, write_tsv
+from rescu.pipeline import setup_logging
+
+setup_logging(snakemake.log[0])
+out, p = snakemake.output, snakemake.params
+rule = snakemake.rule
+if rule == "result_tables":
+    captions, failures = T.result_rows(p.datasets)
+    write_tsv(captions, out.captions)
+    write_tsv(failures, out.failures)
+    write_markdown(T.failures_markdown(failures), out.md)
+elif rule == "summary":
+    parts = [("RP discovery", snakemake.input.rp), ("Stage-I ablation", snakemake.input.ablation),
+             ("Counting", snakemake.input.counting), ("Vanishing points", snakemake.input.vpd),
+             ("Translation symmetry", snakemake.input.ts), ("Failures", snakemake.input.failures)]
+    write_markdown(T.summary_markdown(parts, T.summary_header(p.backbone)), out.md)
+else:
+    refs = T.dataset_refs(p.datasets, list(p.datasets))
+    ev = EvaluationParams.from_dict(p.evaluation)
+    figures = Path(out.figures[0]).parent if "figures" in out.keys() and out.figures else \
+        Path(out.get("figure", out.tsv)).parent
+    if rule == "rp_tables":
+        T.rp_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, out.scores, out.curves, figures)
+    elif rule == "ablation_tables":
+        T.ablation_tables(refs, T.RESULTS_OF(out.tsv), p.variants, ev, out.tsv, out.md)
+    elif rule == "counting_tables":
+        T.counting_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md)
+    elif rule == "vp_tables":
+        T.vp_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, out.errors, out.tests, figures)
+    elif rule == "ts_tables":
+        T.ts_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, figures)
+    else:
+        raise ValueError(f"tables.py does not handle rule {rule!r}")
