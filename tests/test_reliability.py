@@ -1,0 +1,159 @@
+"""Failure isolation, resumable runs and reproducible results (the pipeline as users run it).
+
+These runs use stage I only (``scene.source: rescu-i``, targets up to the final JSON and
+the failures table) to stay fast; stage II is covered by tests/test_workflow.py.
+"""
+
+from __future__ import annotations
+
+import filecmp
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from rescu import pipeline
+from rescu.io import read_json
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEMAKE = Path(sys.executable).parent / "snakemake"
+TARGETS = ["results/tables/failures.tsv", "results/tables/captions.tsv"]
+
+
+def _textured(seed: int, n: int = 5, size=(360, 480)) -> np.ndarray:
+    """A row of ``n`` copies of one random texture on a smooth background."""
+    rng = np.random.default_rng(seed)
+    h, w = size
+    img = np.full((h, w, 3), 90, np.uint8) + rng.integers(0, 20, (h, w, 3), dtype=np.uint8)
+    tex = rng.integers(0, 255, (12, 12, 3), dtype=np.uint8).repeat(5, 0).repeat(5, 1)
+    for k in range(n):
+        x = 20 + k * 88
+        img[150:210, x:x + 60] = tex
+    return img
+
+
+def make_photo_folder(root: Path) -> Path:
+    """images/: two good photos, a truncated JPEG, a zero-byte file, text named .jpg."""
+    imgs = root / "images"
+    imgs.mkdir(parents=True)
+    Image.fromarray(_textured(0)).save(imgs / "good_a.png")
+    Image.fromarray(_textured(1)).save(imgs / "good_b.jpg", quality=95)
+    Image.fromarray(_textured(2)).save(imgs / "cut.jpg", quality=95)
+    (imgs / "cut.jpg").write_bytes((imgs / "cut.jpg").read_bytes()[:500])
+    (imgs / "empty.jpg").write_bytes(b"")
+    (imgs / "notes.jpg").write_text("not an image")
+    return root
+
+
+def config_for(tmp: Path, folder: Path) -> Path:
+    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    datasets = {name: {"enabled": False} for name in default["datasets"]}
+    datasets["mine"] = {"path": str(folder)}
+    cfg = {"datasets": datasets, "scene": {"source": "rescu-i"}, "ablation": {"datasets": []}}
+    p = tmp / "config.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def run(workdir: Path, cfg: Path, *args: str, cores: int = 2, check: bool = True):
+    cmd = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+           "--configfile", str(cfg), "--cores", str(cores), *args, *TARGETS]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
+    return proc
+
+
+def result_files(workdir: Path) -> dict[str, bytes]:
+    res = workdir / "results"
+    files = sorted(res.glob("mine/final/*.json")) + sorted(res.glob("mine/rescu-i/*.json")) + \
+        [res / "tables" / "failures.tsv", res / "tables" / "captions.tsv"]
+    return {str(f.relative_to(res)): f.read_bytes() for f in files}
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    base = tmp_path_factory.mktemp("rel")
+    folder = make_photo_folder(base / "photos")
+    cfg = config_for(base, folder)
+    work = base / "run_a"
+    run(work, cfg, cores=2)
+    return base, folder, cfg, work
+
+
+def test_bad_images_do_not_stop_the_others(reference_run):
+    _, _, _, work = reference_run
+    finals = work / "results" / "mine" / "final"
+    for name in ("good_a", "good_b"):
+        d = read_json(finals / f"{name}.json")
+        assert "failure" not in d and d["caption"]["enhanced"]
+    for name, message in (("cut", "truncated"), ("empty", "empty file"),
+                          ("notes", "not an image")):
+        d = read_json(finals / f"{name}.json")
+        assert d["patterns"] == [] and d["failure"]["stage"] == "prepare"
+        assert message in d["failure"]["message"] and f"{name}.jpg" in d["failure"]["message"]
+    failures = (work / "results" / "tables" / "failures.tsv").read_text()
+    assert failures.count("prepare") == 3 and "good_a" not in failures
+
+
+def test_same_input_same_bytes_across_runs_and_cores(reference_run):
+    base, _, cfg, work = reference_run
+    other = base / "run_b"
+    run(other, cfg, cores=1)
+    a, b = result_files(work), result_files(other)
+    assert a.keys() == b.keys() and len(a) >= 12
+    different = [k for k in a if a[k] != b[k]]
+    assert not different, f"outputs differ between runs: {different}"
+
+
+def test_killed_run_resumes_to_the_same_result(reference_run):
+    base, _, cfg, work = reference_run
+    resumed = base / "run_c"
+    cmd = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), "--directory", str(resumed),
+           "--configfile", str(cfg), "--cores", "2", *TARGETS]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    deadline = time.time() + 300
+    feats = resumed / "results" / "mine" / "features"
+    while time.time() < deadline and len(list(feats.glob("*.h5"))) < 2:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole run, jobs included, mid-way
+    proc.wait()
+    assert not (resumed / "results" / "tables" / "captions.tsv").exists(), "killed too late"
+    # A truncated output never appears under its final name (writes are atomic).
+    for f in (resumed / "results").rglob("*.json"):
+        if not f.name.startswith("."):
+            json.loads(f.read_text())
+    run(resumed, cfg, "--unlock")  # Snakemake's lock survives a SIGKILL (README: resuming)
+    run(resumed, cfg, "--rerun-incomplete")
+    a, c = result_files(work), result_files(resumed)
+    assert a == c
+
+
+def test_step_functions_pass_failures_on(tmp_path):
+    """Without Snakemake: a bad image yields empty outputs with the failure at each step."""
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG broken")
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    f = pipeline.prepare(str(bad), w("p.png"), w("m.json"), image_name="images/bad.png",
+                         max_side=800, min_side=16)
+    assert f and f["stage"] == "prepare"
+    from rescu.config import load_config
+
+    cfg = load_config()
+    assert pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])["stage"] == "prepare"
+    assert pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"),
+                           cfg["stage1"])["stage"] == "prepare"
+    scene = {k: v for k, v in cfg["scene"].items() if k != "source"}
+    pipeline.scene(w("p.png"), w("m.json"), w("s.json"), w("sc.json"), w("rect"), scene)
+    pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"), cfg["caption"])
+    d = json.loads(Path(w("final.json")).read_text())
+    assert d["failure"]["stage"] == "prepare" and d["patterns"] == []
