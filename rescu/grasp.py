@@ -58,6 +58,10 @@ class GraspParams:
     max_patterns, min_instances, min_words : output limits.
     box_grow : float
         Instance box growth (keypoint radii), as in stage I.
+    max_keypoints : int
+        GRASP works on at most this many keypoints (the strongest: features are sorted
+        by decreasing response, so RP feature indices stay valid for the full set).
+        Caps its run time (its cost grows quickly with the keypoint count); 0 = all.
     seed : int
         Random seed.
     """
@@ -80,6 +84,7 @@ class GraspParams:
     min_instances: int = 2
     min_words: int = 4
     box_grow: float = 0.5
+    max_keypoints: int = 1500
     seed: int = 0
 
     @classmethod
@@ -248,6 +253,11 @@ def discover_grasp(features: Features, params: GraspParams | None = None) -> Sta
     if len(features) < 4:
         return Stage1Output([], chosen, 0.0, {"match": 0.0, "search": 0.0})
     t0 = time.perf_counter()
+    if p.max_keypoints > 0 and len(features) > p.max_keypoints:
+        k = int(p.max_keypoints)
+        features = Features(features.xy[:k], features.scale[:k], features.angle[:k],
+                            features.response[:k], features.descriptors[:k],
+                            features.image_size, features.scale_factor)
     g = _Grasp(features, p)
     t1 = time.perf_counter()
     rng = np.random.default_rng(p.seed)

@@ -100,6 +100,18 @@ def _iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / (area(a)[:, None] + area(b)[None, :] - inter)
 
 
+def _nanmedian(a: np.ndarray, axis: int) -> np.ndarray:
+    """Median ignoring NaN along ``axis`` (NaN where all are NaN); a fast stand-in for
+    ``np.nanmedian``, which is slow on the many small arrays of a search."""
+    srt = np.sort(a, axis=axis)                          # NaN sort last
+    n = np.sum(~np.isnan(a), axis=axis, keepdims=True)
+    lo = np.maximum((n - 1) // 2, 0)
+    hi = np.maximum(n // 2, 0)
+    v = 0.5 * (np.take_along_axis(srt, lo, axis) + np.take_along_axis(srt, hi, axis))
+    v = np.where(n > 0, v, np.nan)
+    return np.squeeze(v, axis=axis)
+
+
 def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Column centroids (N, 2), column scales (N,), row offset templates (M, 2)."""
     pres = omega >= 0
@@ -111,7 +123,14 @@ def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarr
     off = (p - c[None]) / s[None, :, None]
     off = np.where(pres[..., None], off, np.nan)
     with np.errstate(all="ignore"):
-        tmpl = np.nanmedian(off, axis=1)                # (M, 2)
+        tmpl = _nanmedian(off, axis=1)                # (M, 2)
+        # consistent frame centres: a column missing some words would otherwise have
+        # its centroid shifted; c_j = median over words of (p_ij - sigma_j * tmpl_i)
+        cc = np.where(pres[..., None], p - s[None, :, None] * tmpl[:, None, :], np.nan)
+        c2 = _nanmedian(cc, axis=0)
+        c = np.where(np.isfinite(c2), c2, c)
+        off = np.where(pres[..., None], (p - c[None]) / s[None, :, None], np.nan)
+        tmpl = _nanmedian(off, axis=1)
     return c, s, tmpl
 
 
@@ -153,12 +172,23 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     if len(h) == 0:
         return omega
     sig = ctx.scale[h] / ctx.scale[f] * s[jj]           # sigma of the new instance
-    cen = ctx.xy[h] - sig[:, None] * tmpl[ii]           # its centre C
+    # its centre C: h sits in the new instance where f sits in instance j (local frame,
+    # so instances that change shape along a row under perspective still agree)
+    cen = ctx.xy[h] - (ctx.scale[h] / ctx.scale[f])[:, None] * (ctx.xy[f] - c[jj])
     cell = max(3.0, ctx.pos_tol * size)
     key = np.floor(cen / cell).astype(np.int64)
     # distinct rows voting per cell
     kr = np.unique(np.stack([key[:, 0], key[:, 1], ii], 1), axis=0)
-    cells, votes = np.unique(kr[:, :2], axis=0, return_counts=True)
+    # a cell's votes: distinct rows voting in it or its 8 neighbours (a cluster of
+    # predicted centres may straddle a cell border)
+    sh = np.array([[dx, dy, 0] for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+    kr9 = np.unique((kr[None] + sh[:, None]).reshape(-1, 3), axis=0)
+    own = np.unique(kr[:, :2], axis=0)
+    cells, votes = np.unique(kr9[:, :2], axis=0, return_counts=True)
+    has = np.zeros(len(cells), bool)
+    pos = np.searchsorted(cells[:, 0] * (1 << 32) + cells[:, 1], own[:, 0] * (1 << 32) + own[:, 1])
+    has[pos] = True
+    cells, votes = cells[has], votes[has]
     order = np.lexsort((cells[:, 1], cells[:, 0], -votes))
     cells, votes = cells[order], votes[order]
     keep = votes >= 2
@@ -181,7 +211,11 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
                                  for b in new_boxes]):
             continue
         n_hyp += 1
-        col = _build_column(ctx, omega, C, sg, tmpl, size * sg / s_ref, available, used, gates)
+        # template: the nearest existing instance, where it has the word (local frame)
+        jn = int(np.argmin(np.hypot(*(c - C).T)))
+        loc = (ctx.xy[np.where(omega[:, jn] >= 0, omega[:, jn], 0)] - c[jn]) / s[jn]
+        tm = np.where((omega[:, jn] >= 0)[:, None], loc, tmpl)
+        col = _build_column(ctx, omega, C, sg, tm, size * sg / s_ref, available, used, gates)
         if col is None:
             continue
         pb = ctx.xy[col[col >= 0]]
@@ -278,8 +312,13 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     if len(dn):
         half = min(half, 0.5 * float(np.median(dn)))
     lim = gates.max_dist / 2.0
-    rx = min(lim, max(bw / 2.0 + ctx.row_expand * max(bw, bh), half))
-    ry = min(lim, max(bh / 2.0 + ctx.row_expand * max(bw, bh), half))
+    if half > 0:
+        # an instance is at most one period wide: never grow beyond half the spacing
+        rx = min(lim, max(bw / 2.0, half))
+        ry = min(lim, max(bh / 2.0, half))
+    else:
+        rx = min(lim, bw / 2.0 + ctx.row_expand * max(bw, bh))
+        ry = min(lim, bh / 2.0 + ctx.row_expand * max(bw, bh))
     cx, cy = (b[0] + b[2]) / 2.0, (b[1] + b[3]) / 2.0
     x0, x1 = cx - rx, cx + rx
     y0, y1 = cy - ry, cy + ry

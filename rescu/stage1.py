@@ -10,15 +10,21 @@ Pipeline of :func:`discover`:
    affinity u and its gate quantities (within-instance distances, size difference,
    orientation difference) is stored. The support of a correspondence (sum of u of its
    URPs) ranks the initial URPs;
-3. for every parameter set of the adaptive grid (the product of the grids of the names
-   in ``adaptive``, the others fixed), the table is only *filtered* by the gates
-   (P_d, P_s, P_theta) and a search from the best initials yields Omega*; the set with
-   the largest U(Omega*) is chosen (the paper's rule);
+3. adaptive parameters (:func:`choose_parameters`): for every parameter set of the
+   adaptive grid (the product of the grids of the names in ``adaptive``, the others
+   fixed) the table is only *filtered* by the gates (P_d, P_s, P_theta) to rank its
+   initial URPs; the set with the largest U(Omega*) is chosen (the paper's rule).
+   Reuse work across the grid: each distinct initial URP is searched once with the
+   loosest gates, and Omega* of a grid point is that matrix pruned under the grid
+   point's gates (so the 45 grid points cost a few searches, not 45);
 4. with the chosen set, RPs are found one after the other: ``initials_per_pattern``
    searches from the best available initial URPs, the matrix with the largest U is
-   accepted, its features and every feature inside its instance boxes are removed, and
-   the search repeats (at most ``max_patterns``). Matrices with fewer than
-   ``min_instances`` columns, ``min_words`` rows or U below ``min_objective`` are no RP.
+   accepted, its features and every feature inside its instances' extents
+   (:func:`instance_extents`) are removed, and the search repeats (at most
+   ``max_patterns``). Matrices with fewer than ``min_instances`` columns, ``min_words``
+   rows, U below ``min_objective`` or a one-dimensional word layout (``min_spread``,
+   pieces of a straight edge) are no RP; their features are retired and the search
+   goes on with the next initials (within ``n_initials`` searches).
 
 P_d is a fraction of the image *diagonal* (processed pixels).
 
@@ -43,7 +49,7 @@ from scipy.spatial import cKDTree
 
 from .features import _from_dict
 from .io import read_h5, write_h5
-from .search import SearchContext, matrix_objective, search
+from .search import SearchContext, matrix_objective, prune, search
 from .types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
 
@@ -76,6 +82,9 @@ class Stage1Params:
         Smallest RP matrix accepted (columns, rows).
     min_objective : float
         Smallest U(Omega) accepted.
+    min_spread : float
+        Smallest :func:`layout_spread` (minor / major axis of the word layout of an
+        instance) accepted; rejects "instances" that are pieces of one straight edge.
     n_initials : int
         Most searches in the final discovery.
     initials_per_pattern : int
@@ -100,6 +109,10 @@ class Stage1Params:
     max_rows, max_cols, max_iters : size and iteration limits of one search.
     box_grow : float
         Instance box = feature hull grown by box_grow * median keypoint radius.
+    extent_grow : float
+        After an RP is accepted, features within its instances' extents (the box grown
+        up to half the instance spacing, by at most ``extent_grow`` times its larger
+        side; :func:`instance_extents`) are removed.
     seed : int
         Random seed (the search is deterministic; kept for the interface).
     """
@@ -118,6 +131,7 @@ class Stage1Params:
     min_instances: int = 2
     min_words: int = 4
     min_objective: float = 0.0
+    min_spread: float = 0.15
     n_initials: int = 40
     initials_per_pattern: int = 3
     grid_initials: int = 1
@@ -134,6 +148,7 @@ class Stage1Params:
     max_cols: int = 200
     max_iters: int = 30
     box_grow: float = 0.5
+    extent_grow: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -295,10 +310,41 @@ def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
                     np.maximum(t["d1"], t["d2"]), t["size_diff"], t["rot"])
 
 
-def _valid(omega: np.ndarray, U: float, params: Stage1Params) -> bool:
-    return (omega.ndim == 2 and omega.shape[0] >= params.min_words
-            and omega.shape[1] >= params.min_instances and U >= params.min_objective
-            and U > 0)
+def layout_spread(xy: np.ndarray, omega: np.ndarray) -> float:
+    """How two-dimensional the word layout of an instance is.
+
+    Parameters
+    ----------
+    xy : (K, 2) float, pixels
+    omega : (M, N) int, -1 for missing
+
+    Returns
+    -------
+    float in [0, 1]
+        sqrt(lambda_min / lambda_max) of the covariance of the within-instance offsets
+        ``p_ij - c_j`` (``c_j`` the column centroid). Near 0 when every instance is a
+        piece of one straight edge: an edge is self-similar along itself, so features
+        on a long line form URPs of perfect affinity that are no recurring object.
+    """
+    pres = omega >= 0
+    p = xy[np.where(pres, omega, 0)]
+    cnt = pres.sum(0)
+    c = (p * pres[..., None]).sum(0) / np.maximum(cnt, 1)[:, None]
+    off = (p - c[None])[pres]
+    if len(off) < 3:
+        return 0.0
+    ev = np.linalg.eigvalsh(np.cov(off.T))
+    return float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 0 else 0.0
+
+
+def _valid(omega: np.ndarray, U: float, params: Stage1Params,
+           xy: np.ndarray | None = None) -> bool:
+    ok = (omega.ndim == 2 and omega.shape[0] >= params.min_words
+          and omega.shape[1] >= params.min_instances and U >= params.min_objective
+          and U > 0)
+    if ok and xy is not None and params.min_spread > 0:
+        ok = layout_spread(xy, omega) >= params.min_spread
+    return ok
 
 
 def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5) -> np.ndarray:
@@ -328,6 +374,42 @@ def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5)
     return out
 
 
+def instance_extents(features: Features, omega: np.ndarray, box_grow: float = 0.5,
+                     extent_grow: float = 0.5) -> np.ndarray:
+    """The image region each instance of an RP occupies, processed pixels.
+
+    The feature hull (:func:`instance_boxes`) covers only the part of an object that has
+    recurring keypoints; the object itself extends further. An instance's extent is its
+    box grown on every side to half the distance to the nearest other instance centre
+    (an instance is at most one period wide), by at most ``extent_grow`` times the
+    box's larger side. Features inside an extent belong to that object and may not
+    start another RP (otherwise other parts of the same objects reappear as a second,
+    spurious RP).
+
+    Returns
+    -------
+    (N, 4) float
+        ``[x, y, w, h]`` clipped to the image.
+    """
+    b = instance_boxes(features, omega, box_grow)
+    n = len(b)
+    if n == 0:
+        return b
+    w, h = features.image_size
+    c = b[:, :2] + b[:, 2:] / 2.0
+    d = np.hypot(c[:, None, 0] - c[None, :, 0], c[:, None, 1] - c[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    half_nn = 0.5 * d.min(axis=1) if n > 1 else np.zeros(1)
+    half = b[:, 2:] / 2.0
+    cap = half + extent_grow * b[:, 2:].max(axis=1, keepdims=True)
+    half = np.clip(half_nn[:, None], half, cap)
+    x0 = np.clip(c[:, 0] - half[:, 0], 0, w)
+    y0 = np.clip(c[:, 1] - half[:, 1], 0, h)
+    x1 = np.clip(c[:, 0] + half[:, 0], 0, w)
+    y1 = np.clip(c[:, 1] + half[:, 1], 0, h)
+    return np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
+
+
 def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
                   params: Stage1Params, pset: dict[str, float], diag: float,
                   first_only: bool = False) -> list[RPMatrix]:
@@ -341,9 +423,13 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
     budget = params.grid_initials if first_only else params.n_initials
     per = params.grid_initials if first_only else params.initials_per_pattern
     consumed = np.zeros(len(seeds), bool)
-    for _ in range(1 if first_only else params.max_patterns):
+    n_rounds = 1 if first_only else params.max_patterns + params.n_initials
+    for _ in range(n_rounds):
+        if len(rps) >= (1 if first_only else params.max_patterns):
+            break
         best: tuple[float, np.ndarray] | None = None
         blocked = ~available.copy()
+        rejected: list[np.ndarray] = []
         n_this = 0
         for s_ptr in range(len(seeds)):
             if n_this >= per or tried >= budget:
@@ -358,16 +444,25 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
             if om.ndim == 2 and om.shape[0] >= 2 and om.shape[1] >= 2:
                 blocked[om[om >= 0]] = True
                 U = matrix_objective(ctx, om, gates)
-                if _valid(om, U, params) and (best is None or U > best[0]):
-                    best = (U, om)
+                if _valid(om, U, params, ctx.xy):
+                    if best is None or U > best[0]:
+                        best = (U, om)
+                else:
+                    rejected.append(om[om >= 0])
             blocked[sd] = True
         if best is None:
-            break
+            # no RP from these initials: their features form no valid RP (e.g. a
+            # straight edge); retire them and go on with the next initials
+            if n_this == 0 or tried >= budget:
+                break
+            for r in rejected:
+                available[r] = False
+            continue
         U, om = best
         rps.append(RPMatrix(om.astype(np.int64), float(U),
                             dict(pset, box_grow=params.box_grow)))
         available[om[om >= 0]] = False
-        boxes = instance_boxes(features, om, params.box_grow)
+        boxes = instance_extents(features, om, params.box_grow, params.extent_grow)
         x, y = ctx.xy[:, 0], ctx.xy[:, 1]
         for bx in boxes:
             available &= ~((x >= bx[0]) & (x <= bx[0] + bx[2]) & (y >= bx[1]) & (y <= bx[1] + bx[3]))
@@ -375,6 +470,47 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
             break
     rps.sort(key=lambda r: -r.objective)
     return rps
+
+
+def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
+                      params: Stage1Params, grid: list[dict[str, float]],
+                      diag: float) -> dict[str, float]:
+    """The adaptive parameter set: the grid point with the largest U(Omega*).
+
+    Reuse work across the grid: a grid point only changes the gates (P_d, P_s,
+    P_theta). For every grid point its best ``grid_initials`` initial URPs are ranked
+    on the precomputed table (cheap); each distinct initial URP is searched *once*,
+    with the loosest gates of the grid. Omega* of a grid point is that loose matrix
+    pruned under the grid point's own gates (entries, rows and columns whose mean
+    affinity drops below the limits are removed, exactly as in the search's remove
+    step), and U(Omega*) is evaluated under those gates. So the cost is a handful of
+    searches plus one prune per grid point, instead of one search per grid point.
+    Ties go to the earlier grid point.
+    """
+    loose = {n: max(p[n] for p in grid) for n in ADAPTIVE_NAMES}
+    g_loose = Gates(loose["P_d"] * diag, loose["P_s"], loose["P_theta"])
+    avail = np.ones(len(ctx.xy), bool)
+    cache: dict[tuple[int, ...], np.ndarray] = {}
+    best_u, chosen = -1.0, grid[0]
+    for pset in grid:
+        gates = Gates(pset["P_d"] * diag, pset["P_s"], pset["P_theta"])
+        u_best = 0.0
+        for sd in table.seeds(gates)[: max(1, params.grid_initials)]:
+            key = tuple(int(v) for v in sd)
+            if key not in cache:
+                cache[key] = search(ctx, sd, avail, g_loose)
+            om = cache[key]
+            if om.ndim != 2 or om.shape[0] < 2 or om.shape[1] < 2:
+                continue
+            om = prune(ctx, om, gates)
+            if om.shape[0] < 2 or om.shape[1] < 2:
+                continue
+            U = matrix_objective(ctx, om, gates)
+            if _valid(om, U, params, ctx.xy):
+                u_best = max(u_best, U)
+        if u_best > best_u + 1e-12:
+            best_u, chosen = u_best, pset
+    return chosen
 
 
 def discover(features: Features, params: Stage1Params | None = None) -> Stage1Output:
@@ -409,12 +545,7 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     t2 = time.perf_counter()
     chosen = grid[0]
     if len(grid) > 1:
-        best_u = -1.0
-        for pset in grid:
-            rps = run_discovery(ctx, table, features, params, pset, diag, first_only=True)
-            u = rps[0].objective if rps else 0.0
-            if u > best_u + 1e-12:
-                best_u, chosen = u, pset
+        chosen = choose_parameters(ctx, table, features, params, grid, diag)
     t3 = time.perf_counter()
     rps = run_discovery(ctx, table, features, params, chosen, diag)
     t4 = time.perf_counter()

@@ -31,6 +31,13 @@ class DatasetRef:
     images: list[str]
 
 
+def _with_dataset(t: pd.DataFrame, name: str) -> pd.DataFrame:
+    """``t`` with a first column ``dataset`` = ``name`` (the configured dataset name)."""
+    t = t.drop(columns="dataset", errors="ignore")
+    t.insert(0, "dataset", name)
+    return t
+
+
 def _write(df: pd.DataFrame, md: str, tsv_path: str | Path, md_path: str | Path) -> None:
     E.write_tsv(df, tsv_path)
     E.write_markdown(md, md_path)
@@ -77,7 +84,7 @@ def ablation_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
         dirs = {v: results / name / "ablation" / v for v in variants}
         t = E.ablation_table(ref.root, dirs, params.iod_h, params.min_rp_precision,
                              images=ref.images)
-        t.insert(0, "dataset", name)
+        t = _with_dataset(t, name)
         tables.append(t)
         mds.append(E.summary_markdown(t, alpha=params.significance_alpha,
                                       decimals=params.decimals, row_label="adaptive",
@@ -97,9 +104,7 @@ def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
     for name, ref in datasets.items():
         t = E.counting_table(ref.root, _pred_dirs(results, name, methods), params.iod_h,
                              params.min_rp_precision, images=ref.images)
-        if "dataset" not in t.columns:
-            t.insert(0, "dataset", name)
-        tables.append(t)
+        tables.append(_with_dataset(t, name))
     df = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     md = ("## Counting\n\n" + E.frame_markdown(df, params.decimals)) if len(df) else \
         "_no dataset with recurring-pattern ground truth_\n"

@@ -38,3 +38,14 @@ def test_grasp_deterministic_and_empty():
     assert discover_grasp(Features.empty((50, 50)), P).rps == []
     with pytest.raises(ValueError, match="bogus"):
         GraspParams.from_dict({"bogus": 1})
+
+
+def test_grasp_keypoint_cap_keeps_indices_valid():
+    img, gt = make_scene()
+    f = extract_features(img)
+    cap = GraspParams(iterations=2, max_steps=15, max_candidates=15, max_patterns=1,
+                      max_keypoints=len(f) // 2)
+    out = discover_grasp(f, cap)
+    for rp in out.rps:
+        assert rp.feature_index.max() < len(f) // 2
+    assert GraspParams.from_dict({"max_keypoints": 10}).max_keypoints == 10

@@ -148,3 +148,47 @@ def test_runs_on_a_real_facade():
     assert len(out.rps) >= 1
     for p in rps_to_patterns(f, out.rps):
         assert p.count >= 2
+
+
+def test_layout_spread_rejects_collinear_instances():
+    from rescu.stage1 import layout_spread
+    # two instances whose words all lie on one horizontal line (pieces of an edge)
+    xy = np.array([[0, 0], [10, 0], [20, 0], [30, 0], [40, 0], [50, 0]], float)
+    om = np.array([[0, 3], [1, 4], [2, 5]])
+    assert layout_spread(xy, om) == pytest.approx(0.0, abs=1e-9)
+    # a square layout of four words per instance is fully two-dimensional
+    sq = np.array([[0, 0], [10, 0], [0, 10], [10, 10]], float)
+    xy2 = np.vstack([sq, sq + [50, 0]])
+    om2 = np.array([[0, 4], [1, 5], [2, 6], [3, 7]])
+    assert layout_spread(xy2, om2) == pytest.approx(1.0)
+
+
+def test_instance_extents_reach_half_the_spacing():
+    from rescu.stage1 import instance_boxes, instance_extents
+    # three instances 100 px apart, each a 20 x 20 feature hull with keypoint size 4
+    base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]
+    xy = np.vstack([base + [100 * j, 0] for j in range(3)]).astype(np.float32)
+    k = len(xy)
+    f = Features(xy, np.full(k, 4, np.float32), np.zeros(k, np.float32),
+                 np.ones(k, np.float32), np.zeros((k, 128), np.float32), (400, 200))
+    om = np.arange(12).reshape(3, 4).T           # (4 words, 3 instances)
+    b = instance_boxes(f, om, 0.5)
+    assert b[0].tolist() == [39.0, 39.0, 22.0, 22.0]
+    e = instance_extents(f, om, 0.5, extent_grow=0.5)
+    # half spacing 50 is capped at half box (11) + 0.5 * 22 = 22 on each side
+    assert e[1].tolist() == pytest.approx([150 - 22, 50 - 22, 44, 44])
+    e2 = instance_extents(f, om, 0.5, extent_grow=10.0)   # now half the spacing wins
+    assert e2[1].tolist() == pytest.approx([100, 0, 100, 100])
+
+
+def test_grid_reuses_searches_and_matches_fixed_choice():
+    """The chosen grid point's parameters, run as fixed parameters, give the same RPs."""
+    img, gt = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
+    f = extract_features(img)
+    out = discover(f, Stage1Params())
+    fixed = Stage1Params(adaptive=(), **out.chosen)
+    out2 = discover(f, fixed)
+    assert [r.feature_index.tolist() for r in out.rps] == \
+        [r.feature_index.tolist() for r in out2.rps]
+    s = score_image([[i.bbox for i in p.instances] for p in rps_to_patterns(f, out.rps)], gt)
+    assert s.instance_recall == 1.0 and s.instance_precision == 1.0

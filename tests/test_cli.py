@@ -1,0 +1,107 @@
+"""The `rescu` command and the Python API, as a user meets them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from PIL import Image
+
+from rescu.io import load_coco_rps, write_json
+
+REPO = Path(__file__).resolve().parents[1]
+RESCU = Path(sys.executable).parent / "rescu"
+
+
+def rescu(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(RESCU), *args], capture_output=True, text=True, timeout=600)
+
+
+def shelf_photo(path: Path) -> Path:
+    """A photo from outside any dataset: five copies of one object on a shelf."""
+    rng = np.random.default_rng(7)
+    img = np.full((300, 520, 3), (150, 120, 90), np.uint8)
+    img += rng.integers(0, 12, img.shape, dtype=np.uint8)
+    obj = rng.integers(0, 255, (10, 8, 3), dtype=np.uint8).repeat(7, 0).repeat(7, 1)
+    for k in range(5):
+        img[110:180, 30 + k * 95:86 + k * 95] = obj
+    Image.fromarray(img).save(path)
+    return path
+
+
+def test_help_explains_every_option():
+    for args in (["--help"], ["discover", "--help"], ["evaluate", "--help"]):
+        out = rescu(*args)
+        assert out.returncode == 0 and "usage: rescu" in out.stdout
+    text = rescu("discover", "--help").stdout
+    for opt in ("--out", "--method", "--config", "--set", "--keep-work", "--quiet"):
+        assert opt in text
+
+
+def test_discover_on_own_photo_and_bad_file(tmp_path):
+    photo = shelf_photo(tmp_path / "shelf.png")
+    bad = tmp_path / "broken.jpg"
+    bad.write_bytes(b"\xff\xd8\xff garbage")
+    out = rescu("discover", str(photo), str(bad), "--out", str(tmp_path / "out"),
+                "--method", "rescu-i", "--quiet")
+    assert out.returncode == 1, out.stderr  # one image failed, the other is done
+    assert "shelf.png:" in out.stdout and "broken.jpg: FAILED in prepare" in out.stdout
+    d = json.loads((tmp_path / "out" / "shelf.json").read_text())
+    assert d["method"] == "rescu-i" and d["caption"]["enhanced"]
+    assert max(p["count"] for p in d["patterns"]) == 5
+    assert (tmp_path / "out" / "shelf.png").stat().st_size > 0
+    assert json.loads((tmp_path / "out" / "broken.json").read_text())["failure"]["stage"] == "prepare"
+
+
+def test_discover_usage_errors_exit_2(tmp_path):
+    assert rescu("discover", str(tmp_path / "missing.jpg"), "--out", str(tmp_path)).returncode == 2
+    photo = shelf_photo(tmp_path / "p.png")
+    bad = rescu("discover", str(photo), "--out", str(tmp_path), "--set", "stage1.P_d=abc")
+    assert bad.returncode == 2 and "stage1.P_d" in bad.stderr
+
+
+def test_python_api(tmp_path):
+    from rescu import discover
+
+    res = discover(shelf_photo(tmp_path / "s.png"), method="rescu-i")
+    assert max(p.count for p in res.patterns) == 5 and res.caption["enhanced"]
+
+
+def test_evaluate_ground_truth_as_predictions_gives_one(tmp_path):
+    from rescu.synth import SynthParams, generate_dataset
+    from rescu.types import ImageResult, Instance, Pattern
+
+    ds = tmp_path / "ds"
+    generate_dataset(ds, SynthParams.from_dict({"n_images": 2, "sizes": [[480, 360]]}))
+    preds = tmp_path / "preds"
+    for fname, rps in load_coco_rps(ds / "annotations.json").items():
+        res = ImageResult(image=fname, width=480, height=360, method="gt",
+                          patterns=[Pattern(i, 1.0, [Instance(b) for b in rp.boxes])
+                                    for i, rp in enumerate(rps)])
+        write_json(preds / (Path(fname).stem + ".json"), res)
+    out = rescu("evaluate", str(ds), str(preds), "--out", str(tmp_path / "scores"))
+    assert out.returncode == 0, out.stderr
+    summary = pd.read_csv(tmp_path / "scores" / "rp_discovery.tsv", sep="\t")
+    for m in ("instance_precision", "instance_recall", "rp_precision", "rp_recall"):
+        assert (summary[f"{m}_mean"] == 1.0).all(), m
+    assert "1.00" in out.stdout
+
+
+def test_slurm_profile_parses_in_dry_run(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("datasets: {photos: {enabled: false}, cmp_facade: {enabled: false}, "
+                   "spb_facades: {enabled: false}, chess: {enabled: false}, "
+                   "aerial_cars: {enabled: false}, york_urban: {enabled: false}}\n"
+                   "synthetic: {n_images: 2}\n")
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-s",
+                           str(REPO / "Snakefile"), "--directory", str(tmp_path),
+                           "--configfile", str(cfg), "--profile",
+                           str(REPO / "profiles" / "slurm"), "-n"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "stage2_features" in proc.stdout + proc.stderr
