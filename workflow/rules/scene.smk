@@ -57,7 +57,7 @@ rule line_vp:
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:
-        scene=scene_params(),
+        scene={"vp": config["scene"]["vp"]},  # the baseline needs only the VP parameters
     log:
         "logs/{dataset}/line_vp/{image}.log",
     benchmark:
