@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .types import TranslationSymmetry
+from .vp import checked_points
 
 CR_EQUAL_SPACING = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -160,17 +161,7 @@ def translation_symmetry(feature_points: np.ndarray | None, centres: np.ndarray,
         ``n_tuples`` their number; None when
         no row has ``min_instances`` instances.
     """
-    c = np.asarray(centres, float)
-    if c.ndim != 2 or c.shape[1] != 2:
-        raise ValueError(f"centres must have shape (N, 2), got {c.shape}")
-    fp = None
-    if feature_points is not None:
-        fp = np.asarray(feature_points, float)
-        if fp.ndim != 3 or fp.shape[2] != 2:
-            raise ValueError(f"feature_points must have shape (M, N, 2), got {fp.shape}")
-        if fp.shape[1] < len(c):
-            pad = np.full((fp.shape[0], len(c) - fp.shape[1], 2), np.nan)
-            fp = np.concatenate([fp, pad], axis=1)
+    c, fp = checked_points(centres, feature_points)
     crs: list[np.ndarray] = []
     any_row = False
     for row in rows:

@@ -353,6 +353,27 @@ def _best_row(c: np.ndarray, tol: np.ndarray, sz: np.ndarray, remaining: np.ndar
     return cands[0][4]
 
 
+def checked_points(centres: np.ndarray, feature_points: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Validate instance centres (N, 2) and feature points (M, N', 2), pixels.
+
+    Returns float copies; the feature points are padded with NaN columns to N instances
+    (instances added by stage II have no features).
+    """
+    c = np.asarray(centres, float)
+    if c.ndim != 2 or c.shape[1] != 2:
+        raise ValueError(f"centres must have shape (N, 2), got {c.shape}")
+    fp = None
+    if feature_points is not None:
+        fp = np.asarray(feature_points, float)
+        if fp.ndim != 3 or fp.shape[2] != 2:
+            raise ValueError(f"feature_points must have shape (M, N, 2), got {fp.shape}")
+        if fp.shape[1] < len(c):
+            pad = np.full((fp.shape[0], len(c) - fp.shape[1], 2), np.nan)
+            fp = np.concatenate([fp, pad], axis=1)
+    return c, fp
+
+
 def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
                   rows: Sequence[np.ndarray], sizes: np.ndarray | None = None,
                   max_line_residual: float = 0.15, precision_floor_px: float = 1.0) -> Lines:
@@ -383,17 +404,7 @@ def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
         A word needs a finite point in at least min(3, row length) instances of the row.
         A row without any feature line gives the line through its instance centres.
     """
-    c = np.asarray(centres, float)
-    if c.ndim != 2 or c.shape[1] != 2:
-        raise ValueError(f"centres must have shape (N, 2), got {c.shape}")
-    fp = None
-    if feature_points is not None:
-        fp = np.asarray(feature_points, float)
-        if fp.ndim != 3 or fp.shape[2] != 2:
-            raise ValueError(f"feature_points must have shape (M, N, 2), got {fp.shape}")
-        if fp.shape[1] < len(c):
-            pad = np.full((fp.shape[0], len(c) - fp.shape[1], 2), np.nan)
-            fp = np.concatenate([fp, pad], axis=1)
+    c, fp = checked_points(centres, feature_points)
     mids, dirs, prec = [], [], []
     for row in rows:
         row = np.asarray(row, int)
