@@ -3,7 +3,8 @@
 Usage::
 
     python benchmarks/eval_stage1.py ../shared/data/chess ../shared/data/cmp_facade \
-        --method rescu-i --max-images 20 --max-side 1600 [--set key=value ...]
+        --method rescu-i --max-images 20 --max-side 1600 [--set key=value ...] \
+        [--feat-set upsample_below=700 ...]
 
 Prints, per dataset, the mean +- std (and number of images with a defined value) of
 instance precision / recall and RP precision / recall (IOD h = 0.5, rescu.metrics),
@@ -74,12 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-side", type=int, default=1600)
     ap.add_argument("--n-features", type=int, default=FeatureParams().n_features)
     ap.add_argument("--set", nargs="*", default=[], help="param overrides key=JSON")
+    ap.add_argument("--feat-set", nargs="*", default=[],
+                    help="FeatureParams overrides key=JSON (e.g. upsample_below=0)")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
     overrides = _parse_set(a.set)
-    fp = FeatureParams(n_features=a.n_features)
+    fp = FeatureParams.from_dict({"n_features": a.n_features, **_parse_set(a.feat_set)})
     print(f"method={a.method} max_side={a.max_side} n_features={a.n_features} "
-          f"overrides={overrides}")
+          f"overrides={overrides} features={fp}")
     hdr = f"{'dataset':<14}{'n':>4}" + "".join(f"{m:>24}" for m in METRICS) + f"{'s/img':>8}"
     rows = []
     for ds in a.datasets:

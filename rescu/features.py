@@ -36,6 +36,14 @@ class FeatureParams:
     min_size : float
         Drop keypoints with ``size`` below this (processed pixels); tiny keypoints are
         mostly noise and JPEG artefacts.
+    upsample_below : int
+        Images whose longer side is below this (pixels) are upsampled before SIFT so
+        that small objects (e.g. 40 x 70 px chess pieces) get enough keypoints; 0 never.
+    upsample_factor : float
+        Factor of that upsampling (bicubic). The returned features are in the upsampled
+        pixels and ``scale_factor`` is multiplied by it (processed = original *
+        scale_factor still holds), so :func:`rescu.stage1.rps_to_patterns` gives
+        original pixels unchanged.
     """
 
     n_features: int = 4000
@@ -44,6 +52,13 @@ class FeatureParams:
     sigma: float = 1.6
     n_octave_layers: int = 3
     min_size: float = 3.0
+    upsample_below: int = 0
+    upsample_factor: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.upsample_factor < 1.0:
+            raise ValueError("FeatureParams.upsample_factor must be >= 1, "
+                             f"got {self.upsample_factor}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "FeatureParams":
@@ -71,12 +86,14 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
         The processed image (RGB, as returned by :func:`rescu.io.load_image`).
     params : FeatureParams
     scale_factor : float
-        processed = original * scale_factor, stored in the result.
+        processed = original * scale_factor of ``rgb``; the result stores it times the
+        internal upsampling factor (``params.upsample_below``), if any.
 
     Returns
     -------
     Features
-        ``xy`` (K, 2) processed pixels, ``scale`` (K,) pixels (keypoint diameter),
+        ``xy`` (K, 2) processed pixels (of the upsampled image when upsampled),
+        ``scale`` (K,) pixels (keypoint diameter),
         ``angle`` (K,) degrees, ``response`` (K,), ``descriptors`` (K, 128) float32,
         sorted by decreasing response. A uniform image gives ``Features.empty``.
     """
@@ -95,6 +112,15 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
     gray = img if img.ndim == 2 else (img[..., 0] if img.shape[2] == 1 else
                                       cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
     gray = np.ascontiguousarray(gray)
+    sf = float(scale_factor)
+    if params.upsample_below > 0 and max(h, w) < params.upsample_below \
+            and params.upsample_factor > 1.0:
+        up = float(params.upsample_factor)
+        w2, h2 = int(round(w * up)), int(round(h * up))
+        gray = cv2.resize(gray, (w2, h2), interpolation=cv2.INTER_CUBIC)
+        # exact ratio of the sizes, so original = processed / scale_factor stays exact
+        sf = sf * w2 / w
+        w, h = w2, h2
     prev = cv2.getNumThreads()
     cv2.setNumThreads(1)  # deterministic order of keypoints
     try:
@@ -106,7 +132,7 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
     finally:
         cv2.setNumThreads(prev)
     if not kps or desc is None:
-        return Features.empty((w, h), float(scale_factor))
+        return Features.empty((w, h), sf)
     xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
     size = np.array([k.size for k in kps], np.float32)
     ang = np.array([k.angle for k in kps], np.float32) % np.float32(360.0)
@@ -119,7 +145,7 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
     order = order[: int(params.n_features)]
     return Features(xy=xy[order], scale=size[order], angle=ang[order],
                     response=resp[order], descriptors=desc[order],
-                    image_size=(int(w), int(h)), scale_factor=float(scale_factor))
+                    image_size=(int(w), int(h)), scale_factor=sf)
 
 
 def save_features(path: str | os.PathLike[str], feats: Features,

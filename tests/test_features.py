@@ -48,3 +48,25 @@ def test_save_load_roundtrip(tmp_path):
     assert g.image_size == f.image_size and g.scale_factor == 0.25
     for name in ("xy", "scale", "angle", "response", "descriptors"):
         assert np.array_equal(getattr(g, name), getattr(f, name))
+
+
+def test_upsampling_keeps_original_pixels_consistent():
+    img = _image(3)
+    p = FeatureParams(upsample_below=200, upsample_factor=2.0)
+    f = extract_features(img, p, scale_factor=0.5)
+    assert f.image_size == (320, 240) and f.scale_factor == 1.0   # 0.5 * 2
+    base = extract_features(img, FeatureParams(), scale_factor=0.5)
+    assert base.image_size == (160, 120) and base.scale_factor == 0.5
+    assert len(f) > len(base)                         # small texture: more keypoints
+    # every upsampled keypoint (in original pixels) lies in the original image
+    orig = f.xy / f.scale_factor
+    assert np.all((orig >= -1) & (orig <= np.array([320, 240]) + 1))
+    # a strong keypoint is found at the same original position in both
+    bo = base.xy[:10] / base.scale_factor
+    d = np.hypot(*(bo[:, None] - orig[None]).transpose(2, 0, 1)).min(1)
+    assert np.median(d) < 2.0
+    # not upsampled at or above the threshold
+    g = extract_features(img, FeatureParams(upsample_below=160), scale_factor=0.5)
+    assert g.image_size == (160, 120) and g.scale_factor == 0.5
+    with pytest.raises(ValueError, match="upsample_factor"):
+        FeatureParams(upsample_factor=0.5)
