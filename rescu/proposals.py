@@ -52,6 +52,12 @@ class ProposalParams:
         Instance-scale windows: stride as a fraction of the window size (1/4).
     max_windows : int
         Most instance-scale windows per RP (the stride grows to stay under it).
+    lattice_neighbours : int
+        Lattice windows: each instance's k nearest instances give its lattice steps.
+    lattice_steps : int
+        Lattice windows: extrapolate up to this many steps past an instance (m below).
+    lattice_scales : tuple of float
+        Lattice windows: multiples of the source instance's width and height.
     """
 
     method: str = "both"
@@ -65,6 +71,9 @@ class ProposalParams:
     scales: tuple[float, ...] = (0.85, 1.0, 1.2)
     stride_fraction: float = 0.25
     max_windows: int = 4000
+    lattice_neighbours: int = 4
+    lattice_steps: int = 2
+    lattice_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
 
     def __post_init__(self) -> None:
         if self.method not in PROPOSAL_METHODS:
@@ -79,8 +88,9 @@ class ProposalParams:
         if unknown:
             raise ValueError(f"unknown proposal parameter(s): {', '.join(unknown)}")
         d = dict(d)
-        if "scales" in d:
-            d["scales"] = tuple(float(s) for s in d["scales"])
+        for k in ("scales", "lattice_scales"):
+            if k in d:
+                d[k] = tuple(float(s) for s in d[k])
         return cls(**d)
 
 
@@ -238,6 +248,69 @@ def instance_scale_proposals(instance_boxes: np.ndarray, image_size: tuple[int, 
     if not out:
         return np.zeros((0, 4), np.float32)
     return clip_boxes(np.concatenate(out).astype(np.float32), (W, H))
+
+
+def lattice_proposals(instance_boxes: np.ndarray, image_size: tuple[int, int],
+                      params: ProposalParams = ProposalParams()) -> np.ndarray:
+    """Windows at the positions the RP's instance lattice predicts for missing instances.
+
+    Instances of an RP lie on rows / grids (in perspective, approximately), so a missing
+    instance sits one lattice step t_ij = c_i - c_j past an instance i, away from a
+    neighbour j (c = box centre): c_i + m t_ij for m = 1..``lattice_steps``, or halfway
+    between two neighbours (a gap of one in a row). Each window has the source
+    instance's size times ``lattice_scales`` (halfway windows only for pairs 1.6 to 2.4
+    lattice spacings apart, the spacing being the median nearest-instance distance); windows whose centre falls in an existing
+    instance or outside the image are dropped.
+
+    Parameters
+    ----------
+    instance_boxes : (N, 4) float
+        The RP's stage-I instance boxes ``[x, y, w, h]``, processed pixels.
+    image_size : (int, int)
+        ``(width, height)`` of the processed image.
+    params : ProposalParams
+        ``lattice_neighbours`` (k), ``lattice_steps`` (m), ``lattice_scales``.
+
+    Returns
+    -------
+    (Q, 4) float32
+        Windows ``[x, y, w, h]`` clipped to the image, processed pixels (Q = 0 when
+        N < 2).
+    """
+    b = np.asarray(instance_boxes, np.float64).reshape(-1, 4)
+    W, H = float(image_size[0]), float(image_size[1])
+    if len(b) < 2:
+        return np.zeros((0, 4), np.float32)
+    c = b[:, :2] + b[:, 2:] / 2                                  # (N, 2) centres
+    d = np.linalg.norm(c[:, None] - c[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    k = min(max(1, int(params.lattice_neighbours)), len(b) - 1)
+    nn = np.argsort(d, axis=1, kind="stable")[:, :k]              # (N, k)
+    s = float(np.median(d.min(1)))                                # lattice spacing
+    cen, wh = [], []
+    for i in range(len(b)):
+        for j in nn[i]:
+            t = c[i] - c[j]                                       # t_ij: one lattice step
+            for m in range(1, int(params.lattice_steps) + 1):
+                cen.append(c[i] + m * t)
+                wh.append(b[i, 2:])
+            if (i < j or i not in nn[j]) and 1.6 * s <= d[i, j] <= 2.4 * s:
+                cen.append((c[i] + c[j]) / 2)                     # gap of one between i, j
+                wh.append((b[i, 2:] + b[j, 2:]) / 2)
+    cen_a, wh_a = np.array(cen), np.array(wh)
+    inside = (cen_a[:, 0] >= 0) & (cen_a[:, 0] < W) & (cen_a[:, 1] >= 0) & (cen_a[:, 1] < H)
+    # centre inside an existing instance: that instance is already found
+    occ = ((np.abs(cen_a[:, None, 0] - c[None, :, 0]) < b[None, :, 2] / 2)
+           & (np.abs(cen_a[:, None, 1] - c[None, :, 1]) < b[None, :, 3] / 2)).any(1)
+    keep = inside & ~occ
+    cen_a, wh_a = cen_a[keep], wh_a[keep]
+    out = [np.concatenate([cen_a - wh_a * s / 2, wh_a * s], 1) for s in params.lattice_scales]
+    if not out or not len(cen_a):
+        return np.zeros((0, 4), np.float32)
+    q = clip_boxes(np.concatenate(out).astype(np.float32), (int(W), int(H)))
+    q = q[(q[:, 2] >= params.min_box_side) & (q[:, 3] >= params.min_box_side)]
+    _, idx = np.unique(np.round(q * 2).astype(np.int64), axis=0, return_index=True)
+    return q[np.sort(idx)]
 
 
 def clip_boxes(boxes: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:

@@ -94,6 +94,22 @@ class Stage2Params:
         Instance-scale windows: stride as a fraction of the window size.
     max_windows : int
         Most instance-scale windows per RP.
+    lattice_windows : bool
+        Add windows at the positions the RP's instance lattice predicts
+        (:func:`rescu.proposals.lattice_proposals`); they pass the looser
+        ``lattice_*`` gates at prediction (a geometric prior for the missing instances).
+    lattice_neighbours, lattice_steps : int
+        k nearest instances giving the lattice steps; steps extrapolated past an instance.
+    lattice_scales : tuple of float
+        Lattice windows: multiples of the source instance's size.
+    lattice_score_threshold : float
+        Smallest class probability of a new instance from a lattice window.
+    lattice_distance_ratio : float
+        ``max_distance_ratio`` for lattice windows.
+    lattice_only : bool
+        New instances come only from lattice windows (the other proposals are training
+        examples only); on real stage-I output the off-lattice additions were mostly
+        false (see benchmarks/eval_stage2.py).
     dbscan_eps : float or None
         DBSCAN radius in feature space (Euclidean on L2-normalised features);
         ``None`` = the median distance of each instance to its nearest other instance.
@@ -139,6 +155,9 @@ class Stage2Params:
     max_new_fraction : float
         At most this many new instances per stage-I instance of an RP (guards against
         a classifier that fires everywhere).
+    min_spacing_fraction : float
+        A new instance's centre is at least this times the RP's lattice spacing (median
+        nearest-instance centre distance of its stage-I instances) from every instance.
     min_instances : int
         Only RPs with at least this many stage-I instances are extended (an RP of 2
         gives too weak an appearance model; the pipeline minimum for an RP is 2).
@@ -160,12 +179,19 @@ class Stage2Params:
     instance_target_px: float = 48.0
     max_backbone_side: int = 1600
     pool_size: int = 2
-    proposal_method: str = "both"
+    proposal_method: str = "instance_scale"
     edge_model_path: str | None = None
     max_proposals: int = 1000
     window_scales: tuple[float, ...] = (0.85, 1.0, 1.2)
     window_stride: float = 0.25
-    max_windows: int = 4000
+    max_windows: int = 1500
+    lattice_windows: bool = True
+    lattice_neighbours: int = 4
+    lattice_steps: int = 2
+    lattice_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
+    lattice_score_threshold: float = 0.99
+    lattice_distance_ratio: float = 1.0
+    lattice_only: bool = True
     dbscan_eps: float | None = None
     dbscan_min_samples: int = 2
     top_p: int = 40
@@ -190,7 +216,8 @@ class Stage2Params:
     score_threshold: float = 0.99
     size_tolerance: float = 1.35
     max_new_fraction: float = 0.7
-    min_instances: int = 3
+    min_spacing_fraction: float = 0.6
+    min_instances: int = 2
     max_distance_ratio: float = 0.8
     seed: int = 0
     finetune: bool = False
@@ -214,7 +241,7 @@ class Stage2Params:
         if unknown:
             raise ValueError(f"unknown stage2 parameter(s): {', '.join(unknown)}")
         d = dict(d)
-        for k in ("input_scales", "window_scales"):
+        for k in ("input_scales", "window_scales", "lattice_scales"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])
         if "hidden_sizes" in d:
@@ -224,7 +251,10 @@ class Stage2Params:
     def proposal_params(self) -> ProposalParams:
         return ProposalParams(method=self.proposal_method, edge_model_path=self.edge_model_path,
                               max_boxes=self.max_proposals, scales=self.window_scales,
-                              stride_fraction=self.window_stride, max_windows=self.max_windows)
+                              stride_fraction=self.window_stride, max_windows=self.max_windows,
+                              lattice_neighbours=self.lattice_neighbours,
+                              lattice_steps=self.lattice_steps,
+                              lattice_scales=self.lattice_scales)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -281,22 +311,28 @@ def _centre_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _suppress(boxes: np.ndarray, order: np.ndarray, own: np.ndarray, others: np.ndarray,
-              nms_iou: float) -> np.ndarray:
+              nms_iou: float, min_dist: float = 0.0) -> np.ndarray:
     """Greedy NMS of candidate ``order`` (best first) against each other and stage I.
 
     A candidate is dropped when, with a kept candidate or a stage-I instance of its own
     RP, its IoU exceeds ``nms_iou``, one box's centre lies in the other, or the
-    intersection covers more than half of the smaller box; with a stage-I instance of
-    another RP, when the IoU exceeds 0.5.
+    intersection covers more than half of the smaller box, or the box centres are closer
+    than ``min_dist`` (pixels; instances of an RP recur at the lattice spacing); with a
+    stage-I instance of another RP, when the IoU exceeds 0.5.
     """
     if len(order) == 0:
         return order
     b = boxes[order]
-    clash_own = ((_iou(b, own) > nms_iou) | _centre_in(b, own) | (_cover(b, own) > 0.5)).any(1)
+    cb = b[:, :2] + b[:, 2:] / 2
+    co = own[:, :2] + own[:, 2:] / 2
+    near_own = np.linalg.norm(cb[:, None] - co[None], axis=2) < min_dist
+    clash_own = ((_iou(b, own) > nms_iou) | _centre_in(b, own) | (_cover(b, own) > 0.5)
+                 | near_own).any(1)
     ok = ~clash_own
     if len(others):
         ok &= _iou(b, others).max(1) <= 0.5
-    pair = (_iou(b, b) > nms_iou) | _centre_in(b, b) | (_cover(b, b) > 0.5)
+    pair = ((_iou(b, b) > nms_iou) | _centre_in(b, b) | (_cover(b, b) > 0.5)
+            | (np.linalg.norm(cb[:, None] - cb[None], axis=2) < min_dist))
     keep: list[int] = []
     for i in range(len(order)):
         if ok[i] and not any(pair[i, j] for j in keep):
@@ -409,6 +445,7 @@ def _empty_features(stage1: ImageResult, scale_factor: float, backbone: str,
         "scale_factor": np.float64(scale_factor), "backbone_scale": np.float64(0.0),
         "rp_index": np.zeros((0,), np.int64),
         "proposals": z4, "proposal_scores": np.zeros((0,), np.float32),
+        "proposal_lattice": np.zeros((0,), np.int8),
         "proposal_features": zf, "instance_boxes": z4, "instance_rp": np.zeros((0,), np.int64),
         "instance_features": zf, "jitter_boxes": z4, "jitter_parent": np.zeros((0,), np.int64),
         "jitter_features": zf, "hard_negative_boxes": z4, "hard_negative_features": zf,
@@ -487,8 +524,17 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
     from .proposals import clip_boxes
 
     inst = clip_boxes(inst, size)
-    boxes, scores = propose(rgb, [inst[inst_rp == k] for k in range(len(rps))],
-                            params.proposal_params())
+    pp = params.proposal_params()
+    boxes, scores = propose(rgb, [inst[inst_rp == k] for k in range(len(rps))], pp)
+    is_lat = np.zeros(len(boxes), np.int8)
+    if params.lattice_windows:
+        from .proposals import lattice_proposals
+
+        lat = [lattice_proposals(inst[inst_rp == k], size, pp) for k in range(len(rps))]
+        lat_b = np.concatenate(lat) if lat else np.zeros((0, 4), np.float32)
+        boxes = np.concatenate([boxes, lat_b]).astype(np.float32)
+        scores = np.concatenate([scores, np.zeros(len(lat_b), np.float32)])
+        is_lat = np.concatenate([is_lat, np.ones(len(lat_b), np.int8)])
     jit, parent = _jitter_boxes(inst, inst_rp, params.n_jitter, params, rng, size)
     hneg = _hard_negatives(inst, size)
     m = min(len(boxes), params.n_aug_proposals)
@@ -521,7 +567,7 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         "scale_factor": np.float64(sf), "backbone_scale": np.float64(base),
         "rp_index": np.array([i for i, _ in rps], np.int64),
         "proposals": (boxes / sf).astype(np.float32), "proposal_scores": scores,
-        "proposal_features": pf, "instance_boxes": (inst / sf).astype(np.float32),
+        "proposal_lattice": is_lat, "proposal_features": pf, "instance_boxes": (inst / sf).astype(np.float32),
         "instance_rp": inst_rp, "instance_features": inf_,
         "jitter_boxes": (jit / sf).astype(np.float32), "jitter_parent": parent,
         "jitter_features": jf, "hard_negative_boxes": (hneg / sf).astype(np.float32),
@@ -909,16 +955,28 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     all_inst = np.array([i.bbox for p in stage1.patterns for i in p.instances],
                         np.float64).reshape(-1, 4)
     arg = prob.argmax(1)
+    lat = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes), np.int8))).reshape(-1) > 0
+    if len(lat) != len(boxes):
+        lat = np.zeros(len(boxes), bool)
+    thr = np.where(lat, params.lattice_score_threshold, params.score_threshold)
+    ratio = np.where(lat, params.lattice_distance_ratio, params.max_distance_ratio)
     total = 0
     for k, pi in enumerate(rp_index):
         pat = out.patterns[pi]
         own = np.array([i.bbox for i in stage1.patterns[pi].instances], np.float64)
         pk = prob[:, k + 1]
-        near = sel["distance"][:, k] <= params.max_distance_ratio * max(sel["radius"][k], 1e-6)
-        cand = np.nonzero((arg == k + 1) & (pk >= params.score_threshold) & near
+        near = sel["distance"][:, k] <= ratio * max(sel["radius"][k], 1e-6)
+        allowed = lat if params.lattice_only else np.ones(len(boxes), bool)
+        cand = np.nonzero((arg == k + 1) & (pk >= thr) & near & allowed
                           & _size_ok(boxes, own, params.size_tolerance))[0]
         cand = cand[np.argsort(-pk[cand], kind="stable")]
-        cand = _suppress(boxes, cand, own, all_inst, params.nms_iou)
+        # lattice spacing: median distance of an instance centre to its nearest other one
+        co = own[:, :2] + own[:, 2:] / 2
+        dd = np.linalg.norm(co[:, None] - co[None], axis=2)
+        np.fill_diagonal(dd, np.inf)
+        spacing = float(np.median(dd.min(1))) if len(own) > 1 else 0.0
+        cand = _suppress(boxes, cand, own, all_inst, params.nms_iou,
+                         params.min_spacing_fraction * spacing)
         limit = int(np.floor(params.max_new_fraction * len(own)))
         cand = cand[np.argsort(-pk[cand], kind="stable")][:limit]
         new = [Instance(bbox=tuple(float(v) for v in boxes[c]), score=float(pk[c]),

@@ -5,7 +5,7 @@ import pytest
 
 from rescu.metrics import iod_matrix
 from rescu.proposals import (ProposalParams, edge_and_orientation, edgeboxes_proposals,
-                             instance_scale_proposals, propose)
+                             instance_scale_proposals, lattice_proposals, propose)
 
 
 def _squares_image(n=5, sz=24, gap=16, h=80, seed=0):
@@ -69,3 +69,27 @@ def test_propose_methods_and_bad_input():
         ProposalParams(method="selective")
     with pytest.raises(ValueError, match="unknown proposal parameter"):
         ProposalParams.from_dict({"nope": 1})
+
+
+def test_lattice_windows_at_missing_row_positions():
+    # a row of 5 squares with the 2nd and 5th missing from stage I: the lattice of the
+    # three found ones predicts both (gap of one -> halfway; end of row -> one step past)
+    img, boxes = _squares_image()
+    found = boxes[[0, 2, 3]]
+    q = lattice_proposals(found, (img.shape[1], img.shape[0]))
+    iou = iod_matrix(q, boxes[[1, 4]])
+    assert iou[:, 0].max() > 0.99 and iou[:, 1].max() > 0.99
+    # no window is centred inside a found instance; all inside the image
+    c = q[:, :2] + q[:, 2:] / 2
+    for x, y, w, h in found:
+        assert not np.any((np.abs(c[:, 0] - x - w / 2) < w / 2) & (np.abs(c[:, 1] - y - h / 2) < h / 2))
+    assert np.all(q[:, 0] >= 0) and np.all(q[:, 0] + q[:, 2] <= img.shape[1] + 1e-3)
+    # exactly the lattice: 3 scales x the 2nd and 5th centres (x = 68 and 188)
+    ok = (np.abs(c[:, 1] - 40) < 1e-3)
+    assert ok.all()
+    assert sorted(set(np.round(c[:, 0]).astype(int))) == [68, 188]
+
+
+def test_lattice_windows_need_two_instances():
+    assert lattice_proposals(np.array([[0, 0, 10, 10.]]), (100, 100)).shape == (0, 4)
+    assert lattice_proposals(np.zeros((0, 4)), (100, 100)).shape == (0, 4)

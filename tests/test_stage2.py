@@ -124,8 +124,9 @@ def test_h5_and_checkpoint_round_trip(six, tmp_path):
 
 def test_no_rp_and_small_rp_unchanged(tmp_path):
     img, boxes = squares(n=3)
-    for s1 in (result(img, []), result(img, [boxes[:1]]), result(img, [boxes[:2]])):
-        p = Stage2Params(**FAST)
+    for s1, m in ((result(img, []), 2), (result(img, [boxes[:1]]), 2),
+                  (result(img, [boxes[:2]]), 3)):
+        p = Stage2Params(**FAST, min_instances=m)
         feats = compute_stage2_features(img, 1.0, s1, p)
         assert len(feats["proposals"]) == 0 and len(feats["rp_index"]) == 0
         ckpt, info = train_heads(feats, s1, p)
@@ -136,6 +137,46 @@ def test_no_rp_and_small_rp_unchanged(tmp_path):
         io.write_h5(tmp_path / "e.h5", feats)          # empty arrays are writable
         back, _ = io.read_h5(tmp_path / "e.h5")
         assert predict_stage2(back, ckpt, s1, p).to_json() == out.to_json()
+
+
+def test_two_instance_rp_extended_along_its_row():
+    # min_instances 2: two found squares of a row of three give the third (lattice step)
+    img, boxes = squares(n=3)
+    s1 = result(img, [boxes[:2]])
+    p = Stage2Params(**FAST)
+    feats = compute_stage2_features(img, 1.0, s1, p)
+    assert feats["proposal_lattice"].shape == (len(feats["proposals"]),)
+    assert feats["proposal_lattice"].sum() > 0
+    ckpt, _ = train_heads(feats, s1, p)
+    out = predict_stage2(feats, ckpt, s1, p)
+    new = np.array([i.bbox for i in out.patterns[0].instances if i.source == "stage2"])
+    assert len(new) == 1
+    assert iod_matrix(new, np.array(boxes[2:])).max() > 0.5
+
+
+def test_lattice_only_needs_lattice_windows(six):
+    # with lattice_only, no lattice window means nothing new (off-lattice proposals only
+    # train the head)
+    img, boxes, s1, *_ = six
+    p = Stage2Params(**FAST, lattice_windows=False)
+    feats = compute_stage2_features(img, 1.0, s1, p)
+    assert feats["proposal_lattice"].sum() == 0
+    ckpt, _ = train_heads(feats, s1, p)
+    out = predict_stage2(feats, ckpt, s1, p)
+    assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 4
+
+
+def test_spacing_suppression():
+    from rescu.stage2 import _suppress
+
+    own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
+    cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)
+    order = np.arange(3)
+    # boxes 0 and 1 overlap little (IoU 0.19, cover 0.32): both survive plain NMS
+    assert _suppress(cand, order, own, own[:0], 0.3).tolist() == [0, 1, 2]
+    # lattice spacing 40, fraction 0.6: centres closer than 24 px clash (1 with 0 at
+    # 6.3 px, 2 with the stage-I instance at x = 45 at 20 px)
+    assert _suppress(cand, order, own, own[:0], 0.3, 24.0).tolist() == [0]
 
 
 def test_cluster_centres_and_params():
