@@ -222,11 +222,6 @@ def dataset_refs(table: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -
             for n in names}
 
 
-def RESULTS_OF(table_path: str | Path) -> Path:  # noqa: N802 - reads as a constant
-    """The results folder of a table written to ``<results>/tables/<name>``."""
-    return Path(table_path).resolve().parent.parent
-
-
 def failures_markdown(failures: pd.DataFrame) -> str:
     """The failures table in Markdown (or a line saying there were none)."""
     if not len(failures):

@@ -28,6 +28,8 @@ rule rp_tables:
         curves=f"{TABLES}/rp_curves.tsv",
         figures=expand(f"{FIGURES}/rp_curves_{{ds}}.png", ds=rp_datasets()),
     params:
+        results=RESULTS,
+        figures=FIGURES,
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:
@@ -49,6 +51,7 @@ rule ablation_tables:
         tsv=f"{TABLES}/ablation.tsv",
         md=f"{TABLES}/ablation.md",
     params:
+        results=RESULTS,
         datasets=dataset_params(ablation_datasets()),
         evaluation=config["evaluation"],
         variants=list(config["ablation"]["variants"]),
@@ -71,6 +74,7 @@ rule counting_tables:
         tsv=f"{TABLES}/counting.tsv",
         md=f"{TABLES}/counting.md",
     params:
+        results=RESULTS,
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:
@@ -95,6 +99,8 @@ rule vp_tables:
         tests=f"{TABLES}/vpd_tests.tsv",
         figures=expand(f"{FIGURES}/vpd_{{ds}}.png", ds=vp_datasets()),
     params:
+        results=RESULTS,
+        figures=FIGURES,
         datasets=dataset_params(vp_datasets()),
         evaluation=config["evaluation"],
     log:
@@ -113,6 +119,8 @@ rule ts_tables:
         md=f"{TABLES}/ts.md",
         figure=f"{FIGURES}/ts_sweep.png",
     params:
+        results=RESULTS,
+        figures=FIGURES,
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:

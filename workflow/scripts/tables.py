@@ -1,6 +1,4 @@
 """Snakemake adapter: the evaluation tables (rescu.tables), one function per rule."""
-from pathlib import Path
-
 from rescu import tables as T
 from rescu.evaluation import EvaluationParams, write_markdown, write_tsv
 from rescu.pipeline import setup_logging
@@ -21,17 +19,16 @@ elif rule == "summary":
 else:
     refs = T.dataset_refs(p.datasets, list(p.datasets))
     ev = EvaluationParams.from_dict(p.evaluation)
-    figures = Path(out.figures[0]).parent if "figures" in out.keys() and out.figures else \
-        Path(out.get("figure", out.tsv)).parent
+    figures = p.get("figures")
     if rule == "rp_tables":
-        T.rp_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, out.scores, out.curves, figures)
+        T.rp_tables(refs, p.results, ev, out.tsv, out.md, out.scores, out.curves, figures)
     elif rule == "ablation_tables":
-        T.ablation_tables(refs, T.RESULTS_OF(out.tsv), p.variants, ev, out.tsv, out.md)
+        T.ablation_tables(refs, p.results, p.variants, ev, out.tsv, out.md)
     elif rule == "counting_tables":
-        T.counting_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md)
+        T.counting_tables(refs, p.results, ev, out.tsv, out.md)
     elif rule == "vp_tables":
-        T.vp_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, out.errors, out.tests, figures)
+        T.vp_tables(refs, p.results, ev, out.tsv, out.md, out.errors, out.tests, figures)
     elif rule == "ts_tables":
-        T.ts_tables(refs, T.RESULTS_OF(out.tsv), ev, out.tsv, out.md, figures)
+        T.ts_tables(refs, p.results, ev, out.tsv, out.md, figures)
     else:
         raise ValueError(f"tables.py does not handle rule {rule!r}")
