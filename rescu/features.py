@@ -166,11 +166,14 @@ def load_features(path: str | os.PathLike[str]) -> Features:
     """Read features written by :func:`save_features`."""
     arrays, attrs = read_h5(path)
     size = tuple(int(v) for v in np.asarray(attrs["image_size"]).ravel())
-    return Features(xy=np.asarray(arrays["xy"], np.float32).reshape(-1, 2),
+    xy = np.asarray(arrays["xy"], np.float32).reshape(-1, 2)
+    desc = np.asarray(arrays["descriptors"], np.float32)
+    if desc.ndim != 2:  # (K, D) as written; (0, D) for an image without features
+        desc = desc.reshape(len(xy), -1)
+    return Features(xy=xy,
                     scale=np.asarray(arrays["scale"], np.float32),
                     angle=np.asarray(arrays["angle"], np.float32),
                     response=np.asarray(arrays["response"], np.float32),
-                    descriptors=np.asarray(arrays["descriptors"], np.float32).reshape(
-                        len(arrays["xy"]), -1),
+                    descriptors=desc,
                     image_size=(size[0], size[1]),
                     scale_factor=float(attrs["scale_factor"]))

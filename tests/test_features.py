@@ -70,3 +70,14 @@ def test_upsampling_keeps_original_pixels_consistent():
     assert g.image_size == (160, 120) and g.scale_factor == 0.5
     with pytest.raises(ValueError, match="upsample_factor"):
         FeatureParams(upsample_factor=0.5)
+
+
+def test_empty_features_round_trip(tmp_path):
+    """A uniform image has no features; they save and load as an empty set."""
+    from rescu.features import load_features, save_features
+    from rescu.types import Features
+
+    save_features(tmp_path / "f.h5", Features.empty((320, 240), 0.5))
+    back = load_features(tmp_path / "f.h5")
+    assert len(back) == 0 and back.descriptors.shape == (0, 128)
+    assert back.image_size == (320, 240) and back.scale_factor == 0.5

@@ -157,3 +157,29 @@ def test_step_functions_pass_failures_on(tmp_path):
     pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"), cfg["caption"])
     d = json.loads(Path(w("final.json")).read_text())
     assert d["failure"]["stage"] == "prepare" and d["patterns"] == []
+
+
+@pytest.mark.parametrize("kind", ["uniform", "single_object"])
+def test_no_recurrence_gives_empty_patterns_not_failure(tmp_path, kind):
+    """A uniform image (no features) or one object alone: empty patterns, no failure."""
+    img = np.full((240, 320, 3), 128, np.uint8)
+    if kind == "single_object":
+        rng = np.random.default_rng(3)
+        img[80:160, 120:200] = rng.integers(0, 255, (80, 80, 3), dtype=np.uint8)
+    src = tmp_path / f"{kind}.png"
+    Image.fromarray(img).save(src)
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    from rescu.config import load_config
+
+    cfg = load_config()
+    assert pipeline.prepare(str(src), w("p.png"), w("m.json"), image_name=src.name,
+                            max_side=800, min_side=16) is None
+    assert pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"]) is None
+    assert pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"), cfg["stage1"]) is None
+    scene = {k: v for k, v in cfg["scene"].items() if k != "source"}
+    assert pipeline.scene(w("p.png"), w("m.json"), w("s.json"), w("sc.json"), w("r"), scene) is None
+    assert pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"),
+                            cfg["caption"]) is None
+    d = json.loads(Path(w("final.json")).read_text())
+    assert d["patterns"] == [] and d["vanishing_point"] is None and "failure" not in d
+    assert d["caption"]["base"]
