@@ -7,9 +7,9 @@ Usage::
 
 For an image resized to each size: seconds and tracemalloc peak (MiB) of SIFT
 extraction, affinity precomputation (correspondences + URP table), one search, the
-full adaptive grid (``discover`` with all 8 ... 45 parameter sets) and GRASP; then the
-time of ``discover`` against the number of keypoints with a fitted exponent
-(t ~ K^a). The default image is the first of ../shared/data/cmp_facade, or a synthetic
+full adaptive grid (``discover`` over the 45 parameter sets, which share their
+searches) and GRASP; then the time of ``discover`` against the number of keypoints
+with a fitted exponent (t ~ K^a). The default image is the first of ../shared/data/cmp_facade, or a synthetic
 grid when that is absent. Single-threaded.
 """
 

@@ -411,8 +411,8 @@ def instance_extents(features: Features, omega: np.ndarray, box_grow: float = 0.
 
 
 def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
-                  params: Stage1Params, pset: dict[str, float], diag: float,
-                  first_only: bool = False) -> list[RPMatrix]:
+                  params: Stage1Params, pset: dict[str, float], diag: float
+                  ) -> list[RPMatrix]:
     """Find RPs one after the other with one parameter set (module docstring, step 4)."""
     gates = Gates(pset["P_d"] * diag, pset["P_s"], pset["P_theta"])
     seeds = table.seeds(gates)
@@ -420,12 +420,12 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
     available = np.ones(k, bool)
     rps: list[RPMatrix] = []
     tried = 0
-    budget = params.grid_initials if first_only else params.n_initials
-    per = params.grid_initials if first_only else params.initials_per_pattern
+    budget = params.n_initials
+    per = params.initials_per_pattern
     consumed = np.zeros(len(seeds), bool)
-    n_rounds = 1 if first_only else params.max_patterns + params.n_initials
+    n_rounds = params.max_patterns + params.n_initials
     for _ in range(n_rounds):
-        if len(rps) >= (1 if first_only else params.max_patterns):
+        if len(rps) >= params.max_patterns:
             break
         best: tuple[float, np.ndarray] | None = None
         blocked = ~available.copy()
