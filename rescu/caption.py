@@ -45,7 +45,7 @@ from __future__ import annotations
 import csv
 import logging
 import re
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol, Sequence
 
@@ -53,6 +53,7 @@ import numpy as np
 
 from .io import InputError
 from .types import BBox, ImageResult, Pattern
+from .params import checked_mapping
 
 logger = logging.getLogger(__name__)
 
@@ -115,11 +116,7 @@ class CaptionParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "CaptionParams":
         """Build from a config mapping; unknown keys raise ValueError naming them."""
-        d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown caption parameter(s) {unknown}; known: {sorted(known)}")
+        d = checked_mapping(cls, d, "caption parameter")
         for k in ("csv_path", "grounding_model", "model"):
             if k in d and d[k] is None:
                 d[k] = ""

@@ -46,7 +46,6 @@ def build_image_table(config: dict[str, Any], results_dir: str,
     same stem in one dataset are an error naming both.
     """
     from .synth import synthetic_image_names
-    from .photos import PACKAGE_PHOTOS
 
     table: dict[str, dict[str, Any]] = {}
     for name, spec in config["datasets"].items():

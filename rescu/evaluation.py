@@ -38,7 +38,7 @@ predicted pattern with a finite cross ratio is assigned to (rescu.metrics rp_ass
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -49,6 +49,7 @@ from .io import (GroundTruthRP, InputError, atomic_path, load_coco_rps,
                  load_vanishing_points, read_json, read_result)
 from .metrics import METRICS, score_image
 from .types import ImageResult
+from .params import checked_mapping
 
 CROSS_RATIO_EQUAL = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -123,12 +124,7 @@ class EvaluationParams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "EvaluationParams":
         """Build from a config mapping; unknown keys raise ValueError naming them."""
-        d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown evaluation parameter(s) {unknown}; known: "
-                             f"{sorted(known)}")
+        d = checked_mapping(cls, d, "evaluation parameter")
         for k in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "ts_t_fine",
                   "ts_t_coarse"):
             if k in d:

@@ -8,13 +8,14 @@ and the keypoints are put in a canonical order (decreasing response, then positi
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from .io import read_h5, write_h5
 from .types import Features
+from .params import params_from_dict
 
 
 @dataclass(frozen=True)
@@ -63,17 +64,7 @@ class FeatureParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "FeatureParams":
         """Build from a mapping; raises ValueError naming any unknown key."""
-        return _from_dict(cls, d)
-
-
-def _from_dict(cls: Any, d: dict[str, Any] | None) -> Any:
-    d = dict(d or {})
-    names = {f.name for f in fields(cls)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ValueError(f"{cls.__name__}: unknown key(s) {unknown}; known keys are "
-                         f"{sorted(names)}")
-    return cls(**d)
+        return params_from_dict(cls, d)
 
 
 def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,

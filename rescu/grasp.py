@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .features import _from_dict
+from .params import params_from_dict
 from .stage1 import Stage1Output
 from .types import Features, RPMatrix
 from .urp import Gates, match_candidates, objective, root_sift
@@ -90,7 +90,7 @@ class GraspParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GraspParams":
         """Build from a mapping; raises ValueError naming any unknown key."""
-        return _from_dict(cls, d)
+        return params_from_dict(cls, d)
 
 
 class _Grasp:

@@ -17,8 +17,9 @@ All boxes here are ``[x, y, w, h]`` in *processed* pixels (float32).
 """
 
 from __future__ import annotations
+from .params import checked_mapping
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -83,11 +84,7 @@ class ProposalParams:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ProposalParams":
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown proposal parameter(s): {', '.join(unknown)}")
-        d = dict(d)
+        d = checked_mapping(cls, d, "proposal parameter")
         for k in ("scales", "lattice_scales"):
             if k in d:
                 d[k] = tuple(float(s) for s in d[k])

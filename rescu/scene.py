@@ -25,7 +25,6 @@ infinity (see :func:`rescu.symmetry.vp_rectifying_homography`).
 from __future__ import annotations
 
 import copy
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,6 +34,7 @@ from . import counting as C
 from . import symmetry as S
 from . import vp as V
 from .types import ImageResult, Pattern, VanishingPoint
+from .params import checked_mapping
 
 
 @dataclass(frozen=True)
@@ -78,12 +78,7 @@ class SceneParams:
 
         Unknown keys (at any level) raise ValueError naming them.
         """
-        d = dict(d or {})
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"SceneParams: unknown key(s) {unknown}; "
-                             f"expected a subset of {sorted(names)}")
+        d = checked_mapping(cls, d)
         for key in ("vp", "symmetry"):
             if key in d and not isinstance(d[key], (dict, type(None))):
                 raise ValueError(f"SceneParams.{key} must be a mapping, got "

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .features import _from_dict
+from .params import params_from_dict
 from .io import read_h5, write_h5
 from .search import SearchContext, matrix_objective, prune, search
 from .types import Features, Instance, Pattern, RPMatrix
@@ -167,7 +167,7 @@ class Stage1Params:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Stage1Params":
         """Build from a mapping; raises ValueError naming any unknown key."""
-        return _from_dict(cls, d)
+        return params_from_dict(cls, d)
 
     def grid(self) -> list[dict[str, float]]:
         """The parameter sets of the adaptive grid (one set when ``adaptive`` is empty)."""

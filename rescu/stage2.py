@@ -43,7 +43,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,7 @@ import numpy as np
 from .io import atomic_path
 from .proposals import ProposalParams, propose
 from .types import ImageResult, Instance
+from .params import checked_mapping
 
 METHOD = "rescu-ii"
 
@@ -236,11 +237,7 @@ class Stage2Params:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Stage2Params":
         """Build from a config mapping; raises ValueError naming any unknown key."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown stage2 parameter(s): {', '.join(unknown)}")
-        d = dict(d)
+        d = checked_mapping(cls, d, "stage2 parameter")
         for k in ("input_scales", "window_scales", "lattice_scales"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])
@@ -723,7 +720,7 @@ def _training_set(feats: dict[str, np.ndarray], sel: dict[str, Any], params: Sta
         add(np.asarray(feats["aug_proposal_features"])[a][sub], lab[aidx][sub])
     n_pos = sum(len(y) for y in ys)
     # negatives: hard negatives (+ aug), far proposals (+ aug subset), sampled
-    nx, ny = [], []
+    nx = []
     hn = np.asarray(feats["hard_negative_features"], np.float32)
     if len(hn):
         nx.append(hn)

@@ -36,7 +36,6 @@ rectification of the plane needs a second VP, which one RP direction does not gi
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -44,6 +43,7 @@ import numpy as np
 
 from .types import TranslationSymmetry
 from .vp import checked_points
+from .params import params_from_dict
 
 CR_EQUAL_SPACING = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -73,13 +73,7 @@ class SymmetryParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "SymmetryParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""
-        d = dict(d or {})
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"SymmetryParams: unknown key(s) {unknown}; "
-                             f"expected a subset of {sorted(names)}")
-        return cls(**d)
+        return params_from_dict(cls, d)
 
 
 def cross_ratio(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:

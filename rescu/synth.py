@@ -34,10 +34,11 @@ contain both kinds.
 """
 
 from __future__ import annotations
+from .params import params_from_dict
 
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -170,13 +171,7 @@ class SynthParams:
     def from_dict(cls, d: dict[str, Any] | None) -> "SynthParams":
         """Build from a mapping (e.g. a YAML section); raises ValueError naming any
         unknown key. Lists are accepted for the pair/list fields."""
-        d = dict(d or {})
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"SynthParams: unknown key(s) {unknown}; known keys are "
-                             f"{sorted(names)}")
-        return cls(**d)
+        return params_from_dict(cls, d)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able mapping (pairs as lists)."""

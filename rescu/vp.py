@@ -44,25 +44,17 @@ Evaluation
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
 from .types import VanishingPoint
+from .params import params_from_dict
 
 # |w| of a unit-norm homogeneous pixel point below which it is "at infinity" for the
 # error measures (|w| = 1e-12 is a point about 1e12 pixels away).
 INFINITY_EPS = 1e-12
-
-
-def _check_keys(cls: type, d: dict[str, Any]) -> None:
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ValueError(f"{cls.__name__}: unknown key(s) {unknown}; "
-                         f"expected a subset of {sorted(names)}")
 
 
 @dataclass(frozen=True)
@@ -136,9 +128,7 @@ class VPParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "VPParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""
-        d = dict(d or {})
-        _check_keys(cls, d)
-        return cls(**d)
+        return params_from_dict(cls, d)
 
 
 # ----------------------------------------------------------------------------- lines
