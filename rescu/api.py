@@ -76,9 +76,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
                                     w("meta.json"), cfg["stage2"])
             source = w("rescu-ii.json")
         rect = Path(out_dir) / f"{stem}_rectified" if out_dir is not None else work / "rect"
-        scene_params = {k: v for k, v in cfg["scene"].items() if k != "source"}
         pipeline.scene(w("image.png"), w("meta.json"), source, w("scene.json"), str(rect),
-                       scene_params)
+                       cfg["scene"])
         pipeline.caption(w("image.png"), w("meta.json"), w("scene.json"), w("final.json"),
                          cfg["caption"])
         result = io.read_result(w("final.json"))

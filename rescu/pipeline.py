@@ -263,6 +263,14 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
 
 
 # --------------------------------------------------------------------------- scene
+def _scene_params(section: dict[str, Any]) -> Any:
+    """SceneParams from the config's ``scene`` section (``source`` picks the input file
+    of the scene step and is not a SceneParams field)."""
+    from . import scene as SC
+
+    return SC.SceneParams.from_dict({k: v for k, v in section.items() if k != "source"})
+
+
 def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
           params: dict[str, Any]) -> Failure | None:
     """Vanishing points, translation symmetry, counts; rectified views as PNGs.
@@ -277,7 +285,7 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = SC.SceneParams.from_dict(params)
+        p = _scene_params(params)
         res = SC.analyse_scene(src, p)
         rgb, _ = read_prepared(png, meta_path)
         for pat in res.patterns:
@@ -303,7 +311,7 @@ def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> 
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
-        p = SC.SceneParams.from_dict(params)
+        p = _scene_params(params)
         vp = V.line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp

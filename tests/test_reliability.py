@@ -152,7 +152,7 @@ def test_step_functions_pass_failures_on(tmp_path):
     assert pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])["stage"] == "prepare"
     assert pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"),
                            cfg["stage1"])["stage"] == "prepare"
-    scene = {k: v for k, v in cfg["scene"].items() if k != "source"}
+    scene = cfg["scene"]
     pipeline.scene(w("p.png"), w("m.json"), w("s.json"), w("sc.json"), w("rect"), scene)
     pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"), cfg["caption"])
     d = json.loads(Path(w("final.json")).read_text())
@@ -176,7 +176,7 @@ def test_no_recurrence_gives_empty_patterns_not_failure(tmp_path, kind):
                             max_side=800, min_side=16) is None
     assert pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"]) is None
     assert pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"), cfg["stage1"]) is None
-    scene = {k: v for k, v in cfg["scene"].items() if k != "source"}
+    scene = cfg["scene"]
     assert pipeline.scene(w("p.png"), w("m.json"), w("s.json"), w("sc.json"), w("r"), scene) is None
     assert pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"),
                             cfg["caption"]) is None

@@ -4,10 +4,8 @@
 
 
 def scene_params(**vp_overrides):
-    """The scene section minus `source` (that one picks the input file)."""
-    p = {k: v for k, v in config["scene"].items() if k != "source"}
-    p["vp"] = {**p["vp"], **vp_overrides}
-    return p
+    """The scene section, with ``vp`` entries overridden (the no-AC variant)."""
+    return {**config["scene"], "vp": {**config["scene"]["vp"], **vp_overrides}}
 
 
 def scene_source(wildcards):
