@@ -534,29 +534,31 @@ def plot_metric_curves(curves: pd.DataFrame, path: str | Path,
 def ablation_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                    h: float = 0.5, min_rp_precision: float = 0.5,
         images: Iterable[str] | None = None) -> pd.DataFrame:
-    """Stage-I ablation: one row per set of adaptive parameters x the 4 metrics.
+    """Stage-I ablation: one row per variant x the 4 metrics.
 
     Parameters
     ----------
     pred_dirs : {row: folder}
-        Keys from :data:`ABLATION_ROWS` (``"none"``, ``"P_d"``, ... ``"all"``).
+        Rows named as in :data:`ABLATION_ROWS` (``"none"``, ``"P_d"``, ... ``"all"``:
+        which parameters are adaptive) come first, in that order; any other rows (e.g.
+        ``"all+theta-paper"``, another ``orientation_mode``) follow in the given order.
 
     Returns
     -------
     DataFrame
-        Rows in :data:`ABLATION_ROWS` order (those given), columns as
-        :func:`summary_table` for the subset "all" (p-values against the best row).
+        Rows as above, columns as :func:`summary_table` for the subset "all" (p-values
+        against the best row).
     """
-    unknown = [k for k in pred_dirs if k not in ABLATION_ROWS]
-    if unknown:
-        raise ValueError(f"unknown ablation row(s) {unknown}; expected keys from "
-                         f"{list(ABLATION_ROWS)}")
-    ordered = {k: pred_dirs[k] for k in ABLATION_ROWS if k in pred_dirs}
+    bad = [k for k in pred_dirs if not isinstance(k, str) or not k]
+    if bad:
+        raise ValueError(f"ablation row names must be non-empty strings, got {bad}")
+    order = [k for k in ABLATION_ROWS if k in pred_dirs]
+    order += [k for k in pred_dirs if k not in ABLATION_ROWS]
+    ordered = {k: pred_dirs[k] for k in order}
     df = evaluate_rp_dataset(dataset_dir, ordered, h, min_rp_precision, images=images)
     s = summary_table(df)
     s = s[s["subset"] == "all"].rename(columns={"method": "adaptive"})
-    s["adaptive"] = pd.Categorical(s["adaptive"], categories=list(ABLATION_ROWS),
-                                   ordered=True)
+    s["adaptive"] = pd.Categorical(s["adaptive"], categories=order, ordered=True)
     return s.sort_values("adaptive").reset_index(drop=True).assign(
         adaptive=lambda x: x["adaptive"].astype(str))
 

@@ -173,26 +173,49 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     return _guard(method, _h5_failure(features_h5), run, empty)
 
 
+def ablation_overrides(spec: Any) -> dict[str, Any]:
+    """Stage-I parameter overrides of one ablation variant.
+
+    A variant is either a list of the adaptive parameters (``[P_d, P_s]``) or a mapping
+    ``{adaptive: [...], orientation_mode: paper}`` of ``stage1`` keys to override
+    (``adaptive`` and ``orientation_mode`` only).
+    """
+    if isinstance(spec, (list, tuple)):
+        return {"adaptive": list(spec)}
+    if isinstance(spec, dict):
+        unknown = sorted(set(spec) - {"adaptive", "orientation_mode"})
+        if unknown:
+            raise ValueError(f"ablation variant keys {unknown} not allowed "
+                             "(adaptive, orientation_mode)")
+        if "adaptive" not in spec:
+            raise ValueError("an ablation variant mapping needs 'adaptive'")
+        return {k: (list(v) if k == "adaptive" else v) for k, v in spec.items()}
+    raise ValueError(f"an ablation variant must be a list or a mapping, got {spec!r}")
+
+
 def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
-             params: dict[str, Any], variants: dict[str, list[str]]) -> Failure | None:
-    """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive).
+             params: dict[str, Any], variants: dict[str, Any]) -> Failure | None:
+    """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive, and
+    optionally another ``orientation_mode``; see :func:`ablation_overrides`).
 
     ``out_jsons`` maps each variant name to its per-image result JSON (method
-    ``rescu-i[<variant>]``). Features and descriptor matching are loaded once.
+    ``rescu-i[<variant>]``). Features are loaded once.
     """
     from . import features as F
     from . import stage1 as S
 
     meta = io.read_json(meta_path)
+    overrides = {name: ablation_overrides(v) for name, v in variants.items()}
 
     def run() -> None:
         feats = F.load_features(features_h5)
-        for name, adaptive in variants.items():
-            p = S.Stage1Params.from_dict({**params, "adaptive": list(adaptive)})
+        for name, over in overrides.items():
+            p = S.Stage1Params.from_dict({**params, **over})
             o = S.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
             res.patterns = S.rps_to_patterns(feats, o.rps)
-            res.extra.update(chosen_params=o.chosen, objective=o.objective)
+            res.extra.update(chosen_params=o.chosen, objective=o.objective,
+                             ablation=over)
             io.write_json(out_jsons[name], res)
 
     def empty(f: Failure) -> None:
@@ -260,6 +283,44 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
         io.write_json(out_json, empty_result(meta, "rescu-ii", f))
 
     return _guard("stage2-predict", ckpt.get("failure"), run, empty)
+
+
+def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[str, str],
+                    params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> Failure | None:
+    """RESCU-II once per stage-II ablation variant (e.g. another ``proposal_method``).
+
+    Each variant is a mapping of ``stage2`` keys overriding ``params``. Features, head
+    and prediction are computed in memory (nothing but the JSONs is written);
+    ``out_jsons`` maps each variant to its per-image result JSON (method
+    ``rescu-ii[<variant>]``).
+    """
+    from . import stage2 as S2
+
+    meta = io.read_json(meta_path)
+    s1 = io.read_result(stage1_json)
+    for name, over in variants.items():
+        if not isinstance(over, dict):
+            raise ValueError(f"stage-II ablation variant {name!r} must be a mapping of "
+                             f"stage2 keys, got {over!r}")
+    plist = {name: S2.Stage2Params.from_dict({**params, **over})
+             for name, over in variants.items()}
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        for name, p in plist.items():
+            feats = S2.compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
+            ckpt, info = S2.train_heads(feats, s1, p)
+            res = S2.predict_stage2(feats, ckpt, s1, p)
+            res.method = f"rescu-ii[{name}]"
+            res.extra["stage2"] = info
+            res.extra["ablation"] = dict(variants[name])
+            io.write_json(out_jsons[name], res)
+
+    def empty(f: Failure) -> None:
+        for name in variants:
+            io.write_json(out_jsons[name], empty_result(meta, f"rescu-ii[{name}]", f))
+
+    return _guard("stage2-ablation", s1.extra.get("failure"), run, empty)
 
 
 # --------------------------------------------------------------------------- scene

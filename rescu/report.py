@@ -96,7 +96,8 @@ def build_run_report(out_html: str | Path, results: str | Path,
     results = Path(results)
     t = results / "tables"
     tables = [("RP discovery (mean, std, n per metric)", t / "rp_discovery.tsv"),
-              ("Stage-I ablation of the adaptive parameters", t / "ablation.tsv"),
+              ("Stage-I ablation: adaptive parameters and orientation mode", t / "ablation.tsv"),
+              ("Stage-II ablation: proposals", t / "stage2_ablation.tsv"),
               ("Counting", t / "counting.tsv"),
               ("Vanishing-point detection: success rates", t / "vpd.tsv"),
               ("Vanishing points: paired tests", t / "vpd_tests.tsv"),

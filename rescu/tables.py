@@ -77,7 +77,7 @@ def rp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
 def ablation_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
                     variants: Sequence[str], params: E.EvaluationParams,
                     out_tsv: str | Path, out_md: str | Path) -> None:
-    """The stage-I ablation of the adaptive parameters: one block of 8 rows per dataset."""
+    """The stage-I ablation: one block per dataset, one row per variant (adaptive parameters, orientation mode)."""
     results = Path(results)
     tables, mds = [], []
     for name, ref in datasets.items():
@@ -91,6 +91,30 @@ def ablation_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
                                       title=f"Stage-I ablation, {name}"))
     df = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     _write(df, "\n".join(mds) or "_no ablation dataset_\n", out_tsv, out_md)
+
+
+def stage2_ablation_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
+                           variants: Sequence[str], params: E.EvaluationParams,
+                           out_tsv: str | Path, out_md: str | Path) -> None:
+    """The stage-II ablation: RESCU-I (its input), RESCU-II with the configured
+    ``stage2`` section, and RESCU-II under each variant
+    (``<results>/<dataset>/stage2-ablation/<variant>/``), per dataset and subset."""
+    results = Path(results)
+    frames = []
+    for name, ref in datasets.items():
+        dirs = {"RESCU-I": results / name / "rescu-i", "RESCU-II": results / name / "rescu-ii"}
+        dirs.update({f"RESCU-II[{v}]": results / name / "stage2-ablation" / v
+                     for v in variants})
+        frames.append(E.evaluate_rp_dataset(ref.root, dirs, params.iod_h,
+                                            params.min_rp_precision,
+                                            images=ref.images).assign(dataset=name))
+    scores = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    summary = E.summary_table(scores) if len(scores) else pd.DataFrame()
+    md = (E.summary_markdown(summary, alpha=params.significance_alpha,
+                             decimals=params.decimals,
+                             title=f"Stage-II ablation (IOD h = {params.iod_h})")
+          if len(summary) else "_no stage-II ablation dataset_\n")
+    _write(summary, md, out_tsv, out_md)
 
 
 def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,

@@ -237,8 +237,14 @@ def test_ablation_table_eight_rows_in_order(tiny) -> None:
     assert list(t["adaptive"]) == list(E.ABLATION_ROWS)
     assert t.set_index("adaptive").loc["all", "rp_recall_mean"] == 1.0
     assert t.set_index("adaptive").loc["none", "rp_recall_mean"] == 0.0
-    with pytest.raises(ValueError, match="unknown ablation row"):
-        E.ablation_table(ds, {"P_x": preds["gt"]})
+    # other variants (e.g. another orientation mode) follow the eight, in given order
+    t2 = E.ablation_table(ds, {"all+theta-paper": dirs["none"], "all": dirs["all"],
+                               "all+theta-relative": dirs["all"], "none": dirs["none"]})
+    assert list(t2["adaptive"]) == ["none", "all", "all+theta-paper", "all+theta-relative"]
+    assert t2.set_index("adaptive").loc["all+theta-relative", "rp_recall_mean"] == 1.0
+    assert t2.set_index("adaptive").loc["all+theta-paper", "rp_recall_mean"] == 0.0
+    with pytest.raises(ValueError, match="non-empty strings"):
+        E.ablation_table(ds, {"": preds["gt"]})
 
 
 def test_counting_table(tiny) -> None:

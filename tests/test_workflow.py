@@ -93,8 +93,19 @@ def test_outputs_exist_and_parse(finished_run):
     assert len(list((res / "synthetic" / "overlay").glob("*.png"))) == 3
     assert len(list((res / "synthetic" / "features").glob("*.h5"))) == 3
     assert len(list((res / "synthetic" / "stage2").glob("*.head.pt"))) == 3
-    for table in ("rp_discovery", "ablation", "counting", "vpd", "ts", "captions", "failures"):
+    for table in ("rp_discovery", "ablation", "stage2_ablation", "counting", "vpd", "ts",
+                  "captions", "failures"):
         assert (res / "tables" / f"{table}.tsv").exists(), table
+    # every ablation variant has its per-image JSONs and a row in its table
+    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    abl = (res / "tables" / "ablation.tsv").read_text()
+    s2 = (res / "tables" / "stage2_ablation.tsv").read_text()
+    for v in default["ablation"]["variants"]:
+        assert len(list((res / "synthetic" / "ablation" / v).glob("*.json"))) == 3, v
+        assert f"\t{v}\t" in abl, v
+    for v in default["stage2_ablation"]["variants"]:
+        assert len(list((res / "synthetic" / "stage2-ablation" / v).glob("*.json"))) == 3, v
+        assert f"RESCU-II[{v}]" in s2, v
     assert (res / "tables" / "summary.md").read_text().strip()
     html = (res / "report" / "index.html").read_text()
     assert "<img" in html and "RESCU" in html
@@ -112,5 +123,6 @@ def test_parameter_change_reruns_only_dependants(finished_run):
     assert jobs, "a changed scene parameter must rerun something"
     assert jobs.get("scene") == 3 and jobs.get("caption") == 3
     for upstream in ("prepare", "features", "rescu_i", "grasp", "ablation", "stage2_features",
-                     "stage2_train", "stage2_predict", "generate_synthetic", "line_vp"):
+                     "stage2_train", "stage2_predict", "stage2_ablation", "generate_synthetic",
+                     "line_vp"):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene change: {jobs}"

@@ -55,6 +55,11 @@ def ablation_datasets():
     return [d for d in config["ablation"]["datasets"] if d in DATASETS and DATASETS[d]["has_rps"]]
 
 
+def stage2_ablation_datasets():
+    return [d for d in config["stage2_ablation"]["datasets"]
+            if d in DATASETS and DATASETS[d]["has_rps"]]
+
+
 def prepared(wildcards=None):
     return {
         "png": f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",

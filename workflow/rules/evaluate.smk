@@ -61,6 +61,34 @@ rule ablation_tables:
         "../scripts/tables.py"
 
 
+rule stage2_ablation_tables:
+    input:
+        preds=per_image(
+            f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
+            stage2_ablation_datasets(),
+            method=["rescu-i", "rescu-ii"],
+        ),
+        ablation=per_image(
+            f"{RESULTS}/{{dataset}}/stage2-ablation/{{variant}}/{{image}}.json",
+            stage2_ablation_datasets(),
+            variant=list(config["stage2_ablation"]["variants"]),
+        ),
+        gt=gt_files(stage2_ablation_datasets(), "annotations.json"),
+        code=EVAL_CODE,
+    output:
+        tsv=f"{TABLES}/stage2_ablation.tsv",
+        md=f"{TABLES}/stage2_ablation.md",
+    params:
+        results=RESULTS,
+        datasets=dataset_params(stage2_ablation_datasets()),
+        evaluation=config["evaluation"],
+        variants=list(config["stage2_ablation"]["variants"]),
+    log:
+        "logs/tables/stage2_ablation_tables.log",
+    script:
+        "../scripts/tables.py"
+
+
 rule counting_tables:
     input:
         preds=per_image(
@@ -149,6 +177,7 @@ rule summary:
     input:
         rp=f"{TABLES}/rp_discovery.md",
         ablation=f"{TABLES}/ablation.md",
+        stage2_ablation=f"{TABLES}/stage2_ablation.md",
         counting=f"{TABLES}/counting.md",
         vpd=f"{TABLES}/vpd.md",
         ts=f"{TABLES}/ts.md",

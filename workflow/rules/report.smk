@@ -15,6 +15,7 @@ rule report:
     input:
         tables=rules.rp_tables.output
         + rules.ablation_tables.output
+        + rules.stage2_ablation_tables.output
         + rules.counting_tables.output
         + rules.vp_tables.output
         + rules.ts_tables.output

@@ -1,5 +1,5 @@
 # Stage I: RESCU-I (URP search, adaptive parameters), the GRASP baseline, and the
-# ablation of the adaptive parameters (all eight variants in one job per image, reusing
+# ablation of the adaptive parameters and orientation modes (all variants in one job per image, reusing
 # features and affinities).
 
 

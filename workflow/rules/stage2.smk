@@ -56,3 +56,27 @@ rule stage2_predict:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict/{{image}}.tsv"
     script:
         "../scripts/stage2_predict.py"
+
+
+rule stage2_ablation:
+    input:
+        **prepared(),
+        stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+        code=code("stage2", "proposals", "backbone"),
+    output:
+        expand(
+            f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
+            variant=config["stage2_ablation"]["variants"],
+        ),
+    params:
+        stage2=config["stage2"],
+        variants=config["stage2_ablation"]["variants"],
+    threads: 2
+    resources:
+        mem_mb=4000,
+    log:
+        "logs/{dataset}/stage2_ablation/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/stage2_ablation/{{image}}.tsv"
+    script:
+        "../scripts/stage2_ablation.py"

@@ -1,4 +1,4 @@
-"""Snakemake adapter: the eight adaptive-parameter variants of RESCU-I on one image."""
+"""Snakemake adapter: the ablation variants of RESCU-I (adaptive parameters, orientation mode) on one image."""
 from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])

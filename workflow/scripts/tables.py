@@ -13,6 +13,7 @@ if rule == "result_tables":
     write_markdown(T.failures_markdown(failures), out.md)
 elif rule == "summary":
     parts = [("RP discovery", snakemake.input.rp), ("Stage-I ablation", snakemake.input.ablation),
+             ("Stage-II ablation", snakemake.input.stage2_ablation),
              ("Counting", snakemake.input.counting), ("Vanishing points", snakemake.input.vpd),
              ("Translation symmetry", snakemake.input.ts), ("Failures", snakemake.input.failures)]
     write_markdown(T.summary_markdown(parts, T.summary_header(p.backbone)), out.md)
@@ -24,6 +25,8 @@ else:
         T.rp_tables(refs, p.results, ev, out.tsv, out.md, out.scores, out.curves, figures)
     elif rule == "ablation_tables":
         T.ablation_tables(refs, p.results, p.variants, ev, out.tsv, out.md)
+    elif rule == "stage2_ablation_tables":
+        T.stage2_ablation_tables(refs, p.results, p.variants, ev, out.tsv, out.md)
     elif rule == "counting_tables":
         T.counting_tables(refs, p.results, ev, out.tsv, out.md)
     elif rule == "vp_tables":
