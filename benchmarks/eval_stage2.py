@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(a.threads)
     from rescu import io
+    from rescu.counting import count_errors, count_pairs
     from rescu.metrics import score_image, summarise
     from rescu.stage2 import Stage2Params, compute_stage2_features, predict_stage2, train_heads
 
@@ -84,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
         names = names[: a.max_images]
     rng = np.random.default_rng(a.seed)
     before, after, rows = [], [], []
+    counts1: list = []
+    counts2: list = []
+    hard_c1: list = []
+    hard_c2: list = []
     hard_b: list = []
     hard_a: list = []
     easy_b: list = []
@@ -120,6 +125,14 @@ def main(argv: list[str] | None = None) -> int:
         sc1, sc2 = score_image(det1, gt_boxes), score_image(det2, gt_boxes)
         before.append(sc1)
         after.append(sc2)
+        gtc = [len(g) for g in gt_boxes]
+        c1 = count_pairs([len(d) for d in det1], gtc, sc1.rp_assignment)
+        c2 = count_pairs([len(d) for d in det2], gtc, sc2.rp_assignment)
+        counts1.extend(c1)
+        counts2.extend(c2)
+        if hard.get(name, False):
+            hard_c1.extend(c1)
+            hard_c2.extend(c2)
         added = s2.extra.get("stage2", {}).get("added", 0)
         rows.append({"image": name, "before": sc1.as_dict(), "after": sc2.as_dict(),
                      "added": added, "seconds": dt, "hard": hard.get(name, False)})
@@ -134,6 +147,12 @@ def main(argv: list[str] | None = None) -> int:
     for m in ("instance_precision", "instance_recall", "rp_precision", "rp_recall"):
         print(f"  {m:20s} stage I {s_b[m + '_mean']:.3f}  stage II {s_a[m + '_mean']:.3f}  "
               f"delta {s_a[m + '_mean'] - s_b[m + '_mean']:+.3f}  (n={s_a[m + '_n']})")
+    e1, e2 = count_errors(counts1), count_errors(counts2)
+    print(f"  {'count_exact_rate':20s} stage I {e1['count_exact_rate']:.3f}  stage II "
+          f"{e2['count_exact_rate']:.3f}  (matched RPs {e1['n_pairs']}, {e2['n_pairs']})")
+    if hard_c1:
+        h1, h2 = count_errors(hard_c1), count_errors(hard_c2)
+        print(f"  [hard] count_exact_rate {h1['count_exact_rate']:.3f} -> {h2['count_exact_rate']:.3f}")
     for label, b_, a_ in (("hard", hard_b, hard_a), ("not hard", easy_b, easy_a)):
         if b_:
             sb, sa = summarise(b_), summarise(a_)
@@ -144,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     if secs:
         print(f"  stage II seconds per image: mean {np.mean(secs):.1f}  max {np.max(secs):.1f}")
     if a.json_out:
-        Path(a.json_out).write_text(json.dumps({"rows": rows, "before": s_b, "after": s_a},
+        Path(a.json_out).write_text(json.dumps({"rows": rows, "before": s_b, "after": s_a,
+                                                "count_before": e1, "count_after": e2},
                                                indent=1))
     return 0
 
