@@ -24,8 +24,9 @@ the missing ones. Three per-image steps (three pipeline rules):
 Departures from the paper (documented, environment-driven):
 
 * Frozen backbone, one pass per image / input scale / augmented copy, box features
-  RoI-pooled from the shared map (no per-crop passes; ``finetune=True`` is offered only
-  for CUDA, see :func:`finetune_heads`).
+  RoI-pooled from the shared map (no per-crop passes). ``finetune=True`` trains the
+  backbone end to end first (:mod:`rescu.finetune`; meant for a CUDA GPU, slow on a
+  CPU) and pools every feature from the fine-tuned backbone.
 * Augmentation happens on the image copies (global: horizontal flip, rescale,
   brightness/contrast, blur) passed once each; the "local geometric deformation driven by
   the RP instances" is a random shift/scale of each instance box by at most
@@ -42,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import json
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -167,7 +169,8 @@ class Stage2Params:
         (largest instance-to-centre distance) of an RP cluster centre.
     seed : int
     finetune : bool
-        End-to-end fine-tuning on crops (CUDA only).
+        Fine-tune the backbone end to end on the labelled boxes before pooling the
+        features (:func:`rescu.finetune.finetune_backbone`; meant for ``device: cuda``).
     device : str
         Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
     """
@@ -506,8 +509,7 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
                          f"dtype {rgb.dtype}")
     if not scale_factor > 0:
         raise ValueError(f"scale_factor must be > 0, got {scale_factor}")
-    if params.finetune:
-        _require_cuda(params)
+    _check_device(params)
     h, w = rgb.shape[:2]
     size = (w, h)
     rps = _rp_list(stage1, params.min_instances)
@@ -546,34 +548,79 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         base = params.instance_target_px / max(short, 1.0)
     base = min(base, params.max_backbone_side / (float(max(w, h)) * max(params.input_scales)))
     scales = [base * s for s in params.input_scales]
-    pf, inf_, jf, hf = image_features(bb, rgb, [boxes, inst, jit, hneg], scales, params.pool_size)
-    aug = {"inst": [], "jit": [], "hneg": [], "prop": []}
-    for k in range(params.n_augment):
-        img, sc, flip = _augment_image(rgb, k, rng)
-        sets = [_transform_boxes(x, sc, flip, w) for x in (inst, jit, hneg, boxes[aug_idx])]
-        f = image_features(bb, img, sets, scales, params.pool_size)
-        for key, v in zip(("inst", "jit", "hneg", "prop"), f):
-            aug[key].append(v)
-    d = pf.shape[1]
+    aug_rng = copy.deepcopy(rng)  # the same augmented copies for a fine-tuned backbone
 
-    def stack(lst: list[np.ndarray], n: int) -> np.ndarray:
-        return np.stack(lst).astype(np.float32) if lst else np.zeros((0, n, d), np.float32)
+    def pooled(net) -> dict[str, np.ndarray]:
+        r = copy.deepcopy(aug_rng)
+        pf, inf_, jf, hf = image_features(net, rgb, [boxes, inst, jit, hneg], scales,
+                                          params.pool_size)
+        aug: dict[str, list[np.ndarray]] = {"inst": [], "jit": [], "hneg": [], "prop": []}
+        for k in range(params.n_augment):
+            img, sc, flip = _augment_image(rgb, k, r)
+            sets = [_transform_boxes(x, sc, flip, w) for x in (inst, jit, hneg, boxes[aug_idx])]
+            f = image_features(net, img, sets, scales, params.pool_size)
+            for key, v in zip(("inst", "jit", "hneg", "prop"), f):
+                aug[key].append(v)
+        d = pf.shape[1]
 
-    return {
+        def stack(lst: list[np.ndarray], n: int) -> np.ndarray:
+            return np.stack(lst).astype(np.float32) if lst else np.zeros((0, n, d), np.float32)
+
+        return {"proposal_features": pf, "instance_features": inf_, "jitter_features": jf,
+                "hard_negative_features": hf,
+                "aug_instance_features": stack(aug["inst"], len(inst)),
+                "aug_jitter_features": stack(aug["jit"], len(jit)),
+                "aug_hard_negative_features": stack(aug["hneg"], len(hneg)),
+                "aug_proposal_features": stack(aug["prop"], m)}
+
+    out = {
         "backbone": _bytes(params.backbone), "image_size": np.array(size, np.int64),
         "scale_factor": np.float64(sf), "backbone_scale": np.float64(base),
         "rp_index": np.array([i for i, _ in rps], np.int64),
         "proposals": (boxes / sf).astype(np.float32), "proposal_scores": scores,
-        "proposal_lattice": is_lat, "proposal_features": pf, "instance_boxes": (inst / sf).astype(np.float32),
-        "instance_rp": inst_rp, "instance_features": inf_,
-        "jitter_boxes": (jit / sf).astype(np.float32), "jitter_parent": parent,
-        "jitter_features": jf, "hard_negative_boxes": (hneg / sf).astype(np.float32),
-        "hard_negative_features": hf, "aug_proposal_index": aug_idx,
-        "aug_instance_features": stack(aug["inst"], len(inst)),
-        "aug_jitter_features": stack(aug["jit"], len(jit)),
-        "aug_hard_negative_features": stack(aug["hneg"], len(hneg)),
-        "aug_proposal_features": stack(aug["prop"], m),
+        "proposal_lattice": is_lat, "instance_boxes": (inst / sf).astype(np.float32),
+        "instance_rp": inst_rp, "jitter_boxes": (jit / sf).astype(np.float32),
+        "jitter_parent": parent, "hard_negative_boxes": (hneg / sf).astype(np.float32),
+        "aug_proposal_index": aug_idx, **pooled(bb),
     }
+    if params.finetune:
+        from .finetune import finetune_backbone
+
+        fb, fl = _finetune_examples(out, params, {"proposals": boxes, "instances": inst,
+                                                  "jitter": jit, "hard": hneg})
+        tuned, info = finetune_backbone(
+            bb, rgb, fb, fl, len(rps) + 1, scale=scales[0], pool_size=params.pool_size,
+            hidden_sizes=tuple(params.hidden_sizes), lr=params.lr, beta1=params.beta1,
+            batch_size=params.batch_size, max_epochs=params.max_epochs,
+            val_split=params.val_split, patience=params.patience, min_delta=params.min_delta,
+            seed=params.seed)
+        if tuned is not bb:
+            out.update(pooled(tuned))
+        out["finetune_info"] = _bytes(json.dumps(info))
+    return out
+
+
+def _finetune_examples(feats: dict[str, np.ndarray], params: Stage2Params,
+                       px: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Labelled boxes (processed pixels) for end-to-end fine-tuning: the same examples
+    as the head's (un-augmented): stage-I instances, their deformed copies and the
+    positive proposals of each RP (class k + 1); hard negatives and far proposals
+    (class 0), sampled to ``negatives_per_positive`` per positive."""
+    sel = select_examples(feats, params)
+    lab = sel["proposal_label"]
+    inst_rp = np.asarray(feats["instance_rp"], np.int64)
+    parent = np.asarray(feats["jitter_parent"], np.int64)
+    pos = np.nonzero(lab > 0)[0]
+    pb = np.concatenate([px["instances"], px["jitter"], px["proposals"][pos]])
+    pl = np.concatenate([inst_rp + 1, inst_rp[parent] + 1, lab[pos]])
+    nb = np.concatenate([px["hard"], px["proposals"][lab == 0]])
+    rng = np.random.default_rng([params.seed, 7])
+    n_want = int(np.ceil(params.negatives_per_positive * max(len(pl), 1)))
+    if len(nb) > n_want:
+        nb = nb[np.sort(rng.choice(len(nb), n_want, replace=False))]
+    boxes = np.concatenate([pb, nb]).astype(np.float32).reshape(-1, 4)
+    labels = np.concatenate([pl, np.zeros(len(nb), np.int64)]).astype(np.int64)
+    return boxes, labels
 
 
 # ----------------------------------------------------------------------------- step 2
@@ -753,13 +800,13 @@ def _make_head(in_dim: int, hidden: tuple[int, ...], n_out: int):
                          nn.Linear(hidden[1], n_out))
 
 
-def _require_cuda(params: Stage2Params) -> None:
+def _check_device(params: Stage2Params) -> None:
+    """A CUDA device must be available when configured (clear error otherwise)."""
     import torch
 
-    if not torch.cuda.is_available():
-        raise RuntimeError("stage2.finetune=true needs a CUDA GPU (end-to-end fine-tuning "
-                           "on per-crop inputs is far too slow on a CPU); "
-                           "torch.cuda.is_available() is False. Set finetune: false.")
+    if str(params.device).startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"stage2.device is {params.device!r} but torch.cuda.is_available() "
+                           "is False (CPU-only torch or no GPU); set stage2.device: cpu")
 
 
 def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
@@ -790,8 +837,6 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     """
     import torch
 
-    if params.finetune:
-        _require_cuda(params)
     rp_index = [int(v) for v in np.asarray(feats["rp_index"]).reshape(-1)]
     backbone = _str(feats["backbone"])
     for i in rp_index:
@@ -985,16 +1030,3 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     summary["added"] = total
     out.extra["stage2"] = summary
     return out
-
-
-# ----------------------------------------------------------------------------- finetune
-def finetune_heads(rgb: np.ndarray, feats: dict[str, np.ndarray], stage1: ImageResult,
-                   params: Stage2Params) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Not offered on CPU: raises RuntimeError unless CUDA is available.
-
-    End-to-end fine-tuning (backbone + head on per-crop inputs, the paper's setting) is
-    only meaningful with a GPU; on a CPU it is refused with a clear message.
-    """
-    _require_cuda(params)
-    raise NotImplementedError("finetune=true: end-to-end fine-tuning is not implemented in "
-                              "this version; use finetune: false")

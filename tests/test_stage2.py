@@ -199,8 +199,28 @@ def test_bad_inputs():
         compute_stage2_features(img, 0.0, s1)
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU refusal")
-def test_finetune_refused_on_cpu():
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal without CUDA")
+def test_cuda_device_refused_without_cuda():
     img, boxes = squares(n=3)
-    with pytest.raises(RuntimeError, match="CUDA"):
-        compute_stage2_features(img, 1.0, result(img, [boxes]), Stage2Params(finetune=True))
+    with pytest.raises(RuntimeError, match="cuda"):
+        compute_stage2_features(img, 1.0, result(img, [boxes]), Stage2Params(device="cuda"))
+
+
+def test_finetune_pools_from_the_finetuned_backbone(six):
+    """finetune=True (run on the CPU here, tiny image): same boxes, features from a
+    backbone trained end to end, and the rest of stage II runs on them unchanged."""
+    import json
+
+    img, boxes, s1, p, feats, _, _, _ = six
+    pf = Stage2Params(**{**FAST, "finetune": True, "max_epochs": 2})
+    ft = compute_stage2_features(img, 1.0, s1, pf)
+    info = json.loads(bytes(ft["finetune_info"]).decode())
+    assert info["status"] == "finetuned" and 1 <= info["epochs"] <= 2
+    for k in ("proposals", "instance_boxes", "jitter_boxes", "hard_negative_boxes"):
+        assert np.array_equal(ft[k], feats[k]), k
+    for k in ("proposal_features", "instance_features", "aug_proposal_features"):
+        assert ft[k].shape == feats[k].shape and not np.allclose(ft[k], feats[k]), k
+    ckpt, tinfo = train_heads(ft, s1, pf)
+    assert tinfo["status"] == "trained"
+    out = predict_stage2(ft, ckpt, s1, pf)
+    assert out.patterns[0].count >= 4
