@@ -6,7 +6,7 @@ rule stage2_features:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone"),
+        code=code("stage2", "proposals", "backbone", "finetune"),
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
@@ -62,7 +62,7 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone"),
+        code=code("stage2", "proposals", "backbone", "finetune"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
