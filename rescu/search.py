@@ -21,6 +21,11 @@ instance box (IoU > ``max_overlap``) is refused, and a new word may not put a fe
 inside another instance's box. This is what keeps an instance on one window of a grid
 of identical windows instead of spanning two.
 
+Cost: the hypotheses of one add-column step are built in one vectorised batch
+(:func:`_build_columns`, rebuilt after each accepted column so the result equals the
+sequential one), a prune reuses its first pass's affinities, and a round that changes
+nothing ends the search without repeating its add-row step.
+
 Positions are predicted with a similarity frame per instance (centroid ``c_j`` and
 scale ``sigma_j`` = median keypoint size of the column), so instances may differ in
 size, as under perspective.
@@ -33,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .urp import Gates, objective, urp_affinity
+from .urp import AffinityParts, Gates, pairs, urp_affinity
 
 
 @dataclass
@@ -78,16 +83,35 @@ class SearchContext:
         return urp_affinity(self.xy, self.scale, self.angle, f11, f12, f21, f22,
                             self.sigma_s, self.sigma_theta, self.orientation_mode, gates)
 
+    def parts(self, f11: np.ndarray, f12: np.ndarray, f21: np.ndarray,
+              f22: np.ndarray) -> AffinityParts:
+        """Ungated affinities with their gate quantities (gate them with ``.gated``)."""
+        return urp_affinity(self.xy, self.scale, self.angle, f11, f12, f21, f22,
+                            self.sigma_s, self.sigma_theta, self.orientation_mode,
+                            return_parts=True)
+
 
 def column_boxes(xy: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """Feature hull ``[x0, y0, x1, y1]`` of every column of ``omega`` (N, 4), pixels."""
-    n = omega.shape[1]
-    out = np.zeros((n, 4))
-    for j in range(n):
-        idx = omega[:, j][omega[:, j] >= 0]
-        p = xy[idx]
-        out[j] = [p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()]
-    return out
+    """Feature hull ``[x0, y0, x1, y1]`` of every column of ``omega`` (N, 4), pixels.
+
+    Every column must hold at least one feature (vectorised over the columns)."""
+    pres = omega >= 0
+    p = xy[np.where(pres, omega, 0)]                    # (M, N, 2)
+    lo = np.where(pres[..., None], p, np.inf).min(axis=0)
+    hi = np.where(pres[..., None], p, -np.inf).max(axis=0)
+    if not np.all(np.isfinite(lo)):
+        raise ValueError("column_boxes: every column of omega needs a feature")
+    return np.concatenate([lo, hi], axis=1).astype(np.float64)
+
+
+def _median(a: np.ndarray) -> np.ndarray:
+    """Median along axis 0 (same values as ``np.median(a, axis=0)`` for NaN-free input,
+    without its per-call overhead on the many tiny arrays of a search)."""
+    srt = np.sort(a, axis=0)
+    k = srt.shape[0]
+    if k % 2:
+        return srt[k // 2]
+    return (srt[k // 2 - 1] + srt[k // 2]) / 2.0
 
 
 def _iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -103,23 +127,49 @@ def _iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _nanmedian(a: np.ndarray, axis: int) -> np.ndarray:
     """Median ignoring NaN along ``axis`` (NaN where all are NaN); a fast stand-in for
     ``np.nanmedian``, which is slow on the many small arrays of a search."""
-    srt = np.sort(a, axis=axis)                          # NaN sort last
-    n = np.sum(~np.isnan(a), axis=axis, keepdims=True)
-    lo = np.maximum((n - 1) // 2, 0)
-    hi = np.maximum(n // 2, 0)
-    v = 0.5 * (np.take_along_axis(srt, lo, axis) + np.take_along_axis(srt, hi, axis))
-    v = np.where(n > 0, v, np.nan)
-    return np.squeeze(v, axis=axis)
+    b = np.moveaxis(a, axis, -1)
+    k = b.shape[-1]
+    nan = np.isnan(b)
+    if k and not nan.any():                              # complete: a plain median
+        srt = np.sort(b, axis=-1)
+        if k % 2:
+            return srt[..., k // 2]
+        return 0.5 * (srt[..., k // 2 - 1] + srt[..., k // 2])
+    n = k - nan.sum(axis=-1)
+    if k == 0:
+        return np.full(n.shape, np.nan)
+    srt = np.sort(b, axis=-1).reshape(-1, k)             # NaN sort last
+    lo = np.maximum((n - 1) // 2, 0).ravel()
+    hi = np.maximum(n // 2, 0).ravel()
+    r = np.arange(len(srt))
+    v = (0.5 * (srt[r, lo] + srt[r, hi])).reshape(n.shape)
+    return np.where(n > 0, v, np.nan)
+
+
+def _unique(a: np.ndarray, return_counts: bool = False):
+    """Sorted unique values of a 1-D int array (``np.unique`` without its overhead)."""
+    a = np.sort(a)
+    first = np.empty(len(a), bool)
+    first[:1] = True
+    first[1:] = a[1:] != a[:-1]
+    if not return_counts:
+        return a[first]
+    start = np.nonzero(first)[0]
+    return a[start], np.diff(np.r_[start, len(a)])
 
 
 def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Column centroids (N, 2), column scales (N,), row offset templates (M, 2)."""
+    cached = ctx.extra.get("_frames")
+    if cached is not None and cached[0].shape == omega.shape and np.array_equal(cached[0], omega):
+        return cached[1]                                # add_rows right after add_columns
     pres = omega >= 0
     idx = np.where(pres, omega, 0)
     p = ctx.xy[idx]                                     # (M, N, 2)
     cnt = pres.sum(0)
     c = (p * pres[..., None]).sum(0) / np.maximum(cnt, 1)[:, None]
-    s = np.array([np.median(ctx.scale[omega[:, j][pres[:, j]]]) for j in range(omega.shape[1])])
+    with np.errstate(all="ignore"):
+        s = _nanmedian(np.where(pres, ctx.scale[idx], np.nan), axis=0)  # sigma_j
     off = (p - c[None]) / s[None, :, None]
     off = np.where(pres[..., None], off, np.nan)
     with np.errstate(all="ignore"):
@@ -131,6 +181,7 @@ def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarr
         c = np.where(np.isfinite(c2), c2, c)
         off = np.where(pres[..., None], (p - c[None]) / s[None, :, None], np.nan)
         tmpl = _nanmedian(off, axis=1)
+    ctx.extra["_frames"] = (omega.copy(), (c, s, tmpl))
     return c, s, tmpl
 
 
@@ -154,8 +205,8 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
         return omega
     c, s, tmpl = _frames(ctx, omega)
     boxes = column_boxes(ctx.xy, omega)
-    size = np.median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
-    s_ref = np.median(s)
+    size = _median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
+    s_ref = _median(s)
     used = np.zeros(len(ctx.xy), bool)
     used[omega[omega >= 0]] = True
     # votes: (row i, column j, matched feature h)
@@ -177,111 +228,176 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     cen = ctx.xy[h] - (ctx.scale[h] / ctx.scale[f])[:, None] * (ctx.xy[f] - c[jj])
     cell = max(3.0, ctx.pos_tol * size)
     key = np.floor(cen / cell).astype(np.int64)
+    # cells as 1-D codes in (kx, ky) lexicographic order, with a margin of one cell
+    kx = key[:, 0] - (key[:, 0].min() - 1)
+    ky = key[:, 1] - (key[:, 1].min() - 1)
+    hgt = int(ky.max()) + 2
+    code = kx * hgt + ky                                # cell code of every vote
     # distinct rows voting per cell
-    kr = np.unique(np.stack([key[:, 0], key[:, 1], ii], 1), axis=0)
+    kr = _unique(code * m + ii)
     # a cell's votes: distinct rows voting in it or its 8 neighbours (a cluster of
     # predicted centres may straddle a cell border)
-    sh = np.array([[dx, dy, 0] for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
-    kr9 = np.unique((kr[None] + sh[:, None]).reshape(-1, 3), axis=0)
-    own = np.unique(kr[:, :2], axis=0)
-    cells, votes = np.unique(kr9[:, :2], axis=0, return_counts=True)
+    sh = np.array([(dx * hgt + dy) * m for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+    kr9 = _unique((kr[None] + sh[:, None]).ravel())
+    own = _unique(kr // m)
+    cells, votes = _unique(kr9 // m, return_counts=True)
     has = np.zeros(len(cells), bool)
-    pos = np.searchsorted(cells[:, 0] * (1 << 32) + cells[:, 1], own[:, 0] * (1 << 32) + own[:, 1])
-    has[pos] = True
+    has[np.searchsorted(cells, own)] = True
     cells, votes = cells[has], votes[has]
-    order = np.lexsort((cells[:, 1], cells[:, 0], -votes))
+    order = np.lexsort((cells, -votes))
     cells, votes = cells[order], votes[order]
     keep = votes >= 2
     cells = cells[keep][: ctx.col_hypotheses * 3]
     new_cols: list[np.ndarray] = []
     new_boxes: list[np.ndarray] = []
     n_hyp = 0
-    for cl in cells:
-        if n_hyp >= ctx.col_hypotheses or n + len(new_cols) >= ctx.max_cols:
+    frame_of: dict[int, tuple[np.ndarray, float]] = {}
+
+    def frame(ci: int) -> tuple[np.ndarray, float]:
+        # centre C and scale sigma of the instance a cell hypothesises (no state)
+        if ci not in frame_of:
+            C0 = _median(cen[code == cells[ci]])
+            near = np.hypot(cen[:, 0] - C0[0], cen[:, 1] - C0[1]) <= cell
+            frame_of[ci] = (_median(cen[near]), float(_median(sig[near])))
+        return frame_of[ci]
+
+    # The hypotheses are tried in order, and an accepted column changes the state
+    # (used features, new boxes) the later ones see. They are built in batches
+    # (_build_columns, one vectorised pass): a batch holds the next hypotheses as if
+    # none of them is accepted; after the first accepted one the rest of the batch is
+    # discarded and rebuilt from the new state, so the result equals the sequential one.
+    ptr = 0
+    while ptr < len(cells):
+        pending = []
+        n_h = n_hyp
+        for ci in range(ptr, len(cells)):
+            if n_h >= ctx.col_hypotheses or n + len(new_cols) >= ctx.max_cols:
+                break
+            C, sg = frame(ci)
+            if np.any((C[0] >= boxes[:, 0]) & (C[0] <= boxes[:, 2]) & (C[1] >= boxes[:, 1])
+                      & (C[1] <= boxes[:, 3])):
+                continue
+            if new_boxes and np.any([(C[0] >= b[0]) & (C[0] <= b[2]) & (C[1] >= b[1])
+                                     & (C[1] <= b[3]) for b in new_boxes]):
+                continue
+            n_h += 1
+            # template: the nearest existing instance, where it has the word (local frame)
+            jn = int(np.argmin(np.hypot(c[:, 0] - C[0], c[:, 1] - C[1])))
+            loc = (ctx.xy[np.where(omega[:, jn] >= 0, omega[:, jn], 0)] - c[jn]) / s[jn]
+            tm = np.where((omega[:, jn] >= 0)[:, None], loc, tmpl)
+            pending.append((ci, C, sg, tm, size * sg / s_ref))
+        if not pending:
             break
-        sel = np.all(key == cl, axis=1)
-        C0 = np.median(cen[sel], axis=0)
-        near = np.hypot(*(cen - C0).T) <= cell
-        C = np.median(cen[near], axis=0)
-        sg = float(np.median(sig[near]))
-        if np.any((C[0] >= boxes[:, 0]) & (C[0] <= boxes[:, 2]) & (C[1] >= boxes[:, 1])
-                  & (C[1] <= boxes[:, 3])):
-            continue
-        if new_boxes and np.any([(C[0] >= b[0]) & (C[0] <= b[2]) & (C[1] >= b[1]) & (C[1] <= b[3])
-                                 for b in new_boxes]):
-            continue
-        n_hyp += 1
-        # template: the nearest existing instance, where it has the word (local frame)
-        jn = int(np.argmin(np.hypot(*(c - C).T)))
-        loc = (ctx.xy[np.where(omega[:, jn] >= 0, omega[:, jn], 0)] - c[jn]) / s[jn]
-        tm = np.where((omega[:, jn] >= 0)[:, None], loc, tmpl)
-        col = _build_column(ctx, omega, C, sg, tm, size * sg / s_ref, available, used, gates)
-        if col is None:
-            continue
-        pb = ctx.xy[col[col >= 0]]
-        box = np.array([pb[:, 0].min(), pb[:, 1].min(), pb[:, 0].max(), pb[:, 1].max()])
-        allb = np.vstack([boxes] + ([np.array(new_boxes)] if new_boxes else []))
-        if _iou_xyxy(box, allb).max() > ctx.max_overlap:
-            continue
-        new_cols.append(col)
-        new_boxes.append(box)
-        used[col[col >= 0]] = True
+        cols = _build_columns(ctx, omega, np.array([h[1] for h in pending]),
+                              np.array([h[2] for h in pending]),
+                              np.stack([h[3] for h in pending]),
+                              np.array([h[4] for h in pending]), available, used, gates)
+        accepted = False
+        for (ci, *_), col in zip(pending, cols):
+            n_hyp += 1
+            ptr = ci + 1
+            if col is None:
+                continue
+            pb = ctx.xy[col[col >= 0]]
+            box = np.array([pb[:, 0].min(), pb[:, 1].min(), pb[:, 0].max(), pb[:, 1].max()])
+            allb = np.vstack([boxes] + ([np.array(new_boxes)] if new_boxes else []))
+            if _iou_xyxy(box, allb).max() > ctx.max_overlap:
+                continue
+            new_cols.append(col)
+            new_boxes.append(box)
+            used[col[col >= 0]] = True
+            accepted = True
+            break
+        if not accepted:
+            break
     if not new_cols:
         return omega
     return np.hstack([omega, np.stack(new_cols, 1)])
 
 
-def _build_column(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: float,
-                  tmpl: np.ndarray, size: float, available: np.ndarray, used: np.ndarray,
-                  gates: Gates) -> np.ndarray | None:
+def _build_columns(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: np.ndarray,
+                   tmpl: np.ndarray, size: np.ndarray, available: np.ndarray,
+                   used: np.ndarray, gates: Gates) -> list[np.ndarray | None]:
+    """:func:`_build_column` for H hypotheses at once (independent of each other).
+
+    C : (H, 2) float, pixels; sg : (H,) float; tmpl : (H, M, 2) float; size : (H,)
+    float, pixels. Returns H columns ((M,) int64, -1 for missing) or None.
+    """
     m, n = omega.shape
-    rows = np.nonzero(np.all(np.isfinite(tmpl), axis=1))[0]
-    pred = C[None] + sg * tmpl[rows]
-    rad = ctx.pos_tol * size + 2.0
-    dd, qq = ctx.tree.query(pred, k=4, distance_upper_bound=rad)
+    nh = len(C)
+    fin = np.all(np.isfinite(tmpl), axis=2)            # (H, M)
+    hh, rows = np.nonzero(fin)
+    pred = C[hh] + sg[hh, None] * tmpl[hh, rows]
+    rad = ctx.pos_tol * size + 2.0                      # (H,)
+    out: list[np.ndarray | None] = [None] * nh
+    if len(hh) == 0:
+        return out
+    dd, qq = ctx.tree.query(pred, k=4, distance_upper_bound=float(rad.max()))
+    hh = np.repeat(hh, 4)
     rr = np.repeat(rows, 4)
     qq = qq.ravel()
     dd = dd.ravel()
-    ok = np.isfinite(dd)
-    rr, qq, dd = rr[ok], qq[ok], dd[ok]
+    ok = dd < rad[hh]                                   # as a query bounded by rad
+    hh, rr, qq, dd = hh[ok], rr[ok], qq[ok], dd[ok]
     ok = available[qq] & ~used[qq]
-    rr, qq, dd = rr[ok], qq[ok], dd[ok]
+    hh, rr, qq, dd = hh[ok], rr[ok], qq[ok], dd[ok]
     if len(qq) == 0:
-        return None
+        return out
     ok = _desc_ok(ctx, qq, omega[rr])
-    rr, qq, dd = rr[ok], qq[ok], dd[ok]
-    if len(np.unique(rr)) < 2:
-        return None
-    # provisional column: nearest candidate per row
-    o = np.lexsort((qq, dd, rr))
-    rr, qq, dd = rr[o], qq[o], dd[o]
-    first = np.r_[True, rr[1:] != rr[:-1]]
-    col = np.full(m, -1, np.int64)
-    col[rr[first]] = qq[first]
-    # V(f | Omega) of every candidate against the provisional other rows
-    ks = np.nonzero(col >= 0)[0]
+    hh, rr, qq, dd = hh[ok], rr[ok], qq[ok], dd[ok]
+    # a hypothesis needs candidates for two words
+    hr = _unique(hh * m + rr)
+    nrows = np.bincount(hr // m, minlength=nh)
+    ok = nrows[hh] >= 2
+    hh, rr, qq, dd = hh[ok], rr[ok], qq[ok], dd[ok]
+    if len(qq) == 0:
+        return out
+    # provisional columns: nearest candidate per (hypothesis, row)
+    o = np.lexsort((qq, dd, rr, hh))
+    hh, rr, qq, dd = hh[o], rr[o], qq[o], dd[o]
+    first = np.r_[True, (rr[1:] != rr[:-1]) | (hh[1:] != hh[:-1])]
+    prov = np.full((nh, m), -1, np.int64)
+    prov[hh[first], rr[first]] = qq[first]
+    # V(f | Omega) of every candidate against the provisional other rows of its column
+    ks = np.arange(m)
     f11 = qq[:, None, None]                       # (E, 1, 1) word i, new instance
     f12 = omega[rr][:, None, :]                   # (E, 1, N) word i, instance j
-    f21 = col[ks][None, :, None]                  # (1, R, 1) word k, new instance
-    f22 = omega[ks][None, :, :]                   # (1, R, N) word k, instance j
-    u = ctx.u(f11, f12, f21, f22, gates)
-    u = np.where(rr[:, None, None] == ks[None, :, None], 0.0, u)
+    f21 = prov[hh][:, :, None]                    # (E, M, 1) word k, new instance
+    f22 = omega[None, :, :]                       # (1, M, N) word k, instance j
+    other = rr[:, None, None] != ks[None, :, None]
+    u = np.where(other, ctx.u(f11, f12, f21, f22, gates), 0.0)
     V = u.sum(axis=(1, 2))                        # V(f | Omega)
-    cnt = ((f12 >= 0) & (f22 >= 0) & (rr[:, None, None] != ks[None, :, None])).sum(axis=(1, 2))
+    cnt = ((f12 >= 0) & (f22 >= 0) & (f21 >= 0) & other).sum(axis=(1, 2))
     meanV = V / np.maximum(cnt, 1)
-    o = np.lexsort((qq, -V, rr))
-    rr, qq, meanV = rr[o], qq[o], meanV[o]
-    first = np.r_[True, rr[1:] != rr[:-1]]
-    col = np.full(m, -1, np.int64)
+    o = np.lexsort((qq, -V, rr, hh))
+    hh, rr, qq, meanV = hh[o], rr[o], qq[o], meanV[o]
+    first = np.r_[True, (rr[1:] != rr[:-1]) | (hh[1:] != hh[:-1])]
     good = first & (meanV >= ctx.u_min)
-    col[rr[good]] = qq[good]
-    vals, cts = np.unique(col[col >= 0], return_counts=True)
-    for v in vals[cts > 1]:                       # one feature, one word
-        dup = np.nonzero(col == v)[0]
-        col[dup[1:]] = -1
-    if (col >= 0).sum() < max(2, int(np.ceil(0.5 * ctx.min_fill * m))):
-        return None
-    return col
+    cols = np.full((nh, m), -1, np.int64)
+    cols[hh[good], rr[good]] = qq[good]
+    # one feature, one word: a feature chosen for several words keeps the first
+    ch, cr = np.nonzero(cols >= 0)
+    cv = cols[ch, cr]
+    o = np.lexsort((cr, cv, ch))
+    ch, cr, cv = ch[o], cr[o], cv[o]
+    dup = np.zeros(len(cv), bool)
+    dup[1:] = (cv[1:] == cv[:-1]) & (ch[1:] == ch[:-1])
+    cols[ch[dup], cr[dup]] = -1
+    need = max(2, int(np.ceil(0.5 * ctx.min_fill * m)))
+    for h in np.nonzero((cols >= 0).sum(1) >= need)[0]:
+        out[h] = cols[h]
+    return out
+
+
+def _build_column(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: float,
+                  tmpl: np.ndarray, size: float, available: np.ndarray, used: np.ndarray,
+                  gates: Gates) -> np.ndarray | None:
+    """The new column (M,) int64 of the instance with centre ``C`` (2,), scale ``sg`` and
+    word template ``tmpl`` (M, 2), or None: per word the nearest matching feature near
+    the predicted position, then per word the candidate maximising V(f | Omega)."""
+    return _build_columns(ctx, omega, np.asarray(C, np.float64)[None], np.array([sg], float),
+                          np.asarray(tmpl, np.float64)[None], np.array([size], float),
+                          available, used, gates)[0]
 
 
 def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
@@ -310,7 +426,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
                   np.inf).min(1)
     dn = dn[np.isfinite(dn)]
     if len(dn):
-        half = min(half, 0.5 * float(np.median(dn)))
+        half = min(half, 0.5 * float(_median(dn)))
     lim = gates.max_dist / 2.0
     if half > 0:
         # an instance is at most one period wide: never grow beyond half the spacing
@@ -338,7 +454,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     e = len(cand)
     if e == 0:
         return omega
-    size = np.median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
+    size = _median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
     ratio = s / s[jr]                                   # (N,)
     pred = c[None] + ratio[None, :, None] * (ctx.xy[cand][:, None, :] - c[jr][None, None])  # (E, N, 2)
     rad = ctx.pos_tol * size * ratio + 2.0              # (N,)
@@ -363,7 +479,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
         return omega
     # mean affinity of the new row with (a subset of) the existing rows over column pairs
     ks = np.argsort(-(omega >= 0).sum(1), kind="stable")[: ctx.v_rows]
-    j1, j2 = np.triu_indices(n, 1)
+    j1, j2 = pairs(n)
     f11 = row[:, None, j1]
     f12 = row[:, None, j2]
     f21 = omega[ks][None][:, :, j1]
@@ -391,23 +507,46 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     return np.vstack([omega, np.stack(add)])
 
 
-def prune(ctx: SearchContext, omega: np.ndarray, gates: Gates) -> np.ndarray:
+def prune(ctx: SearchContext, omega: np.ndarray, gates: Gates,
+          first_parts: dict | None = None) -> np.ndarray:
     """Remove entries, rows and columns whose mean URP affinity is below ``u_min / 2``.
 
     An entry's mean affinity is taken over its URPs with the ``v_rows`` best-filled rows
     and all other columns (bounded cost); rows and columns left with fewer than two
     entries are removed.
+
+    The affinities of the first pass are reused by the later passes (pruning only
+    removes entries, rows and columns, so a remaining URP keeps its u); they are
+    recomputed only when the best-filled rows change to rows not computed before.
+    ``first_parts`` (a dict, filled on first use) shares the ungated first pass among
+    calls that prune the same ``omega`` under different gates (the adaptive grid).
     """
+    rid = np.arange(omega.shape[0])       # rows / columns of the input matrix
+    cid = np.arange(omega.shape[1])
+    u0: np.ndarray | None = None
+    ks0 = np.zeros(0, np.int64)
     for _ in range(3):
         m, n = omega.shape
         if m < 2 or n < 2:
             return omega
         ks = np.argsort(-(omega >= 0).sum(1), kind="stable")[: max(ctx.v_rows, 2)]
-        a = omega[:, None, :, None]       # f11 (m1, n1)
-        b = omega[:, None, None, :]       # f12 (m1, n2)
-        c_ = omega[ks][None, :, :, None]  # f21 (m2, n1)
-        d = omega[ks][None, :, None, :]   # f22 (m2, n2)
-        u = ctx.u(a, b, c_, d, gates)     # (M, R, N, N)
+        pos = np.searchsorted(ks0, rid[ks]) if len(ks0) else None
+        if u0 is not None and np.all(pos < len(ks0)) and np.array_equal(ks0[pos], rid[ks]):
+            u = u0[np.ix_(rid, pos, cid, cid)]
+        else:
+            a = omega[:, None, :, None]       # f11 (m1, n1)
+            b = omega[:, None, None, :]       # f12 (m1, n2)
+            c_ = omega[ks][None, :, :, None]  # f21 (m2, n1)
+            d = omega[ks][None, :, None, :]   # f22 (m2, n2)
+            if u0 is None and first_parts is not None:
+                if "parts" not in first_parts:
+                    first_parts["parts"] = ctx.parts(a, b, c_, d)
+                u = first_parts["parts"].gated(gates)
+            else:
+                u = ctx.u(a, b, c_, d, gates)     # (M, R, N, N)
+            if u0 is None:                    # cache, second axis sorted by row id
+                o = np.argsort(ks)
+                u0, ks0 = u[:, o], ks[o]
         pres = omega >= 0
         pk = pres[ks]
         valid = (pres[:, None, :, None] & pres[:, None, None, :] & pk[None, :, :, None]
@@ -418,13 +557,16 @@ def prune(ctx: SearchContext, omega: np.ndarray, gates: Gates) -> np.ndarray:
         e_cnt = valid.sum(axis=(1, 3))
         e_mean = np.where(e_cnt > 0, e_sum / np.maximum(e_cnt, 1), 0.0)
         new = np.where(pres & (e_mean >= ctx.u_min * 0.5), omega, -1)
-        new = new[(new >= 0).sum(1) >= 2]
+        keep_r = (new >= 0).sum(1) >= 2
+        new = new[keep_r]
         if new.shape[0] < 2:
             return new
-        new = new[:, (new >= 0).sum(0) >= 2]
+        keep_c = (new >= 0).sum(0) >= 2
+        new = new[:, keep_c]
         if new.shape == omega.shape and np.array_equal(new, omega):
             return omega
         omega = new
+        rid, cid = rid[keep_r], cid[keep_c]
     return omega
 
 
@@ -446,20 +588,45 @@ def search(ctx: SearchContext, seed: np.ndarray, available: np.ndarray,
         Feature indices, -1 where a word is missing in an instance.
     """
     omega = np.array([[seed[0], seed[1]], [seed[2], seed[3]]], np.int64)
+    idle = False
     for _ in range(ctx.max_iters):
         shape0 = omega.shape
-        omega = add_columns(ctx, omega, available, gates)
-        omega = add_rows(ctx, omega, available, gates)
-        omega = prune(ctx, omega, gates)
+        om0 = omega
+        om1 = add_columns(ctx, om0, available, gates)
+        om2 = add_rows(ctx, om1, available, gates)
+        omega = prune(ctx, om2, gates)
         if omega.shape[0] < 2 or omega.shape[1] < 2:
             return omega
         if omega.shape == shape0:
+            # nothing was added or removed in this round: the final add-row / prune
+            # below would repeat this round's add_rows on the same matrix (a no-op)
+            idle = om1 is om0 and om2 is om1 and omega is om2
             break
+    if idle:
+        return omega
     omega = add_rows(ctx, omega, available, gates)
     return prune(ctx, omega, gates)
 
 
-def matrix_objective(ctx: SearchContext, omega: np.ndarray, gates: Gates) -> float:
-    """U(Omega) with the context's sigma and orientation mode."""
-    return objective(ctx.xy, ctx.scale, ctx.angle, omega, ctx.sigma_s, ctx.sigma_theta,
-                     ctx.orientation_mode, gates)
+def objective_parts(ctx: SearchContext, omega: np.ndarray) -> AffinityParts:
+    """The URPs of U(Omega) (all word pairs m1 < m2 times instance pairs n1 < n2),
+    ungated, for :func:`matrix_objective` under several gates. omega: (M, N), M, N >= 2."""
+    i1, i2 = pairs(omega.shape[0])
+    j1, j2 = pairs(omega.shape[1])
+    return ctx.parts(omega[i1][:, j1], omega[i1][:, j2], omega[i2][:, j1], omega[i2][:, j2])
+
+
+def matrix_objective(ctx: SearchContext, omega: np.ndarray, gates: Gates,
+                     parts: AffinityParts | None = None) -> float:
+    """U(Omega) = 1/(M N) sum of u over its URPs, with the context's sigma and
+    orientation mode (as :func:`rescu.urp.objective`); ``parts`` from
+    :func:`objective_parts` of the same omega saves recomputing the affinities."""
+    omega = np.asarray(omega, np.int64)
+    if omega.ndim != 2:
+        raise ValueError(f"matrix_objective: omega must have shape (M, N), got {omega.shape}")
+    m, n = omega.shape
+    if m < 2 or n < 2:
+        return 0.0
+    if parts is None:
+        parts = objective_parts(ctx, omega)
+    return float(parts.gated(gates).sum() / (m * n))

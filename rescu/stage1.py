@@ -16,7 +16,10 @@ Pipeline of :func:`discover`:
    initial URPs; the set with the largest U(Omega*) is chosen (the paper's rule).
    Reuse work across the grid: each distinct initial URP is searched once with the
    loosest gates, and Omega* of a grid point is that matrix pruned under the grid
-   point's gates (so the 45 grid points cost a few searches, not 45);
+   point's gates (so the 45 grid points cost a few searches, not 45). The grid points
+   also share the ungated affinities of the first prune pass of each loose matrix and
+   of every distinct pruned matrix (:class:`rescu.urp.AffinityParts`): a grid point
+   only applies its own gates to them;
 4. with the chosen set, RPs are found one after the other: ``initials_per_pattern``
    searches from the best available initial URPs, the matrix with the largest U is
    accepted, its features and every feature inside its instances' extents
@@ -49,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from .params import params_from_dict
 from .io import read_h5, write_h5
-from .search import SearchContext, matrix_objective, prune, search
+from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from .types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
 
@@ -114,7 +117,11 @@ class Stage1Params:
         up to half the instance spacing, by at most ``extent_grow`` times its larger
         side; :func:`instance_extents`) are removed.
     seed : int
-        Random seed (the search is deterministic; kept for the interface).
+        Tie-break of the initial URPs: correspondences with equal support are ranked by
+        their feature indices ``(a, b)`` when 0 (default), by a permutation drawn from
+        ``numpy.random.default_rng(seed)`` otherwise (exact ties occur: among the 50
+        best-supported correspondences of an image typically 0-6 tie). Nothing else is
+        random; the same seed gives the same output.
     """
 
     sigma_s: float = 0.2
@@ -163,6 +170,8 @@ class Stage1Params:
                              f"or 'paper', got {self.orientation_mode!r}")
         if self.min_instances < 2 or self.min_words < 2:
             raise ValueError("Stage1Params: min_instances and min_words must be >= 2")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Stage1Params":
@@ -208,7 +217,8 @@ class URPTable:
 
     All arrays have length T. ``u`` is the ungated affinity; ``dist`` the larger
     within-instance distance (pixels), ``size_diff`` and ``rot`` (degrees) as in
-    :func:`rescu.urp.urp_terms`.
+    :func:`rescu.urp.urp_terms`. ``seed`` breaks ties among correspondences of equal
+    support (see :class:`Stage1Params`).
     """
 
     abcd: np.ndarray
@@ -216,24 +226,44 @@ class URPTable:
     dist: np.ndarray
     size_diff: np.ndarray
     rot: np.ndarray
+    seed: int = 0
 
-    def seeds(self, gates: Gates) -> np.ndarray:
+    def __post_init__(self) -> None:
+        # Gate-independent part of the ranking, done once for all grid points: the
+        # correspondence (a, b) of every URP (``inv``: its index in the sorted unique
+        # keys) and the URPs ordered by correspondence, best u first (``order``,
+        # stable, so equal u keep table order).
+        key = self.abcd[:, 0] * (int(self.abcd[:, 1].max(initial=0)) + 1) + self.abcd[:, 1]
+        uk, self._inv = np.unique(key, return_inverse=True)
+        self._order = np.lexsort((-self.u, self._inv))
+        self._start = np.searchsorted(self._inv[self._order], np.arange(len(uk) + 1))
+        # tie-break rank of every correspondence: key order, or a seeded permutation
+        self._tie = np.arange(len(uk)) if self.seed == 0 else \
+            np.random.default_rng(self.seed).permutation(len(uk))
+
+    def seeds(self, gates: Gates, limit: int | None = None) -> np.ndarray:
         """Initial URPs ranked by the support of their correspondence ``(a, b)`` under
-        ``gates``: (S, 4) int, best first, one per correspondence."""
+        ``gates``: (S, 4) int, best first, one per correspondence (ties: see
+        ``seed``). ``limit=1`` returns only the best, without ranking the rest."""
         ok = (self.dist <= gates.max_dist) & (self.size_diff <= gates.max_size_diff) & \
             (self.rot <= gates.max_rot) & (self.u > 0)
         if not ok.any():
             return np.zeros((0, 4), np.int64)
-        abcd, u = self.abcd[ok], self.u[ok]
-        key = abcd[:, 0] * (abcd[:, 1].max() + 1) + abcd[:, 1]
-        uk, inv = np.unique(key, return_inverse=True)
-        support = np.bincount(inv, weights=u)
-        # best partner per correspondence
-        o = np.lexsort((-u, inv))
+        inv = self._inv
+        # support: sum of u over the correspondence's URPs that pass the gates
+        support = np.bincount(inv[ok], weights=self.u[ok])
+        if limit == 1:
+            top = np.flatnonzero(support == support.max())
+            g = int(top[np.argmin(self._tie[top])])
+            blk = self._order[self._start[g]:self._start[g + 1]]
+            return self.abcd[blk[ok[blk]][:1]]
+        # best partner per correspondence: first passing URP in the (inv, -u) order
+        o = self._order[ok[self._order]]
         first = np.r_[True, inv[o][1:] != inv[o][:-1]]
-        best = o[first]                       # index per unique key, in uk order
-        order = np.lexsort((uk, -support))
-        return abcd[best[order]]
+        best = o[first]                       # one URP per present correspondence, by key
+        grp = inv[best]
+        order = np.lexsort((self._tie[grp], -support[grp]))
+        return self.abcd[best[order]]
 
 
 def _context(features: Features, params: Stage1Params) -> tuple[SearchContext, float]:
@@ -253,7 +283,7 @@ def _context(features: Features, params: Stage1Params) -> tuple[SearchContext, f
 
 
 def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
-                    pos_tol: float = 0.15) -> URPTable:
+                    pos_tol: float = 0.15, seed: int = 0) -> URPTable:
     """All initial URPs of the image (vectorised).
 
     Parameters
@@ -266,9 +296,11 @@ def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
     pos_tol : float
         ``d`` must lie within ``pos_tol * d(a, c) + 2`` pixels of the predicted copy
         ``b + (c - a) * s_b / s_a``.
+    seed : int
+        Tie-break of the initial-URP ranking (:class:`URPTable`).
     """
     k = len(ctx.xy)
-    empty = URPTable(np.zeros((0, 4), np.int64), *(np.zeros(0) for _ in range(4)))
+    empty = URPTable(np.zeros((0, 4), np.int64), *(np.zeros(0) for _ in range(4)), seed=seed)
     if k < 4:
         return empty
     a, j = np.nonzero(ctx.nbr >= 0)
@@ -307,7 +339,7 @@ def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
     u = urp_affinity(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.sigma_s, ctx.sigma_theta,
                      ctx.orientation_mode)
     return URPTable(np.stack([A, B, C, D], 1).astype(np.int64), u,
-                    np.maximum(t["d1"], t["d2"]), t["size_diff"], t["rot"])
+                    np.maximum(t["d1"], t["d2"]), t["size_diff"], t["rot"], seed=seed)
 
 
 def layout_spread(xy: np.ndarray, omega: np.ndarray) -> float:
@@ -333,8 +365,13 @@ def layout_spread(xy: np.ndarray, omega: np.ndarray) -> float:
     off = (p - c[None])[pres]
     if len(off) < 3:
         return 0.0
-    ev = np.linalg.eigvalsh(np.cov(off.T))
-    return float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 0 else 0.0
+    # eigenvalues of the 2 x 2 covariance in closed form
+    d = off - off.mean(axis=0)
+    sxx, syy, sxy = (d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1])
+    h = 0.5 * (sxx + syy)
+    q = float(np.hypot(0.5 * (sxx - syy), sxy))
+    lo, hi = h - q, h + q                               # lambda_min, lambda_max (x (n-1))
+    return float(np.sqrt(max(lo, 0.0) / hi)) if hi > 0 else 0.0
 
 
 def _valid(omega: np.ndarray, U: float, params: Stage1Params,
@@ -431,12 +468,14 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
         blocked = ~available.copy()
         rejected: list[np.ndarray] = []
         n_this = 0
-        for s_ptr in range(len(seeds)):
-            if n_this >= per or tried >= budget:
+        while n_this < per and tried < budget:
+            # next initial URP in rank order that is unused and touches no blocked
+            # feature (blocked and consumed only grow, so skipped ones stay skipped)
+            free = np.flatnonzero(~consumed & ~blocked[seeds].any(axis=1))
+            if len(free) == 0:
                 break
+            s_ptr = int(free[0])
             sd = seeds[s_ptr]
-            if consumed[s_ptr] or blocked[sd].any():
-                continue
             consumed[s_ptr] = True
             om = search(ctx, sd, available, gates)
             tried += 1
@@ -490,23 +529,33 @@ def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
     loose = {n: max(p[n] for p in grid) for n in ADAPTIVE_NAMES}
     g_loose = Gates(loose["P_d"] * diag, loose["P_s"], loose["P_theta"])
     avail = np.ones(len(ctx.xy), bool)
-    cache: dict[tuple[int, ...], np.ndarray] = {}
+    cache: dict[tuple[int, ...], tuple[np.ndarray, dict]] = {}
+    # ungated affinities of each distinct pruned matrix: grid points whose gates prune
+    # a loose matrix to the same Omega* share them and only apply their own gates
+    obj_parts: dict[tuple, Any] = {}
+    spread: dict[tuple, float] = {}
     best_u, chosen = -1.0, grid[0]
     for pset in grid:
         gates = Gates(pset["P_d"] * diag, pset["P_s"], pset["P_theta"])
         u_best = 0.0
-        for sd in table.seeds(gates)[: max(1, params.grid_initials)]:
+        n_init = max(1, params.grid_initials)
+        for sd in table.seeds(gates, 1 if n_init == 1 else None)[:n_init]:
             key = tuple(int(v) for v in sd)
             if key not in cache:
-                cache[key] = search(ctx, sd, avail, g_loose)
-            om = cache[key]
+                cache[key] = (search(ctx, sd, avail, g_loose), {})
+            om, first = cache[key]
             if om.ndim != 2 or om.shape[0] < 2 or om.shape[1] < 2:
                 continue
-            om = prune(ctx, om, gates)
+            om = prune(ctx, om, gates, first)   # first pass shared by the grid points
             if om.shape[0] < 2 or om.shape[1] < 2:
                 continue
-            U = matrix_objective(ctx, om, gates)
-            if _valid(om, U, params, ctx.xy):
+            okey = (om.shape, om.tobytes())
+            if okey not in obj_parts:
+                obj_parts[okey] = objective_parts(ctx, om)
+                spread[okey] = layout_spread(ctx.xy, om)
+            U = matrix_objective(ctx, om, gates, obj_parts[okey])
+            if _valid(om, U, params) and (params.min_spread <= 0
+                                          or spread[okey] >= params.min_spread):
                 u_best = max(u_best, U)
         if u_best > best_u + 1e-12:
             best_u, chosen = u_best, pset
@@ -541,7 +590,7 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     t1 = time.perf_counter()
     grid = params.grid()
     pd_max = max(p["P_d"] for p in grid)
-    table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol)
+    table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol, params.seed)
     t2 = time.perf_counter()
     chosen = grid[0]
     if len(grid) > 1:

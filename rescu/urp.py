@@ -36,6 +36,7 @@ features, rather than by a global vocabulary.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -143,7 +144,8 @@ class Gates:
 def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
                  f11: np.ndarray, f12: np.ndarray, f21: np.ndarray, f22: np.ndarray,
                  sigma_s: float = 0.2, sigma_theta: float = 0.2,
-                 orientation_mode: str = "wrapped", gates: Gates | None = None) -> np.ndarray:
+                 orientation_mode: str = "wrapped", gates: Gates | None = None,
+                 return_parts: bool = False) -> np.ndarray:
     """URP affinity u of a batch of URPs (see module docstring).
 
     Parameters
@@ -158,6 +160,8 @@ def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
     orientation_mode : {"wrapped", "relative", "paper"}
     gates : Gates, optional
         When given, URPs violating P_d / P_s / P_theta get affinity 0.
+    return_parts : bool
+        Return the :class:`AffinityParts` (ungated u and gate quantities) instead.
 
     Returns
     -------
@@ -165,20 +169,85 @@ def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
         1 for a perfect translated copy; 0 for a degenerate URP (a repeated feature or
         zero within-instance distance).
     """
-    f11, f12, f21, f22 = np.broadcast_arrays(*(np.asarray(f, np.int64)
-                                               for f in (f11, f12, f21, f22)))
+    if orientation_mode not in ORIENTATION_MODES:
+        raise ValueError(f"orientation_mode must be one of {ORIENTATION_MODES}, "
+                         f"got {orientation_mode!r}")
+    f11, f12, f21, f22 = (np.asarray(f, np.int64) for f in (f11, f12, f21, f22))
     valid = (f11 >= 0) & (f12 >= 0) & (f21 >= 0) & (f22 >= 0)
     valid &= (f11 != f21) & (f12 != f22) & (f11 != f12) & (f21 != f22)
-    g = [np.where(valid, f, 0) for f in (f11, f12, f21, f22)]
-    t = urp_terms(np.asarray(xy, np.float64), np.asarray(scale, np.float64),
-                  np.asarray(angle, np.float64), *g, orientation_mode=orientation_mode)
-    valid &= (t["d1"] > 1e-6) & (t["d2"] > 1e-6)
-    u = np.exp(-t["delta_s"] ** 2 / (2.0 * sigma_s) - t["delta_theta"] ** 2 / (2.0 * sigma_theta))
-    if gates is not None:
-        valid &= (t["d1"] <= gates.max_dist) & (t["d2"] <= gates.max_dist)
-        valid &= t["size_diff"] <= gates.max_size_diff
-        valid &= t["rot"] <= gates.max_rot
-    return np.where(valid, u, 0.0)
+    # Fast path, same arithmetic as urp_terms: the index arrays are only broadcast by
+    # the arithmetic (no materialised copies), and -1 entries index the last feature
+    # harmlessly (they are invalid, so masked below).
+    xy = np.asarray(xy, np.float64)
+    scale = np.asarray(scale, np.float64)
+    angle = np.asarray(angle, np.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    d1 = np.hypot(x[f11] - x[f21], y[f11] - y[f21])
+    d2 = np.hypot(x[f12] - x[f22], y[f12] - y[f22])
+    r = d1 / np.maximum(d2, 1e-9)                     # r in the paper
+    s11, s12, s21, s22 = scale[f11], scale[f12], scale[f21], scale[f22]
+    rs12, rs22 = r * s12, r * s22
+    # Delta_s = max(|D_s(f11, f12)|, |D_s(f21, f22)|)
+    delta_s = np.maximum(np.abs((s11 - rs12) / np.maximum(s11 + rs12, 1e-12)),
+                         np.abs((s21 - rs22) / np.maximum(s21 + rs22, 1e-12)))
+    t11, t12, t21, t22 = angle[f11], angle[f12], angle[f21], angle[f22]
+    rot1 = np.abs(wrap_deg(t11 - t12))
+    rot2 = np.abs(wrap_deg(t21 - t22))
+    rot = np.maximum(rot1, rot2)
+    if orientation_mode == "wrapped":
+        delta_t = rot / 180.0
+    elif orientation_mode == "relative":
+        delta_t = np.abs(wrap_deg((t12 - t11) - (t22 - t21))) / 180.0
+    else:  # "paper"
+        def d_t(ti: np.ndarray, tj: np.ndarray) -> np.ndarray:
+            den = ti + r * tj
+            return np.where(den > 1e-9, (ti - r * tj) / np.where(den > 1e-9, den, 1.0), 0.0)
+        delta_t = np.maximum(np.abs(d_t(t11, t12)), np.abs(d_t(t21, t22)))
+    valid = valid & (d1 > 1e-6) & (d2 > 1e-6)
+    u = np.exp(-delta_s ** 2 / (2.0 * sigma_s) - delta_t ** 2 / (2.0 * sigma_theta))
+    parts = AffinityParts(np.where(valid, u, 0.0), valid, d1, d2,
+                          1.0 - np.minimum(r, 1.0 / np.maximum(r, 1e-12)), rot)
+    if return_parts:
+        return parts
+    return parts.gated(gates)
+
+
+@dataclass(frozen=True)
+class AffinityParts:
+    """A batch of URPs with the quantities the gates test, so that one batch can be
+    gated by many parameter sets (the adaptive grid) without recomputing it.
+
+    ``u`` is the ungated affinity (0 for degenerate URPs) and ``valid`` its support;
+    ``d1``, ``d2`` (pixels), ``size_diff`` and ``rot`` (degrees) as in
+    :func:`urp_terms`. The arrays broadcast to one shape S.
+    """
+
+    u: np.ndarray
+    valid: np.ndarray
+    d1: np.ndarray
+    d2: np.ndarray
+    size_diff: np.ndarray
+    rot: np.ndarray
+
+    def gated(self, gates: "Gates | None") -> np.ndarray:
+        """(S) float64: u with the URPs violating ``gates`` set to 0 (the same values
+        as :func:`urp_affinity` with those gates)."""
+        if gates is None:
+            return self.u
+        ok = self.valid & (self.d1 <= gates.max_dist) & (self.d2 <= gates.max_dist)
+        ok &= self.size_diff <= gates.max_size_diff
+        ok &= self.rot <= gates.max_rot
+        return np.where(ok, self.u, 0.0)
+
+
+@lru_cache(maxsize=512)
+def pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``: all index pairs ``i < j`` of ``n`` items, cached
+    (read-only arrays)."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = False
+    j.flags.writeable = False
+    return i, j
 
 
 def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.ndarray,
@@ -202,8 +271,8 @@ def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.nd
     m, n = omega.shape
     if m < 2 or n < 2:
         return 0.0
-    i1, i2 = np.triu_indices(m, 1)
-    j1, j2 = np.triu_indices(n, 1)
+    i1, i2 = pairs(m)
+    j1, j2 = pairs(n)
     a = omega[i1][:, j1]   # f11: word m1, instance n1
     b = omega[i1][:, j2]   # f12
     c = omega[i2][:, j1]   # f21
@@ -250,23 +319,25 @@ def match_candidates(descriptors: np.ndarray, xy: np.ndarray, scale: np.ndarray,
     rs = root_sift(descriptors)
     xy = np.asarray(xy, np.float32)
     rad = np.asarray(scale, np.float32) / 2.0
-    kq = min(k + 8, kk)  # a few spares for the spatial exclusion
+    md2 = max_dist * max_dist
     for s in range(0, kk, block):
         e = min(kk, s + block)
         d2 = 2.0 - 2.0 * (rs[s:e] @ rs.T)
         np.maximum(d2, 0.0, out=d2)
-        dx = xy[s:e, None, 0] - xy[None, :, 0]
-        dy = xy[s:e, None, 1] - xy[None, :, 1]
-        sep = min_sep * np.maximum(rad[s:e, None], rad[None, :])
-        d2[(dx * dx + dy * dy) <= sep * sep] = np.inf   # also removes the feature itself
-        d2[d2 > max_dist * max_dist] = np.inf
-        part = np.argpartition(d2, kq - 1, axis=1)[:, :kq] if kq < kk else \
-            np.tile(np.arange(kk), (e - s, 1))
-        pd = np.take_along_axis(d2, part, axis=1)
-        order = np.lexsort((part, pd))[:, :k]
-        idx = np.take_along_axis(part, order, axis=1)
-        dd = np.take_along_axis(pd, order, axis=1)
-        ok = np.isfinite(dd)
-        nbr[s:e, :idx.shape[1]] = np.where(ok, idx, -1)
-        dist[s:e, :idx.shape[1]] = np.where(ok, np.sqrt(dd), np.inf)
+        # only the pairs under the descriptor limit (a small fraction) are examined
+        r, c = np.nonzero(d2 <= md2)
+        dr = d2[r, c]
+        gi = r + s
+        dx = xy[gi, 0] - xy[c, 0]
+        dy = xy[gi, 1] - xy[c, 1]
+        sep = min_sep * np.maximum(rad[gi], rad[c])
+        ok = (dx * dx + dy * dy) > sep * sep        # also removes the feature itself
+        r, c, dr = r[ok], c[ok], dr[ok]
+        # per feature: nearest first, ties by index; keep the first k
+        o = np.lexsort((c, dr, r))
+        r, c, dr = r[o], c[o], dr[o]
+        rank = np.arange(len(r)) - np.searchsorted(r, r, side="left")
+        ok = rank < k
+        nbr[r[ok] + s, rank[ok]] = c[ok]
+        dist[r[ok] + s, rank[ok]] = np.sqrt(dr[ok])
     return nbr, dist

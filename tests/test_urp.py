@@ -108,3 +108,48 @@ def test_match_candidates_excludes_self_and_far_descriptors():
     nbr, dist = match_candidates(d, xy, np.full(4, 5.0), k=2, max_dist=0.05)
     assert nbr[0, 0] == 1 and nbr[1, 0] == 0
     assert nbr[2, 0] == -1 and np.isinf(dist[2, 0])
+
+
+def test_match_candidates_equals_brute_force_reference():
+    """Top k by (RootSIFT distance, index) under the distance limit, excluding copies
+    closer than min_sep keypoint radii (exact, with ties)."""
+    rng = np.random.default_rng(3)
+    k_feat = 60
+    d = rng.random((k_feat, 128)).astype(np.float32)
+    d[10:20] = d[0]                                   # exact ties in distance
+    d[30:35] = d[5] + 0.01 * rng.random((5, 128)).astype(np.float32)
+    xy = rng.random((k_feat, 2)).astype(np.float32) * 200
+    xy[11] = xy[0] + 1.0                              # an overlapping copy: excluded
+    scale = (rng.random(k_feat) * 6 + 2).astype(np.float32)
+    nbr, dist = match_candidates(d, xy, scale, k=5, max_dist=0.3, min_sep=1.0, block=64)
+    rs = root_sift(d)
+    full = np.maximum(2.0 - 2.0 * (rs @ rs.T), 0.0)   # the same product as one block
+    for i in range(k_feat):
+        d2 = full[i]
+        sep = np.maximum(scale[i], scale) / 2.0
+        ok = (d2 <= 0.3 * 0.3) & (((xy - xy[i]) ** 2).sum(1) > sep * sep)
+        cand = sorted(np.flatnonzero(ok), key=lambda j: (d2[j], j))[:5]
+        assert nbr[i, :len(cand)].tolist() == cand
+        assert (nbr[i, len(cand):] == -1).all() and np.isinf(dist[i, len(cand):]).all()
+        assert np.allclose(dist[i, :len(cand)], np.sqrt(d2[cand]))
+    assert 11 not in nbr[0].tolist() and nbr[0].tolist()[:4] == [10, 12, 13, 14]
+    # smaller blocks: the same ranks for the exact copies (rows 0 and 10..19)
+    nb16, _ = match_candidates(d, xy, scale, k=5, max_dist=0.3, min_sep=1.0, block=16)
+    assert np.array_equal(nb16[[0] + list(range(10, 20))], nbr[[0] + list(range(10, 20))])
+
+
+def test_affinity_parts_gate_like_urp_affinity_and_pairs_cache():
+    from rescu.urp import pairs
+    rng = np.random.default_rng(1)
+    xy = rng.random((30, 2)) * 300
+    s = rng.random(30) * 10 + 2
+    a = rng.random(30) * 360
+    f = [rng.integers(-1, 30, (7, 1, 5)), rng.integers(-1, 30, (1, 4, 5)),
+         rng.integers(-1, 30, (7, 4, 1)), rng.integers(0, 30, (7, 4, 5))]
+    parts = urp_affinity(xy, s, a, *f, return_parts=True)
+    assert np.array_equal(parts.gated(None), urp_affinity(xy, s, a, *f))
+    for g in (Gates(50.0, 0.2, 30.0), Gates(300.0, 0.5, 180.0), Gates(120.0, 0.1, 90.0)):
+        assert np.array_equal(parts.gated(g), urp_affinity(xy, s, a, *f, gates=g))
+    i, j = pairs(6)
+    assert np.array_equal(np.stack([i, j]), np.stack(np.triu_indices(6, 1)))
+    assert pairs(6)[0] is i and not i.flags.writeable
