@@ -227,6 +227,9 @@ def run_pred(args: argparse.Namespace) -> None:
         print(f"{d}: {r['n_files']} prediction files")
         if r["vp_errors"]:
             _vp_summary(f"  image VP vs {data.name}", list(r["vp_errors"].values()))
+            if args.per_image:
+                for k, e in sorted(r["vp_errors"].items(), key=lambda kv: -kv[1]):
+                    print(f"    {k}: {e:.3f} deg")
         if r["count_pairs"]:
             ce = C.count_errors(r["count_pairs"])
             print("  counts on matched RPs: " + json.dumps(
@@ -257,6 +260,8 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--pred", nargs="+", required=True)
     c.add_argument("--data", required=True)
     c.add_argument("--analyse", action="store_true")
+    c.add_argument("--per-image", action="store_true",
+                   help="print every image's VP error, worst first")
     args = ap.parse_args(argv)
     {"synth": run_synth, "york": run_york, "pred": run_pred}[args.mode](args)
 

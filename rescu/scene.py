@@ -11,11 +11,15 @@ returns a copy in which
 * ``dominant_pattern`` is the ``id`` of the pattern with most instances (ties: higher
   score, then earlier pattern; :func:`rescu.counting.dominant_pattern`), None without
   patterns;
-* the image-level ``vanishing_point`` is the VP of the dominant pattern; when that has
-  none, the VP with the largest support among the other patterns (ties: the more
-  dominant pattern); None when no pattern has a VP — in particular an ImageResult with
-  no patterns comes back with no VP, no dominant pattern and nothing else changed
-  (the documented empty result).
+* the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
+  RP instances. Each pattern's VP is re-estimated jointly with the patterns that share
+  it (likelihood-ratio test, :func:`rescu.vp.joint_vanishing_point`) and the group
+  with the most instances wins (ties: the group of the more dominant pattern), so
+  without sharing it is the dominant pattern's VP, and when that has none the VP of
+  the largest other pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own
+  VP, else the VP with the largest support among the others. None when no pattern has
+  a VP — in particular an ImageResult with no patterns comes back with no VP, no
+  dominant pattern and nothing else changed (the documented empty result).
 
 ``method``, instances, scores and captions are unchanged. All coordinates are original
 pixels. :func:`rectify_pattern` warps the region of one pattern so that its VP goes to
@@ -130,8 +134,9 @@ def analyse_pattern(pattern: Pattern, image_size: tuple[int, int],
         if fp.ndim != 3 or fp.shape[2] != 2 or fp.shape[1] > len(b):
             raise ValueError(f"pattern {p.id}: feature_points must have shape (M, N, 2) "
                              f"with N <= {len(b)} instances, got {fp.shape}")
-    vp, rows = V.rp_vanishing_point(b, fp, image_size, params.vp)
-    centres, _ = V.instance_centres_sizes(b)
+    vp, rows = V.rp_vanishing_point(b, fp, image_size, params.vp, params.symmetry)
+    centres, _, _ = V.pattern_rows(b, fp, params.vp) if len(b) else (np.zeros((0, 2)),
+                                                                      None, None)
     rows = _orient_rows(rows, centres, vp)
     p.vanishing_point = vp
     p.translation_symmetry = (S.translation_symmetry(fp, centres, rows, params.symmetry)
@@ -168,7 +173,9 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     res.dominant_pattern = None if dom is None else int(res.patterns[dom].id)
     res.vanishing_point = None
     if dom is not None:
-        if res.patterns[dom].vanishing_point is not None:
+        if params.vp.joint_alpha > 0:
+            res.vanishing_point = _image_vp(res.patterns, dom, size, params)
+        elif res.patterns[dom].vanishing_point is not None:
             res.vanishing_point = copy.deepcopy(res.patterns[dom].vanishing_point)
         else:
             cands = [(p.vanishing_point.support, p.count, float(p.score), -i)
@@ -177,6 +184,53 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
                 i = -max(cands)[3]
                 res.vanishing_point = copy.deepcopy(res.patterns[i].vanishing_point)
     return res
+
+
+def _pattern_lines(p: Pattern, params: SceneParams) -> V.Lines:
+    """Implicit lines (with their points) of an analysed pattern, from its rows."""
+    b = _boxes(p)
+    c, sz = V.instance_centres_sizes(b)
+    if params.vp.register_centres and len(c) >= 2:
+        c = V.registered_centres(c, None if p.feature_points is None
+                                 else np.asarray(p.feature_points, float))
+    rows = [np.asarray(r, int) for r in p.extra.get("rows", [])]
+    fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
+    equal = V.equal_rows(fp, c, rows, params.symmetry, params.vp)
+    return V.pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
+                           params.vp.precision_floor_px, equal)
+
+
+def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
+              params: SceneParams) -> VanishingPoint | None:
+    """The dominant VP: the VP shared by the most RP instances.
+
+    Every pattern with a VP seeds a group: its VP re-estimated with the other patterns
+    that share it (:func:`rescu.vp.joint_vanishing_point`, the others tried in order of
+    decreasing VP support, i.e. number of inlier implicit lines, then count). The group
+    with the most instances in total gives the image VP; ties go to the group seeded by
+    the more dominant pattern (the dominant pattern first, then by count, score, order).
+    Without any sharing this is the dominant pattern's own VP whenever it has one; a
+    large spurious RP no longer outvotes several smaller RPs along one 3D direction.
+    """
+    have = [i for i in range(len(patterns)) if patterns[i].vanishing_point is not None]
+    if not have:
+        return None
+    seeds = sorted(have, key=lambda i: (i != dom, -patterns[i].count,
+                                        -float(patterns[i].score), i))
+    lines = {i: _pattern_lines(patterns[i], params) for i in have}
+    best: tuple[int, VanishingPoint | None] | None = None
+    for s in seeds:
+        order = [s] + sorted((i for i in have if i != s),
+                             key=lambda i: (-patterns[i].vanishing_point.support,
+                                            -patterns[i].count, i))
+        vp, used = V.joint_vanishing_point([lines[i] for i in order],
+                                           [patterns[i].vanishing_point for i in order],
+                                           size, params.vp)
+        total = sum(patterns[order[u]].count for u in used)
+        if best is None or total > best[0]:
+            best = (total, vp)
+    assert best is not None
+    return copy.deepcopy(best[1])
 
 
 def rectify_pattern(rgb: np.ndarray, scale_factor: float, pattern: Pattern,

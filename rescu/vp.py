@@ -23,6 +23,18 @@ vanishing point (VP) of the recurrence direction.
    is refined by iteratively reweighted least squares of the sines of those angles, and
    replaced by the point at infinity when an F-test (level ``infinity_alpha``) cannot
    tell the finite fit from the best fit at infinity.
+4. Where the lines carry their feature points (implicit lines always do),
+   :func:`ml_refine_vp` finishes with the maximum-likelihood VP: every feature track
+   gets its own line through the VP and the squared orthogonal distances of all the
+   points are minimised (``ml_refine``). Rows that pass the translation-symmetry test
+   also constrain the VP by their spacing (:func:`spacing_refine_vp`: equally spaced
+   3D instances, so the image spacing shrinks towards the VP; accepted by a
+   likelihood-ratio test of level ``spacing_alpha``). The infinity decision is then a
+   point-level F-test (:func:`ml_infinity_test`, noise floor ``infinity_noise_px``)
+   instead of the line-level one, which has only (lines - 2) degrees of freedom.
+5. :func:`joint_vanishing_point` re-estimates a VP on the tracks of several patterns
+   that share it (likelihood-ratio test of level ``joint_alpha``); the scene step uses
+   it for the image's dominant VP.
 
 All estimation runs in normalised coordinates (image centre at 0, (W + H) / 2 pixels to
 1); a VP is returned as a unit-norm homogeneous point in original pixels, ``w = 0`` for a
@@ -78,6 +90,10 @@ class VPParams:
         Floor of the per-line angular noise in that F-test (degrees): the noise of the
         lines of one instance is correlated (instance deformation, localisation), so
         the residual of the finite fit underestimates it.
+    infinity_noise_px : float
+        Floor of the feature noise (pixels) in the point-level infinity test on feature
+        tracks (:func:`ml_infinity_test`), which replaces the line-level test when the
+        lines carry their points.
     row_tolerance : float
         An instance centre belongs to a row when it lies within this fraction of the
         instance's smaller box side from the row line.
@@ -93,6 +109,22 @@ class VPParams:
         Baseline: shortest LSD segment kept, as a fraction of the image diagonal.
     lsd_max_segments : int
         Baseline: the longest this many segments are kept.
+    ml_refine : bool
+        Finish the fit with the maximum-likelihood VP (:func:`ml_refine_vp`) on the
+        feature tracks of the inlier lines, where the lines carry their points.
+    register_centres : bool
+        Locate instances by their features (:func:`registered_centres`) instead of
+        their box centres for rows and the centre fallbacks, and leave duplicate
+        instances (registered centres closer than half an instance) out of the rows.
+    joint_alpha : float
+        Level of the likelihood-ratio test that merges another pattern's feature tracks
+        into the image VP of the dominant pattern (:func:`joint_vanishing_point`: the
+        patterns share the VP unless the joint fit is significantly worse); 0: the
+        image VP is the dominant pattern's own.
+    spacing_alpha : float
+        Level of the likelihood-ratio test that accepts the *spacing model* on rows that
+        pass the translation-symmetry test (:func:`spacing_refine_vp`: equally spaced
+        3D points, so the image spacing along the row also locates the VP); 0: off.
     seed : int
         Seed of the random pair sampling.
     """
@@ -100,15 +132,20 @@ class VPParams:
     ransac_iterations: int = 1000
     inlier_angle_deg: float = 1.5
     ac_threshold_deg: float = 2.0
-    min_lines: int = 2
+    min_lines: int = 3
     infinity_alpha: float = 0.01
     infinity_noise_deg: float = 0.5
+    infinity_noise_px: float = 0.25
     row_tolerance: float = 0.25
     min_row_instances: int = 3
     max_line_residual: float = 0.15
     precision_floor_px: float = 1.0
     lsd_min_length: float = 0.025
     lsd_max_segments: int = 1500
+    ml_refine: bool = True
+    register_centres: bool = True
+    joint_alpha: float = 0.01
+    spacing_alpha: float = 0.01
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -122,6 +159,12 @@ class VPParams:
             raise ValueError("VPParams.min_lines must be >= 2")
         if not 0 <= self.infinity_alpha < 1:
             raise ValueError("VPParams.infinity_alpha must be in [0, 1)")
+        if self.infinity_noise_px < 0:
+            raise ValueError("VPParams.infinity_noise_px must be >= 0")
+        if not 0 <= self.joint_alpha < 1:
+            raise ValueError("VPParams.joint_alpha must be in [0, 1)")
+        if not 0 <= self.spacing_alpha < 1:
+            raise ValueError("VPParams.spacing_alpha must be in [0, 1)")
         if self.min_row_instances < 2:
             raise ValueError("VPParams.min_row_instances must be >= 2")
 
@@ -148,12 +191,22 @@ class Lines:
     precision : (L,) float or None
         Extra weight of each line in the least-squares refinement only (inverse
         angular variance, relative); None: all 1.
+    points : list of (K_l, 2) float arrays or None
+        The image points each line was fitted to (pixels), for the maximum-likelihood
+        refinement (:func:`ml_refine_vp`); None: unknown (e.g. LSD segments).
+    positions : list of (K_l,) float arrays or None entries, or None
+        For a line fitted to the features of one visual word along an *equally spaced*
+        row: the ordinal of each point's instance in the row (0, 1, 2, ...; gaps where
+        the word is missing), used by the spacing model (:func:`spacing_refine_vp`);
+        None where the row is not known to be equally spaced.
     """
 
     midpoints: np.ndarray
     directions: np.ndarray
     weights: np.ndarray
     precision: np.ndarray | None = None
+    points: list[np.ndarray] | None = None
+    positions: list[np.ndarray | None] | None = None
 
     def __post_init__(self) -> None:
         self.midpoints = np.asarray(self.midpoints, float).reshape(-1, 2)
@@ -172,6 +225,18 @@ class Lines:
         if self.precision.shape != (n,):
             raise ValueError(f"Lines.precision must have shape ({n},), "
                              f"got {self.precision.shape}")
+        if self.points is not None:
+            if len(self.points) != n:
+                raise ValueError(f"Lines.points must hold {n} arrays, got {len(self.points)}")
+            self.points = [np.asarray(q, float).reshape(-1, 2) for q in self.points]
+        if self.positions is not None:
+            if self.points is None or len(self.positions) != n:
+                raise ValueError(f"Lines.positions must hold {n} entries and needs points")
+            self.positions = [None if k is None else np.asarray(k, float).reshape(-1)
+                              for k in self.positions]
+            for k, q in zip(self.positions, self.points):
+                if k is not None and len(k) != len(q):
+                    raise ValueError("Lines.positions: one ordinal per point")
 
     def __len__(self) -> int:
         return len(self.midpoints)
@@ -192,10 +257,15 @@ class Lines:
         parts = [p for p in parts if len(p)]
         if not parts:
             return cls.empty()
+        pts = (None if any(p.points is None for p in parts)
+               else [q for p in parts for q in p.points])
+        pos = (None if pts is None or all(p.positions is None for p in parts)
+               else [k for p in parts
+                     for k in (p.positions if p.positions is not None else [None] * len(p))])
         return cls(np.concatenate([p.midpoints for p in parts]),
                    np.concatenate([p.directions for p in parts]),
                    np.concatenate([p.weights for p in parts]),
-                   np.concatenate([p.precision for p in parts]))
+                   np.concatenate([p.precision for p in parts]), pts, pos)
 
 
 def fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -366,7 +436,8 @@ def checked_points(centres: np.ndarray, feature_points: np.ndarray | None
 
 def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
                   rows: Sequence[np.ndarray], sizes: np.ndarray | None = None,
-                  max_line_residual: float = 0.15, precision_floor_px: float = 1.0) -> Lines:
+                  max_line_residual: float = 0.15, precision_floor_px: float = 1.0,
+                  equal_rows: Sequence[bool] | None = None) -> Lines:
     """Implicit lines of an RP: one per visual word and row.
 
     Parameters
@@ -387,6 +458,9 @@ def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
     precision_floor_px : float
         Noise floor (pixels) of the line precision weights of the refinement
         (:func:`_line_precision`); 0 gives all lines the same weight.
+    equal_rows : list of bool or None
+        Per row, whether it is equally spaced in 3D (translation symmetry): its feature
+        lines then carry the instance ordinals of their points (``Lines.positions``).
 
     Returns
     -------
@@ -396,8 +470,13 @@ def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
     """
     c, fp = checked_points(centres, feature_points)
     mids, dirs, prec = [], [], []
-    for row in rows:
+    pts_used: list[np.ndarray] = []
+    pos_used: list[np.ndarray | None] = []
+    if equal_rows is not None and len(equal_rows) != len(rows):
+        raise ValueError(f"equal_rows must have {len(rows)} entries, got {len(equal_rows)}")
+    for r_i, row in enumerate(rows):
         row = np.asarray(row, int)
+        equal = bool(equal_rows[r_i]) if equal_rows is not None else False
         need = min(3, len(row))
         scale = float(np.median(sizes[row])) if sizes is not None else np.inf
         got = 0
@@ -416,6 +495,8 @@ def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
                 mids.append(cen)
                 dirs.append(d)
                 prec.append(_line_precision(q, cen, d, rms, precision_floor_px))
+                pts_used.append(q)
+                pos_used.append(np.nonzero(fin[m])[0].astype(float) if equal else None)
                 got += 1
         if got == 0 and len(row) >= 2:
             cen, d, rms = fit_line(c[row])
@@ -423,10 +504,13 @@ def pattern_lines(feature_points: np.ndarray | None, centres: np.ndarray,
                 mids.append(cen)
                 dirs.append(d)
                 prec.append(_line_precision(c[row], cen, d, rms, precision_floor_px))
+                pts_used.append(c[row])
+                pos_used.append(np.arange(len(row), dtype=float) if equal else None)
     if not mids:
         return Lines.empty()
     p = np.array(prec)
-    return Lines(np.array(mids), np.array(dirs), np.ones(len(mids)), p / p.mean())
+    return Lines(np.array(mids), np.array(dirs), np.ones(len(mids)), p / p.mean(),
+                 pts_used, pos_used if any(k is not None for k in pos_used) else None)
 
 
 def _line_precision(q: np.ndarray, cen: np.ndarray, d: np.ndarray, rms: float,
@@ -582,11 +666,409 @@ def ransac_vp(lines: Lines, image_size: tuple[int, int], params: VPParams = VPPa
         inl = new
     if inl.sum() < params.min_lines:
         return None
-    v = _maybe_infinity(v, mids[inl], dirs[inl], wf[inl], params.infinity_alpha,
-                        params.infinity_noise_deg)
+    pts = None
+    spaced = False
+    if params.ml_refine and lines.points is not None:
+        idx = np.nonzero(inl)[0]
+        pts = [lines.points[i] * t[0, 0] + t[:2, 2] for i in idx]
+        if all(len(q) >= 2 for q in pts):
+            v_ml = ml_refine_vp(pts, v)
+            # keep the ML point only if it leaves the inlier set intact
+            if np.all(_sin_errors(v_ml, mids[inl], dirs[inl]) < sin_thr):
+                v = v_ml
+            pos = ([lines.positions[i] for i in idx] if lines.positions is not None
+                   else [None] * len(idx))
+            if params.spacing_alpha > 0 and any(k is not None and len(k) >= 3 for k in pos):
+                v_sp = spacing_refine_vp(pts, pos, v, params.spacing_alpha,
+                                         params.infinity_alpha,
+                                         params.infinity_noise_px * t[0, 0])
+                if v_sp is not None and (v_sp[2] == 0 or np.all(
+                        _sin_errors(v_sp, mids[inl], dirs[inl]) < sin_thr)):
+                    v, spaced = v_sp, True
+        else:
+            pts = None
+    if spaced:
+        pass  # spacing_refine_vp made the infinity decision
+    elif pts is not None:
+        v = ml_infinity_test(pts, v, params.infinity_alpha,
+                             params.infinity_noise_px * t[0, 0])
+    else:
+        v = _maybe_infinity(v, mids[inl], dirs[inl], wf[inl], params.infinity_alpha,
+                            params.infinity_noise_deg)
     v_px = np.linalg.solve(t, v)
     v_px = _canonical(v_px)
     return VanishingPoint(v_px, inside_image(v_px, image_size), int(inl.sum()))
+
+
+def _track_costs(v: np.ndarray, scat: np.ndarray) -> np.ndarray:
+    """Smallest sum of squared orthogonal distances of each track to a line through v.
+
+    v : (3,) homogeneous point (finite or at infinity); scat : (T, 3, 3) sums of
+    p~ p~^T over each track's points p~ = (x, y, 1). The line through v is
+    l = B a with B a basis of v's orthogonal complement; the distance of p~ to l is
+    l . p~ / |l_xy|, so the cost is the smallest generalised eigenvalue lambda of
+    (B^T S B, B^T diag(1, 1, 0) B): a root of det(M - lambda N) = 0.
+    """
+    _, _, vt = np.linalg.svd(v.reshape(1, 3))
+    b = vt[1:].T  # (3, 2)
+    m = np.einsum("ia,tij,jb->tab", b, scat, b)
+    nn = b[:2].T @ b[:2]
+    qa = nn[0, 0] * nn[1, 1] - nn[0, 1] ** 2
+    qb = -(m[:, 0, 0] * nn[1, 1] + m[:, 1, 1] * nn[0, 0] - 2 * m[:, 0, 1] * nn[0, 1])
+    qc = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] ** 2
+    disc = np.sqrt(np.maximum(qb ** 2 - 4 * qa * qc, 0.0))
+    den = -qb + disc
+    return np.where(den > 0, 2 * np.maximum(qc, 0.0) / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _padded_tracks(points: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tracks as padded arrays: homogeneous points (T, K, 3) (zeros where padded), mask
+    (T, K) and the unit normal of each track's free TLS line (T, 2) (sign reference)."""
+    kmax = max(len(q) for q in points)
+    ph = np.zeros((len(points), kmax, 3))
+    mask = np.zeros((len(points), kmax), bool)
+    ref = np.zeros((len(points), 2))
+    for i, q in enumerate(points):
+        q = np.asarray(q, float).reshape(-1, 2)
+        ph[i, :len(q), :2] = q
+        ph[i, :len(q), 2] = 1.0
+        mask[i, :len(q)] = True
+        d = fit_line(q)[1] if len(q) >= 2 else np.array([1.0, 0.0])
+        ref[i] = [-d[1], d[0]]
+    return ph, mask, ref
+
+
+def _track_residuals(v: np.ndarray, ph: np.ndarray, mask: np.ndarray,
+                     ref: np.ndarray) -> np.ndarray:
+    """Signed orthogonal distances (T, K) of the track points to each track's best line
+    through v (0 where padded); their squares sum to :func:`_track_costs`."""
+    _, _, vt = np.linalg.svd(v.reshape(1, 3))
+    b = vt[1:].T  # (3, 2)
+    scat = np.einsum("tki,tkj->tij", ph, ph)
+    m = np.einsum("ia,tij,jb->tab", b, scat, b)
+    nn = b[:2].T @ b[:2]
+    qa = nn[0, 0] * nn[1, 1] - nn[0, 1] ** 2
+    qb = -(m[:, 0, 0] * nn[1, 1] + m[:, 1, 1] * nn[0, 0] - 2 * m[:, 0, 1] * nn[0, 1])
+    qc = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] ** 2
+    disc = np.sqrt(np.maximum(qb ** 2 - 4 * qa * qc, 0.0))
+    den = -qb + disc
+    lam = np.where(den > 0, 2 * np.maximum(qc, 0.0) / np.where(den > 0, den, 1.0), 0.0)
+    r = m - lam[:, None, None] * nn[None]  # (T, 2, 2), singular: a spans its null space
+    a1 = np.stack([-r[:, 0, 1], r[:, 0, 0]], axis=1)
+    a2 = np.stack([-r[:, 1, 1], r[:, 1, 0]], axis=1)
+    a = np.where((np.linalg.norm(a1, axis=1) >= np.linalg.norm(a2, axis=1))[:, None], a1, a2)
+    line = a @ b.T  # (T, 3)
+    nrm = np.linalg.norm(line[:, :2], axis=1)
+    ok = nrm > 1e-15
+    line = line / np.where(ok, nrm, 1.0)[:, None]
+    sign = np.where((line[:, :2] * ref).sum(axis=1) < 0, -1.0, 1.0)
+    line = line * sign[:, None]
+    d = np.einsum("tki,ti->tk", ph, line)
+    return np.where(mask & ok[:, None], d, 0.0)
+
+
+def ml_refine_vp(points: Sequence[np.ndarray], v0: np.ndarray,
+                 weights: np.ndarray | None = None, noise_floor: float = 0.0,
+                 ) -> np.ndarray:
+    """Maximum-likelihood VP of feature tracks (implicit lines) from a starting point.
+
+    Minimises sum_t w_t / sigma_t^2 * min_{l through v} sum_k d(p_tk, l)^2 over
+    homogeneous v: every track t (the features of one visual word along one row) is
+    explained by its own line through the VP, and the cost is the squared orthogonal
+    distance of its points to that line (isotropic Gaussian feature noise). sigma_t is
+    the track's own RMS residual of a free line fit, floored at ``noise_floor``
+    (``noise_floor`` = 0: sigma_t = 1, all points weighted equally). Unlike the
+    sine-of-angle fit it accounts for the noise of the track centroids, which matters
+    when the VP is near the pattern.
+
+    Parameters
+    ----------
+    points : list of (K_t, 2) float, K_t >= 2
+        The points of each track, in the (normalised) coordinates of ``v0``.
+    v0 : (3,) float
+        Starting homogeneous VP (e.g. the RANSAC + IRLS estimate).
+    weights : (T,) float or None
+        Extra weight of each track (None: 1).
+    noise_floor : float
+        Floor of sigma_t, same units as the points.
+
+    Returns
+    -------
+    (3,) float
+        Unit-norm homogeneous VP (``v0`` when the optimisation fails).
+    """
+    from scipy.optimize import least_squares
+
+    v0 = np.asarray(v0, float)
+    v0 = v0 / np.linalg.norm(v0)
+    if len(points) < 2:
+        return v0
+    w = np.ones(len(points)) if weights is None else np.asarray(weights, float).reshape(-1)
+    if noise_floor > 0:
+        for i, q in enumerate(points):
+            _, _, rms = fit_line(np.asarray(q, float).reshape(-1, 2))
+            w[i] = w[i] / max(rms, noise_floor) ** 2
+    ph, mask, ref = _padded_tracks(points)
+    sw = np.sqrt(w)[:, None]
+    _, _, vt = np.linalg.svd(v0.reshape(1, 3))
+    u = vt[1:].T  # tangent basis at v0
+
+    def vec(x: np.ndarray) -> np.ndarray:
+        v = v0 + u @ x
+        return v / np.linalg.norm(v)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return (sw * _track_residuals(vec(x), ph, mask, ref))[mask]
+
+    if int(mask.sum()) < 2:
+        return v0
+    try:
+        sol = least_squares(resid, np.zeros(2), method="lm", xtol=1e-14, ftol=1e-14,
+                            gtol=1e-14)
+    except (ValueError, np.linalg.LinAlgError):
+        return v0
+    if not np.all(np.isfinite(sol.x)) or (resid(sol.x) ** 2).sum() > (resid(np.zeros(2)) ** 2).sum():
+        return v0
+    return vec(sol.x)
+
+
+def _track_scatter(points: Sequence[np.ndarray]) -> tuple[np.ndarray, int]:
+    """(T, 3, 3) sums of p~ p~^T of each track and the total number of points."""
+    scat = np.zeros((len(points), 3, 3))
+    n = 0
+    for i, q in enumerate(points):
+        ph = np.c_[np.asarray(q, float).reshape(-1, 2), np.ones(len(q))]
+        scat[i] = ph.T @ ph
+        n += len(q)
+    return scat, n
+
+
+def ml_infinity_test(points: Sequence[np.ndarray], v: np.ndarray, alpha: float,
+                     noise_floor: float = 0.0) -> np.ndarray:
+    """Replace a finite ML VP by the ML point at infinity when an F-test cannot tell them apart.
+
+    Point-level test on the feature tracks (same cost as :func:`ml_refine_vp`, all
+    points weighted equally): C = sum of squared orthogonal distances of the points to
+    their track's line through the VP; F = (C_inf - C_fin) / sigma^2 with
+    sigma^2 = max(C_fin / dof, noise_floor^2), dof = P - T - 2 (P points, T tracks:
+    one angle per track and two VP coordinates). Snap when F is below the
+    (1 - alpha) quantile of F(1, dof) (of chi^2(1) when sigma^2 is the floor). Unlike the
+    line-level test (:func:`_maybe_infinity`, dof = T - 2) it keeps the power of all
+    the points, so a single row of five tracks is not pushed to infinity.
+
+    Parameters
+    ----------
+    points : list of (K_t, 2) float
+        Track points (normalised coordinates, like ``v``).
+    v : (3,) float
+        The finite ML VP.
+    alpha : float
+        Test level; 0: never snap.
+    noise_floor : float
+        Floor of the point noise sigma, same units as the points.
+
+    Returns
+    -------
+    (3,) float
+        ``v`` or the ML point at infinity ``(dx, dy, 0)``.
+    """
+    v = np.asarray(v, float)
+    if alpha <= 0 or v[2] == 0 or len(points) < 2:
+        return v
+    from scipy.optimize import minimize_scalar
+    from scipy.stats import chi2
+    from scipy.stats import f as f_dist
+
+    scat, n_pts = _track_scatter(points)
+    c_fin = float(_track_costs(v, scat).sum())
+    # ML point at infinity: start from the mean track direction (sign-free average)
+    dirs = np.array([fit_line(q)[1] for q in points])
+    d0 = _fit_infinity(dirs, np.ones(len(dirs)))[:2]
+    th0 = float(np.arctan2(d0[1], d0[0]))
+
+    def cost_inf(th: float) -> float:
+        return float(_track_costs(np.array([np.cos(th), np.sin(th), 0.0]), scat).sum())
+
+    r = minimize_scalar(cost_inf, bounds=(th0 - 0.3, th0 + 0.3), method="bounded",
+                        options={"xatol": 1e-10})
+    th = float(r.x) if cost_inf(float(r.x)) <= cost_inf(th0) else th0
+    c_inf = cost_inf(th)
+    v_inf = np.array([np.cos(th), np.sin(th), 0.0])
+    dof = n_pts - len(points) - 2
+    floor2 = noise_floor ** 2
+    sigma2 = max(c_fin / dof if dof > 0 else 0.0, floor2)
+    if sigma2 <= 1e-24:
+        return v_inf if c_inf <= 1e-20 else v
+    f_stat = (c_inf - c_fin) / sigma2
+    crit = (f_dist.ppf(1 - alpha, 1, dof) if dof > 0 and sigma2 > floor2
+            else chi2.ppf(1 - alpha, 1))
+    return v_inf if f_stat < crit else v
+
+
+def _spacing_fit(line_pts: Sequence[np.ndarray], sp_pts: Sequence[np.ndarray],
+                 sp_pos: Sequence[np.ndarray], v0: np.ndarray, at_infinity: bool = False,
+                 ) -> tuple[np.ndarray, float, int]:
+    """Joint ML fit of a VP to line tracks and equally spaced tracks.
+
+    A line track costs its squared orthogonal distances to the line through the VP
+    (:func:`_track_costs`). An equally spaced track t with instance ordinals k has its
+    points modelled as the images of equally spaced 3D points,
+    ``x_k = dehom((a_t, 1) + k * lambda_t * v)`` (``a_t`` its first point, ``lambda_t``
+    its image spacing scale), and costs its squared 2D residuals.
+
+    Returns
+    -------
+    v : (3,) unit homogeneous VP (w = 0 when ``at_infinity``)
+    cost : float, sum of squared residuals (coordinates of the points)
+    dof : int, residual degrees of freedom
+    """
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    v0 = np.asarray(v0, float) / np.linalg.norm(v0)
+    n_lt = len(line_pts)
+    if n_lt:
+        lph, lmask, lref = _padded_tracks(line_pts)
+        n_line = int(lmask.sum())
+    else:
+        n_line = 0
+    ts = len(sp_pts)
+    kmax = max(len(q) for q in sp_pts)
+    pp = np.zeros((ts, kmax, 2))
+    kk = np.zeros((ts, kmax))
+    mask = np.zeros((ts, kmax), bool)
+    for i, (q, k) in enumerate(zip(sp_pts, sp_pos)):
+        o = np.argsort(k, kind="stable")
+        pp[i, :len(q)] = np.asarray(q, float)[o]
+        kk[i, :len(q)] = np.asarray(k, float)[o] - float(np.min(k))
+        mask[i, :len(q)] = True
+    if at_infinity:
+        d = v0[:2] if v0[2] == 0 and np.linalg.norm(v0[:2]) > 0 else (
+            _fit_infinity(np.array([fit_line(q)[1] for q in list(line_pts) + list(sp_pts)]),
+                          np.ones(len(line_pts) + ts))[:2])
+        th0 = float(np.arctan2(d[1], d[0]))
+        nv = 1
+
+        def vec(x: np.ndarray) -> np.ndarray:
+            return np.array([np.cos(th0 + x[0]), np.sin(th0 + x[0]), 0.0])
+    else:
+        _, _, vt = np.linalg.svd(v0.reshape(1, 3))
+        u = vt[1:].T
+        nv = 2
+
+        def vec(x: np.ndarray) -> np.ndarray:
+            v = v0 + u @ x[:2]
+            return v / np.linalg.norm(v)
+
+    vi = vec(np.zeros(nv))
+    # initial a_t (first point) and lambda_t (linear least squares, see module notes)
+    a0 = pp[:, 0, :]
+    lam0 = np.zeros(ts)
+    for i in range(ts):
+        m = mask[i]
+        x, k = pp[i, m], kk[i, m]
+        g = k[:, None] * (x * vi[2] - vi[:2][None, :])  # lambda * g = a - x
+        den = float((g ** 2).sum())
+        lam0[i] = float((g * (a0[i][None, :] - x)).sum()) / den if den > 0 else 0.0
+    x0 = np.concatenate([np.zeros(nv), np.c_[a0, lam0].ravel()])
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        v = vec(x)
+        par = x[nv:].reshape(ts, 3)
+        h = (np.concatenate([par[:, :2], np.ones((ts, 1))], axis=1)[:, None, :]
+             + (kk * par[:, 2:3])[:, :, None] * v[None, None, :])
+        w = h[..., 2:3]
+        w = np.where(np.abs(w) > 1e-9, w, 1e-9)
+        r = np.where(mask[..., None], h[..., :2] / w - pp, 0.0)
+        out = [r.reshape(-1)]
+        if n_lt:
+            out.insert(0, _track_residuals(v, lph, lmask, lref)[lmask])
+        return np.concatenate(out)
+
+    n_res = n_line + ts * kmax * 2
+    sp = lil_matrix((n_res, len(x0)), dtype=int)
+    sp[:, :nv] = 1
+    for i in range(ts):
+        r0 = n_line + i * kmax * 2
+        sp[r0:r0 + kmax * 2, nv + 3 * i:nv + 3 * i + 3] = 1
+    try:
+        sol = least_squares(resid, x0, jac_sparsity=sp, method="trf", x_scale="jac",
+                            xtol=1e-10, ftol=1e-10, max_nfev=60)
+        x = sol.x if np.all(np.isfinite(sol.x)) else x0
+    except (ValueError, np.linalg.LinAlgError):
+        x = x0
+    cost = float((resid(x) ** 2).sum())
+    n_sp = int(mask.sum())
+    dof = (n_line - n_lt) + (2 * n_sp - 3 * ts) - nv
+    return vec(x), cost, dof
+
+
+def spacing_refine_vp(points: Sequence[np.ndarray], positions: Sequence[np.ndarray | None],
+                      v0: np.ndarray, alpha: float = 0.01, infinity_alpha: float = 0.01,
+                      noise_floor: float = 0.0) -> np.ndarray | None:
+    """ML VP from feature tracks where equally spaced rows also constrain the spacing.
+
+    Along a row that is equally spaced in 3D, the images of one visual word are
+    ``x_k = dehom(A + k * lambda * V)`` (A the first feature, V the VP): the image
+    spacing shrinks towards the VP, which locates the VP *along* the row far better than
+    the convergence of the row's short, nearly parallel feature tracks. Tracks with
+    ``positions`` (instance ordinals, >= 3 points) get this model, the others the line
+    model (:func:`ml_refine_vp`).
+
+    The spacing model is accepted by a likelihood-ratio test against the line model of
+    all tracks: ``(C_spacing - C_lines) / sigma^2`` below the ``1 - alpha`` quantile of
+    chi^2(sum_t (K_t - 2)) (K_t - 2 constraints per spaced track; sigma^2 = the line
+    model's residual variance, floored at ``noise_floor``). The accepted fit is then
+    compared with the same model restricted to a VP at infinity (F-test of level
+    ``infinity_alpha``, as :func:`ml_infinity_test`).
+
+    Parameters
+    ----------
+    points : list of (K_t, 2) float
+        Track points, normalised coordinates.
+    positions : list of (K_t,) float or None
+        Instance ordinals of the points of equally spaced tracks; None: line model.
+    v0 : (3,) float
+        Starting VP (the line-model ML VP).
+    alpha, infinity_alpha : float
+        Test levels.
+    noise_floor : float
+        Floor of the point noise sigma (units of ``points``).
+
+    Returns
+    -------
+    (3,) float or None
+        Unit homogeneous VP; None when the spacing model is rejected (or not
+        applicable).
+    """
+    from scipy.stats import chi2
+    from scipy.stats import f as f_dist
+
+    sp = [i for i, k in enumerate(positions) if k is not None and len(k) >= 3
+          and len(np.unique(k)) == len(k)]
+    if not sp or alpha <= 0:
+        return None
+    ln = [i for i in range(len(points)) if i not in set(sp)]
+    line_pts = [points[i] for i in ln]
+    sp_pts = [points[i] for i in sp]
+    sp_pos = [positions[i] for i in sp]
+    scat_all, n_all = _track_scatter(points)
+    c_lines = float(_track_costs(np.asarray(v0, float) / np.linalg.norm(v0), scat_all).sum())
+    dof_lines = n_all - len(points) - 2
+    floor2 = noise_floor ** 2
+    sigma2 = max(c_lines / dof_lines if dof_lines > 0 else 0.0, floor2, 1e-30)
+    v, c_sp, dof = _spacing_fit(line_pts, sp_pts, sp_pos, v0)
+    n_con = int(sum(len(points[i]) - 2 for i in sp))
+    if (c_sp - c_lines) / sigma2 > chi2.ppf(1 - alpha, n_con):
+        return None
+    if infinity_alpha > 0 and v[2] != 0 and dof > 0:
+        v_inf, c_inf, _ = _spacing_fit(line_pts, sp_pts, sp_pos, v, at_infinity=True)
+        s2 = max(c_sp / dof, floor2, 1e-30)
+        crit = (f_dist.ppf(1 - infinity_alpha, 1, dof) if s2 > floor2
+                else chi2.ppf(1 - infinity_alpha, 1))
+        if (c_inf - c_sp) / s2 < crit:
+            v = v_inf
+    return v / np.linalg.norm(v)
 
 
 def ac_mask(d1: np.ndarray, d2: np.ndarray, ac_threshold_deg: float) -> np.ndarray:
@@ -651,8 +1133,96 @@ def instance_centres_sizes(bboxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return b[:, :2] + b[:, 2:] / 2, np.minimum(b[:, 2], b[:, 3])
 
 
+def registered_centres(centres: np.ndarray, feature_points: np.ndarray | None,
+                       min_words: int = 2) -> np.ndarray:
+    """Instance positions registered by their corresponding features.
+
+    A stage-I box is the hull of the features an instance happens to have, so a partial
+    instance has a shifted box centre. Each visual word m has a typical offset from the
+    instance centre, ``o_m = median_k (p_mk - c_k)``; the registered centre of instance
+    k is ``median_m (p_mk - o_m)`` over its words (the box centre with fewer than
+    ``min_words`` words, e.g. instances added by stage II).
+
+    Parameters
+    ----------
+    centres : (N, 2) float
+        Box centres, pixels.
+    feature_points : (M, N', 2) float or None
+        Corresponding features, pixels, NaN where missing (N' <= N).
+    min_words : int
+
+    Returns
+    -------
+    (N, 2) float, pixels
+    """
+    c, fp = checked_points(centres, feature_points)
+    if fp is None or fp.shape[0] == 0:
+        return c.copy()
+    fp = fp[:, :len(c)]
+    fin = np.all(np.isfinite(fp), axis=2)  # (M, N)
+    with np.errstate(invalid="ignore"):
+        off = np.nanmedian(np.where(fin[..., None], fp - c[None], np.nan), axis=1)  # (M, 2)
+    out = c.copy()
+    for k in range(len(c)):
+        ok = fin[:, k] & np.all(np.isfinite(off), axis=1)
+        if ok.sum() >= min_words:
+            out[k] = np.median(fp[ok, k] - off[ok], axis=0)
+    return out
+
+
+def duplicate_instances(centres: np.ndarray, sizes: np.ndarray,
+                        feature_points: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: instances that duplicate another one (centres closer than half the
+    smaller of the two sizes); of each such pair the one with fewer features (then the
+    later index) is the duplicate."""
+    c = np.asarray(centres, float).reshape(-1, 2)
+    sz = np.asarray(sizes, float).reshape(-1)
+    n = len(c)
+    nfeat = np.zeros(n)
+    if feature_points is not None:
+        fp = np.asarray(feature_points, float)
+        nf = np.all(np.isfinite(fp), axis=2).sum(axis=0)
+        nfeat[:len(nf)] = nf[:n]
+    rank = np.lexsort((np.arange(n), -nfeat))  # best first
+    dup = np.zeros(n, bool)
+    for a_i, a in enumerate(rank):
+        if dup[a]:
+            continue
+        for b in rank[a_i + 1:]:
+            if not dup[b] and np.linalg.norm(c[a] - c[b]) < 0.5 * min(sz[a], sz[b]):
+                dup[b] = True
+    return dup
+
+
+def pattern_rows(bboxes: np.ndarray, feature_points: np.ndarray | None,
+                 params: VPParams = VPParams()
+                 ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Instance positions, sizes and rows of one RP.
+
+    Returns
+    -------
+    centres : (N, 2) float
+        Registered centres (:func:`registered_centres`) when ``params.register_centres``,
+        else box centres, pixels.
+    sizes : (N,) float
+        Smaller box sides, pixels.
+    rows : list of int arrays
+        :func:`group_rows` on the non-duplicate instances (original indices).
+    """
+    c, sz = instance_centres_sizes(bboxes)
+    keep = np.arange(len(c))
+    if params.register_centres and len(c) >= 2:
+        c = registered_centres(c, feature_points)
+        keep = np.nonzero(~duplicate_instances(c, sz, feature_points))[0]
+    if len(keep) < 2:
+        return c, sz, []
+    rows = group_rows(c[keep], sz[keep], params.row_tolerance, params.min_row_instances)
+    return c, sz, [keep[r] for r in rows]
+
+
 def rp_vanishing_point(bboxes: np.ndarray, feature_points: np.ndarray | None,
                        image_size: tuple[int, int], params: VPParams = VPParams(),
+                       symmetry_params: Any = None,
                        ) -> tuple[VanishingPoint | None, list[np.ndarray]]:
     """VP of one RP from its implicit lines.
 
@@ -665,6 +1235,10 @@ def rp_vanishing_point(bboxes: np.ndarray, feature_points: np.ndarray | None,
     image_size : (int, int)
         ``(width, height)``, original pixels.
     params : VPParams
+    symmetry_params : rescu.symmetry.SymmetryParams or None
+        When given (and ``params.spacing_alpha`` > 0), rows that pass the
+        translation-symmetry test also constrain the VP by their spacing
+        (:func:`spacing_refine_vp`).
 
     Returns
     -------
@@ -678,13 +1252,138 @@ def rp_vanishing_point(bboxes: np.ndarray, feature_points: np.ndarray | None,
         raise ValueError(f"bboxes must have shape (N, 4), got {b.shape}")
     if len(b) < 2:
         return None, []
-    c, sz = instance_centres_sizes(b)
-    rows = group_rows(c, sz, params.row_tolerance, params.min_row_instances)
+    c, sz, rows = pattern_rows(b, feature_points, params)
     if not rows:
         return None, rows
+    equal = equal_rows(feature_points, c, rows, symmetry_params, params)
     lines = pattern_lines(feature_points, c, rows, sz, params.max_line_residual,
-                          params.precision_floor_px)
+                          params.precision_floor_px, equal)
     return ransac_vp(lines, image_size, params), rows
+
+
+def equal_rows(feature_points: np.ndarray | None, centres: np.ndarray,
+               rows: Sequence[np.ndarray], symmetry_params: Any,
+               params: VPParams = VPParams()) -> list[bool] | None:
+    """Per row, whether it passes the translation-symmetry test on its own.
+
+    None when ``symmetry_params`` is None or ``params.spacing_alpha`` is 0 (spacing
+    model off); rows shorter than ``symmetry_params.min_instances`` are False.
+    """
+    if symmetry_params is None or params.spacing_alpha <= 0 or not rows:
+        return None
+    from .symmetry import translation_symmetry  # symmetry imports this module
+
+    out = []
+    for r in rows:
+        r = np.asarray(r, int)
+        ts = (translation_symmetry(feature_points, centres, [r], symmetry_params)
+              if len(r) >= symmetry_params.min_instances else None)
+        out.append(bool(ts is not None and ts.detected))
+    return out
+
+
+def joint_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoint | None],
+                          image_size: tuple[int, int], params: VPParams = VPParams(),
+                          ) -> tuple[VanishingPoint | None, list[int]]:
+    """VP of the first (dominant) pattern re-estimated on every pattern that shares it.
+
+    Several RPs of a scene often recur along the same 3D direction (windows, sills and
+    balconies of one facade), and the VP of a single row is poorly conditioned. Starting
+    from the dominant pattern's inlier feature tracks, the other patterns are tried in
+    the given order: pattern k is merged when the likelihood-ratio statistic
+    ``(C_joint+k - C_joint - C_k) / sigma^2`` of a common VP (ML costs of
+    :func:`ml_refine_vp`; sigma^2 = the pooled residual variance, floored at
+    ``precision_floor_px``) is below the ``1 - joint_alpha`` quantile of chi^2(2).
+    A pattern whose own VP is at infinity is never merged with one whose VP is finite
+    (or vice versa). The merged VP gets the spacing model where merged rows are equally spaced
+    (:func:`spacing_refine_vp`), else the point-level infinity test
+    (:func:`ml_infinity_test`).
+
+    Parameters
+    ----------
+    line_sets : list of Lines
+        Implicit lines of each pattern (with ``points``), pixels; the first is the
+        dominant pattern.
+    vps : list of VanishingPoint or None
+        Each pattern's own VP (None: the pattern is skipped).
+    image_size : (int, int)
+        ``(width, height)``, pixels.
+    params : VPParams
+
+    Returns
+    -------
+    vp : VanishingPoint or None
+        The joint VP (the dominant one unchanged when nothing is merged or
+        ``joint_alpha`` is 0); None when the dominant pattern has no VP.
+    used : list of int
+        Indices of the patterns whose tracks were used (the first is 0).
+    """
+    if len(line_sets) != len(vps):
+        raise ValueError(f"line_sets and vps must have the same length, got "
+                         f"{len(line_sets)} and {len(vps)}")
+    if not vps or vps[0] is None:
+        return None, []
+    if params.joint_alpha <= 0 or len(vps) < 2:
+        return vps[0], [0]
+    from scipy.stats import chi2
+
+    t = _normaliser(image_size)
+    sin_thr = np.sin(np.radians(params.inlier_angle_deg))
+    floor2 = (params.precision_floor_px * t[0, 0]) ** 2
+    sets: list[tuple[list[np.ndarray], list[np.ndarray | None], float, int] | None] = []
+    for lines, vp in zip(line_sets, vps):
+        if vp is None or lines.points is None or len(lines) < 2:
+            sets.append(None)
+            continue
+        v = t @ np.asarray(vp.homogeneous, float)
+        v = v / np.linalg.norm(v)
+        mids = lines.midpoints * t[0, 0] + t[:2, 2]
+        inl = [i for i in np.nonzero(_sin_errors(v, mids, lines.directions) < sin_thr)[0]
+               if len(lines.points[i]) >= 2]
+        pts = [lines.points[i] * t[0, 0] + t[:2, 2] for i in inl]
+        pos = ([lines.positions[i] for i in inl] if lines.positions is not None
+               else [None] * len(inl))
+        if len(pts) < 2:
+            sets.append(None)
+            continue
+        # each pattern's own minimum of the line-model cost (its free, finite ML VP)
+        scat, n_pts = _track_scatter(pts)
+        c_own = float(_track_costs(ml_refine_vp(pts, v), scat).sum())
+        sets.append((pts, pos, c_own, n_pts - len(pts) - 2))
+    if sets[0] is None:
+        return vps[0], [0]
+    v = t @ np.asarray(vps[0].homogeneous, float)
+    v = v / np.linalg.norm(v)
+    pts, pos, c_joint, dof = sets[0]
+    used = [0]
+    crit = chi2.ppf(1 - params.joint_alpha, 2)
+    for k in range(1, len(sets)):
+        if sets[k] is None:
+            continue
+        pk, qk, ck, dk = sets[k]
+        if (vps[k].homogeneous[2] == 0) != (vps[0].homogeneous[2] == 0):
+            continue  # one pattern is seen frontally, the other not: no common VP
+        cand = pts + pk
+        v_c = ml_refine_vp(cand, v)
+        scat, _ = _track_scatter(cand)
+        c_c = float(_track_costs(v_c, scat).sum())
+        sigma2 = max((c_joint + ck) / max(dof + dk, 1), floor2)
+        if (c_c - c_joint - ck) / sigma2 < crit:
+            pts, pos, v, c_joint, dof = cand, pos + qk, v_c, c_c, dof + dk + 2
+            used.append(k)
+    if len(used) == 1:
+        return vps[0], used
+    v_sp = None
+    if params.spacing_alpha > 0 and any(k is not None and len(k) >= 3 for k in pos):
+        v_sp = spacing_refine_vp(pts, pos, v, params.spacing_alpha, params.infinity_alpha,
+                                 params.infinity_noise_px * t[0, 0])
+    if v_sp is not None:
+        v = v_sp
+    elif v[2] != 0:
+        v = ml_infinity_test(pts, v, params.infinity_alpha,
+                             params.infinity_noise_px * t[0, 0])
+    v_px = _canonical(np.linalg.solve(t, v))
+    return VanishingPoint(v_px, inside_image(v_px, image_size), len(pts)), used
 
 
 # ----------------------------------------------------------------------------- baseline

@@ -209,3 +209,24 @@ def test_rectify_equalises_rendered_spacing():
     assert gaps.max() - gaps.min() <= 3  # equal to the pixel
     before = [i.bbox[0] for i in inst]
     assert np.ptp(np.diff(before)) > 10  # unequal before
+
+
+def test_image_vp_joins_patterns_that_share_the_dominant_vp():
+    # two RPs on one plane, rows along the plane's X axis (same VP), and a third RP on
+    # a plane turned by 90 degrees (rows along another direction)
+    a = make_pattern(H_PERSP, np.arange(6.0), pid=0, noise=0.5, seed=1)
+    b = make_pattern(H_PERSP @ np.array([[1, 0, 0], [0, 1, 3.0], [0, 0, 1]]),
+                     np.arange(5.0) * 1.3, pid=1, noise=0.5, seed=2)
+    c = make_pattern(H_PERSP @ np.array([[0, 1, 8.0], [1, 0, 0], [0, 0, 1]]),
+                     np.arange(4.0), pid=2, noise=0.5, seed=3)
+    out = SC.analyse_scene(result(a, b, c))
+    assert out.dominant_pattern == 0
+    own = out.patterns[0].vanishing_point
+    assert out.vanishing_point.support == own.support + out.patterns[1].vanishing_point.support
+    gt = H_PERSP @ np.array([1.0, 0, 0])
+    assert V.vector_error(out.vanishing_point.homogeneous, gt, (640, 480)) < 0.5
+    # joint estimation off: the dominant pattern's own VP
+    p = SC.SceneParams.from_dict({"vp": {"joint_alpha": 0}})
+    out = SC.analyse_scene(result(a, b, c), p)
+    np.testing.assert_array_equal(out.vanishing_point.homogeneous,
+                                  out.patterns[0].vanishing_point.homogeneous)

@@ -306,3 +306,139 @@ def test_group_rows_prefers_horizontal_rows_over_slightly_tighter_columns():
     c2 = np.array([[100.0 * i, 45.0 * j] for j in range(3) for i in range(3)])
     rows2 = V.group_rows(c2, np.full(9, 30.0))
     assert sorted(r.tolist() for r in rows2) == [[0, 3, 6], [1, 4, 7], [2, 5, 8]]
+
+
+# ----------------------------------------------------------------------------- ML, spacing, joint
+def _norm_tracks(fp: np.ndarray, rows: list[list[int]], size=SIZE):
+    """Feature tracks (one per word and row) in the normalised coordinates of ransac_vp,
+    with the instance ordinals of their points."""
+    t = V._normaliser(size)
+    pts, pos = [], []
+    for r in rows:
+        for m in range(fp.shape[0]):
+            pts.append(fp[m, r] * t[0, 0] + t[:2, 2])
+            pos.append(np.arange(len(r), dtype=float))
+    return t, pts, pos
+
+
+def test_ml_refine_exact_without_noise_from_a_perturbed_start():
+    _, fp = grid(H_PERSP, nx=6, ny=2)
+    t, pts, _ = _norm_tracks(fp, [list(range(6)), list(range(6, 12))])
+    gt = unit(t @ (H_PERSP @ [1.0, 0, 0]))
+    v = V.ml_refine_vp(pts, unit(gt + [0.01, -0.02, 0.0]))
+    assert min(np.linalg.norm(v - gt), np.linalg.norm(v + gt)) < 1e-8
+
+
+def test_track_costs_zero_on_the_line_and_continuous_at_infinity():
+    q = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    scat, n = V._track_scatter([q])
+    assert n == 3
+    assert V._track_costs(np.array([5.0, 0.0, 1.0]), scat)[0] == pytest.approx(0.0, abs=1e-12)
+    assert V._track_costs(np.array([1.0, 0.0, 0.0]), scat)[0] == pytest.approx(0.0, abs=1e-12)
+    # a line through (0, 1) and q's centroid direction: distances known
+    c_far = V._track_costs(np.array([1.0, 1e-9, 1e-12]), scat)[0]
+    c_inf = V._track_costs(np.array([1.0, 1e-9, 0.0]), scat)[0]
+    assert c_far == pytest.approx(c_inf, abs=1e-12)
+
+
+def test_ml_infinity_test_keeps_converging_row_and_snaps_frontal_one():
+    # one row of five instances: 5 tracks of 5 points each (25 points), 0.5 px noise
+    b, fp = grid(H_PERSP, nx=5, ny=1, noise=0.5, seed=1)
+    vp, _ = V.rp_vanishing_point(b, fp, SIZE)
+    assert vp.homogeneous[2] != 0
+    assert V.vector_error(vp.homogeneous, unit(H_PERSP @ [1.0, 0, 0]), SIZE) < 2.0
+    b, fp = grid(H_FRONTAL, nx=5, ny=1, noise=0.5, seed=1)
+    vp, _ = V.rp_vanishing_point(b, fp, SIZE)
+    assert vp.homogeneous[2] == 0
+
+
+def test_spacing_model_beats_line_model_on_single_equal_rows():
+    from rescu.symmetry import SymmetryParams
+
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    err_line, err_sp = [], []
+    for seed in range(8):
+        b, fp = grid(H_PERSP, nx=6, ny=1, noise=0.7, seed=seed)
+        v_line, _ = V.rp_vanishing_point(b, fp, SIZE)
+        v_sp, _ = V.rp_vanishing_point(b, fp, SIZE, V.VPParams(), SymmetryParams())
+        err_line.append(V.vector_error(v_line.homogeneous, gt, SIZE))
+        err_sp.append(V.vector_error(v_sp.homogeneous, gt, SIZE))
+    assert np.mean(err_sp) < 0.5 * np.mean(err_line)
+    assert max(err_sp) < 1.5 < max(err_line)
+
+
+def test_spacing_model_exact_without_noise_and_rejected_on_unequal_rows():
+    xs = np.array([0.0, 1.0, 2.5, 3.2, 5.0, 5.6])  # clearly unequal
+    _, fp = grid(H_PERSP, nx=6, ny=1, xs=xs, noise=0.2, seed=2)
+    t, pts, pos = _norm_tracks(fp, [list(range(6))])
+    v0 = V.ml_refine_vp(pts, unit(t @ (H_PERSP @ [1.0, 0, 0])))
+    assert V.spacing_refine_vp(pts, pos, v0, 0.01, 0.01, 0.25 * t[0, 0]) is None
+    _, fp = grid(H_PERSP, nx=6, ny=1)
+    t, pts, pos = _norm_tracks(fp, [list(range(6))])
+    gt = unit(t @ (H_PERSP @ [1.0, 0, 0]))
+    v = V.spacing_refine_vp(pts, pos, unit(gt + [0.02, 0.0, 0.0]), 0.01, 0.01, 1e-4)
+    assert v is not None and min(np.linalg.norm(v - gt), np.linalg.norm(v + gt)) < 1e-7
+    # a gap (missing feature) keeps the ordinals right
+    pos[0] = np.array([0.0, 1, 3, 4, 5])
+    pts[0] = np.delete(pts[0], 2, axis=0)
+    v = V.spacing_refine_vp(pts, pos, unit(gt + [0.02, 0.0, 0.0]), 0.01, 0.01, 1e-4)
+    assert v is not None and min(np.linalg.norm(v - gt), np.linalg.norm(v + gt)) < 1e-7
+
+
+def test_joint_vp_merges_patterns_sharing_the_vp_only():
+    from rescu.symmetry import SymmetryParams  # noqa: F401  (rows only, no spacing here)
+
+    p = V.VPParams(spacing_alpha=0)
+    # dominant: one row; second: two rows of the same plane (same VP); third: another
+    # direction (the plane's Y axis)
+    b0, f0 = grid(H_PERSP, nx=5, ny=1, noise=0.5, seed=4)
+    b1, f1 = grid(H_PERSP @ np.array([[1, 0, 0], [0, 1, 3.0], [0, 0, 1]]), nx=6, ny=2,
+                  noise=0.5, seed=5)
+    h2 = H_PERSP @ np.array([[0, 1, 8.0], [1, 0, 0], [0, 0, 1]])  # rows along plane Y
+    b2, f2 = grid(h2, nx=5, ny=1, noise=0.5, seed=6)
+    sets, vps = [], []
+    for b, f in ((b0, f0), (b1, f1), (b2, f2)):
+        vp, rows = V.rp_vanishing_point(b, f, SIZE, p)
+        c, sz = V.instance_centres_sizes(b)
+        sets.append(V.pattern_lines(f, c, rows, sz))
+        vps.append(vp)
+    vp, used = V.joint_vanishing_point(sets, vps, SIZE, p)
+    assert used == [0, 1]
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    assert V.vector_error(vp.homogeneous, gt, SIZE) < V.vector_error(vps[0].homogeneous,
+                                                                     gt, SIZE)
+    assert vp.support == len(sets[0]) + len(sets[1])
+    # off: the dominant VP unchanged
+    vp_off, used_off = V.joint_vanishing_point(sets, vps, SIZE, V.VPParams(joint_alpha=0))
+    assert used_off == [0] and np.array_equal(vp_off.homogeneous, vps[0].homogeneous)
+    with pytest.raises(ValueError, match="same length"):
+        V.joint_vanishing_point(sets, vps[:2], SIZE)
+
+
+def test_new_params_validated():
+    assert V.VPParams.from_dict({"ml_refine": False, "joint_alpha": 0.0,
+                                 "spacing_alpha": 0.0, "infinity_noise_px": 0.5}).ml_refine is False
+    for k, v in (("joint_alpha", 1.0), ("spacing_alpha", -0.1), ("infinity_noise_px", -1.0)):
+        with pytest.raises(ValueError, match=k):
+            V.VPParams(**{k: v})
+
+
+def test_registered_centres_fix_a_partial_box_and_duplicates_leave_the_row():
+    b, fp = grid(H_FRONTAL, nx=6, ny=1)
+    c, sz = V.instance_centres_sizes(b)
+    # instance 2 detected with only its left half: box shifted and smaller
+    b2 = b.copy()
+    b2[2, 2] /= 2
+    c2, _ = V.instance_centres_sizes(b2)
+    np.testing.assert_allclose(V.registered_centres(c2, fp), c, atol=1e-9)
+    # a duplicate of instance 3 (same features, slightly shifted box): left out
+    b3 = np.concatenate([b, b[3:4] + [2.0, 1.0, 0, 0]])
+    fp3 = np.concatenate([fp, fp[:, 3:4]], axis=1)
+    fp3[:2, 6] = np.nan  # fewer features than the original
+    cen, _, rows = V.pattern_rows(b3, fp3)
+    assert [r.tolist() for r in rows] == [[0, 1, 2, 3, 4, 5]]
+    assert V.duplicate_instances(cen, V.instance_centres_sizes(b3)[1], fp3).tolist() == \
+        [False] * 6 + [True]
+    # stage-II instances without features keep their box centres
+    np.testing.assert_array_equal(V.registered_centres(c, fp[:, :4])[4:], c[4:])
+    np.testing.assert_array_equal(V.registered_centres(c, None), c)
