@@ -22,7 +22,7 @@ DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m,
 
 def code(*modules):
     """The rescu/ source files a rule depends on (a code change reruns the rule)."""
-    base = ["types", "io", "pipeline"]
+    base = ["types", "io", "params", "pipeline"]
     return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
 
 

@@ -51,7 +51,7 @@ rule scene_no_ac:
 rule line_vp:
     input:
         **prepared(),
-        code=code("scene", "vp"),
+        code=code("scene", "vp", "symmetry"),
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:
