@@ -195,6 +195,28 @@ class FrozenBackbone:
             return self.forward_tensor(self.preprocess(rgb))
 
 
+def box_rois(boxes: np.ndarray, map_hw: tuple[int, int],
+             image_size: tuple[int, int]) -> np.ndarray:
+    """RoI-align rows ``[0, x0, y0, x1, y1]`` in feature-map cells for pixel boxes.
+
+    Parameters
+    ----------
+    boxes : (N, 4) float
+        ``[x, y, w, h]`` in pixels of an image of ``image_size`` = ``(width, height)``.
+    map_hw : (int, int)
+        Height and width of that image's feature map (maps are ceil(size / stride), so
+        the exact cell-to-pixel ratio is used).
+
+    Returns
+    -------
+    (N, 5) float32
+    """
+    b = np.asarray(boxes, np.float32).reshape(-1, 4)
+    sx, sy = map_hw[1] / float(image_size[0]), map_hw[0] / float(image_size[1])
+    return np.stack([np.zeros(len(b), np.float32), b[:, 0] * sx, b[:, 1] * sy,
+                     (b[:, 0] + b[:, 2]) * sx, (b[:, 1] + b[:, 3]) * sy], 1).astype(np.float32)
+
+
 def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
                pool_size: int = 2, chunk: int = 4096) -> np.ndarray:
     """RoI-align features of boxes from a shared feature map.
@@ -222,18 +244,13 @@ def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
     c = int(fmap.shape[1])
     if len(b) == 0:
         return np.zeros((0, c * pool_size * pool_size), np.float32)
-    W, H = float(image_size[0]), float(image_size[1])
-    # exact ratio of map cells to pixels (maps are ceil(size / stride))
-    sx, sy = fmap.shape[3] / W, fmap.shape[2] / H
     out = []
     for i in range(0, len(b), chunk):
-        bb = b[i:i + chunk]
-        rois = np.stack([np.zeros(len(bb), np.float32), bb[:, 0] * sx, bb[:, 1] * sy,
-                         (bb[:, 0] + bb[:, 2]) * sx, (bb[:, 1] + bb[:, 3]) * sy], 1)
+        rois = box_rois(b[i:i + chunk], (int(fmap.shape[2]), int(fmap.shape[3])), image_size)
         with torch.no_grad():
             r = roi_align(fmap, torch.from_numpy(rois).to(fmap.device), (pool_size, pool_size),
                           spatial_scale=1.0, sampling_ratio=2, aligned=True)
-        out.append(r.reshape(len(bb), -1).cpu().numpy())
+        out.append(r.reshape(len(rois), -1).cpu().numpy())
     f = np.concatenate(out).astype(np.float32)
     n = np.linalg.norm(f, axis=1, keepdims=True)
     return f / np.maximum(n, 1e-12)

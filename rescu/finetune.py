@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .backbone import FrozenBackbone
+from .backbone import FrozenBackbone, box_rois
 
 
 def _scaled(rgb: np.ndarray, scale: float) -> tuple[np.ndarray, float, float]:
@@ -128,13 +128,10 @@ def finetune_backbone(backbone: FrozenBackbone, rgb: np.ndarray, boxes: np.ndarr
 
         def logits(idx: np.ndarray) -> Any:
             fmap = tuned.forward_tensor(x_img)
-            sx, sy = fmap.shape[3] / W, fmap.shape[2] / H
-            bb = bs[idx]
-            rois = np.stack([np.zeros(len(bb), np.float32), bb[:, 0] * sx, bb[:, 1] * sy,
-                             (bb[:, 0] + bb[:, 2]) * sx, (bb[:, 1] + bb[:, 3]) * sy], 1)
+            rois = box_rois(bs[idx], (int(fmap.shape[2]), int(fmap.shape[3])), (W, H))
             r = roi_align(fmap, torch.from_numpy(rois).to(dev), (pool_size, pool_size),
                           spatial_scale=1.0, sampling_ratio=2, aligned=True)
-            f = r.reshape(len(bb), -1)
+            f = r.reshape(len(idx), -1)
             f = f / f.norm(dim=1, keepdim=True).clamp_min(1e-12)
             return head(f)
 
