@@ -1,6 +1,5 @@
 """Tests of rescu.backbone: frozen backbones, RoI pooling, missing-weights error."""
 
-import os
 
 import numpy as np
 import pytest

@@ -6,7 +6,6 @@ the failures table) to stay fast; stage II is covered by tests/test_workflow.py.
 
 from __future__ import annotations
 
-import filecmp
 import json
 import os
 import signal

@@ -386,8 +386,6 @@ def test_spacing_model_exact_without_noise_and_rejected_on_unequal_rows():
 
 
 def test_joint_vp_merges_patterns_sharing_the_vp_only():
-    from rescu.symmetry import SymmetryParams  # noqa: F401  (rows only, no spacing here)
-
     p = V.VPParams(spacing_alpha=0)
     # dominant: one row; second: two rows of the same plane (same VP); third: another
     # direction (the plane's Y axis)
