@@ -59,19 +59,39 @@ def count_pairs(det_counts: Sequence[int], gt_counts: Sequence[int],
     list of (int, int)
         One pair per matched ground-truth RP, in ground-truth order (see module docstring).
     """
+    for d, g in enumerate(assignment):
+        if g is not None and not 0 <= g < len(gt_counts):
+            raise ValueError(f"assignment[{d}] = {g} is not a ground-truth RP index "
+                             f"(0..{len(gt_counts) - 1})")
+    best = counting_patterns(det_counts, assignment)
+    return [(int(det_counts[best[g]]), int(gt_counts[g])) for g in sorted(best)]
+
+
+def counting_patterns(det_counts: Sequence[int], assignment: Sequence[int | None]
+                      ) -> dict[int, int]:
+    """The detected RP that counts each matched ground-truth RP.
+
+    Parameters
+    ----------
+    det_counts : (D,) int
+        Instances of each detected RP.
+    assignment : (D,) int or None
+        Ground-truth RP index assigned to each detected RP (None: unmatched).
+
+    Returns
+    -------
+    dict
+        ``{ground-truth RP index: detected RP index}``: of the detected RPs assigned to a
+        ground-truth RP, the one with the most instances (ties: the first).
+    """
     if len(assignment) != len(det_counts):
         raise ValueError(f"assignment must have one entry per detected RP "
                          f"({len(det_counts)}), got {len(assignment)}")
     best: dict[int, int] = {}
     for d, g in enumerate(assignment):
-        if g is None:
-            continue
-        if not 0 <= g < len(gt_counts):
-            raise ValueError(f"assignment[{d}] = {g} is not a ground-truth RP index "
-                             f"(0..{len(gt_counts) - 1})")
-        if g not in best or det_counts[d] > det_counts[best[g]]:
+        if g is not None and (g not in best or det_counts[d] > det_counts[best[g]]):
             best[g] = d
-    return [(int(det_counts[best[g]]), int(gt_counts[g])) for g in sorted(best)]
+    return best
 
 
 def count_errors(pairs: Sequence[tuple[int, int]]) -> dict[str, float]:

@@ -117,6 +117,14 @@ def stage2_ablation_tables(datasets: Mapping[str, DatasetRef], results: str | Pa
     _write(summary, md, out_tsv, out_md)
 
 
+COUNTING_NOTE = (
+    "`n_matched`, `count_mae`, `exact_rate`: one row per ground-truth RP that a detected "
+    "RP is accepted for (IOD), counted by the accepted detected RP with the most "
+    "instances. `*_all_rps`: one row per accepted detected RP (a GT RP split into two "
+    "RPs, or an object part found as its own RP, adds rows that are usually short). "
+    "`dominant_*`: the image's dominant RP.\n\n")
+
+
 def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
                     params: E.EvaluationParams, out_tsv: str | Path, out_md: str | Path,
                     methods: Mapping[str, str] = {"RESCU-I": "rescu-i", "RESCU-II": "final"},
@@ -130,7 +138,8 @@ def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
                              params.min_rp_precision, images=ref.images)
         tables.append(_with_dataset(t, name))
     df = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
-    md = ("## Counting\n\n" + E.frame_markdown(df, params.decimals)) if len(df) else \
+    md = ("## Counting\n\n" + COUNTING_NOTE + E.frame_markdown(df, params.decimals)) \
+        if len(df) else \
         "_no dataset with recurring-pattern ground truth_\n"
     _write(df, md, out_tsv, out_md)
 

@@ -73,8 +73,10 @@ def make_dataset(root: Path) -> Path:
 
 
 def write_preds(folder: Path, method: str, jitter: float = 0.0, drop: set[str] = frozenset(),
-                count_delta: int = 0, reverse: bool = False, vp_shift: float = 0.0) -> Path:
-    """Ground truth turned into predictions (optionally degraded)."""
+                count_delta: int = 0, reverse: bool = False, vp_shift: float = 0.0,
+                split: bool = False) -> Path:
+    """Ground truth turned into predictions (optionally degraded; ``split``: every RP of
+    four or more instances is predicted as two RPs, its first and its second half)."""
     folder.mkdir(parents=True)
     for f, rps in SCENE.items():
         if f in drop:
@@ -89,7 +91,11 @@ def write_preds(folder: Path, method: str, jitter: float = 0.0, drop: set[str] =
             if reverse:
                 bx = bx[::-1]
             ts = TranslationSymmetry(eq, 4 / 3 if eq else 1.6, 2)
-            pats.append(Pattern(k, 1.0, [Instance(b) for b in bx], translation_symmetry=ts))
+            parts = [bx[:(len(bx) + 1) // 2], bx[(len(bx) + 1) // 2:]] if (
+                split and len(bx) >= 4) else [bx]
+            for part in parts:
+                pats.append(Pattern(len(pats), 1.0, [Instance(b) for b in part],
+                                    translation_symmetry=ts))
         if reverse:
             pats = pats[::-1]
         v = np.array(GT_VP[f][-1], float)
@@ -261,7 +267,23 @@ def test_counting_table(tiny) -> None:
     assert t.loc["gt", "instance_precision_pooled"] == 1.0
     assert t.loc["more", "instance_precision_pooled"] == pytest.approx(12 / 15)
     cf = E.count_frame(ds, {"gt": preds["gt"]})
-    assert sorted(cf["gt_count"].tolist()) == [3, 4, 5]
+    assert sorted(cf["gt_count"].tolist()) == [3, 4, 5] and cf["counted"].all()
+
+
+def test_counting_table_counts_each_gt_rp_once(tiny) -> None:
+    """A GT RP split into two detected RPs is counted once, by the larger part; the
+    per-detected-RP columns show both parts."""
+    ds, _, tmp = tiny
+    split = write_preds(tmp / "p_split", "split", split=True)  # 5 -> 3 + 2, 4 -> 2 + 2
+    t = E.counting_table(ds, {"split": split}).set_index("method").loc["split"]
+    assert t["n_matched"] == 3 and t["n_matched_rps"] == 5
+    assert t["exact_rate"] == pytest.approx(1 / 3)  # only the RP of 3 is exact
+    assert t["count_mae"] == pytest.approx((2 + 2 + 0) / 3)
+    assert t["exact_rate_all_rps"] == pytest.approx(1 / 5)
+    assert t["count_mae_all_rps"] == pytest.approx((2 + 3 + 2 + 2 + 0) / 5)
+    cf = E.count_frame(ds, {"split": split})
+    counted = cf[cf["counted"]].sort_values("gt_count")
+    assert counted["det_count"].tolist() == [3, 2, 3]
 
 
 def test_vp_tables(tiny) -> None:

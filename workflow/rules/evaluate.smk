@@ -1,7 +1,7 @@
 # Evaluation: the paper's tables (TSV + Markdown) and curves (PNG) over all datasets.
 TABLES = f"{RESULTS}/tables"
 FIGURES = f"{RESULTS}/figures"
-EVAL_CODE = code("evaluation", "metrics", "tables", "vp")
+EVAL_CODE = code("evaluation", "counting", "metrics", "tables", "vp")
 
 
 def dataset_params(names):
