@@ -607,7 +607,6 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                                        "abs_error", "exact", "dominant", "counted"])
 
 
-
 def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                    h: float = 0.5, min_rp_precision: float = 0.5,
         images: Iterable[str] | None = None) -> pd.DataFrame:
