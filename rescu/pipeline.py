@@ -276,7 +276,9 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
         res = S2.predict_stage2(feats, ckpt["head"], io.read_result(stage1_json),
                                 S2.Stage2Params.from_dict(params))
         res.method = "rescu-ii"
-        res.extra["stage2"] = ckpt.get("info", {})
+        # the head's training record, and prediction's own (instances added, RPs merged)
+        res.extra["stage2"] = {**ckpt.get("info", {}),
+                               "prediction": res.extra.get("stage2", {})}
         io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:

@@ -173,6 +173,13 @@ class Stage2Params:
         features (:func:`rescu.finetune.finetune_backbone`; meant for ``device: cuda``).
     device : str
         Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
+    merge : bool
+        Merge RPs that are parts of one pattern as the last step
+        (:func:`rescu.merge.merge_split_patterns`).
+    merge_similarity_ratio, merge_min_similarity, merge_size_tolerance,
+    merge_duplicate_iou, merge_conflict_cover, merge_max_line_residual : float
+        :class:`rescu.merge.MergeParams` ``similarity_ratio``, ``min_similarity``,
+        ``size_tolerance``, ``duplicate_iou``, ``conflict_cover``, ``max_line_residual``.
     """
 
     backbone: str = "efficientnet-lite0"
@@ -226,6 +233,13 @@ class Stage2Params:
     seed: int = 0
     finetune: bool = False
     device: str = "cpu"
+    merge: bool = True
+    merge_similarity_ratio: float = 0.87
+    merge_min_similarity: float = 0.5
+    merge_size_tolerance: float = 3.5
+    merge_duplicate_iou: float = 0.5
+    merge_conflict_cover: float = 0.3
+    merge_max_line_residual: float = 0.5
 
     def __post_init__(self) -> None:
         if len(self.hidden_sizes) != 2:
@@ -236,6 +250,7 @@ class Stage2Params:
         if not self.input_scales or any(s <= 0 for s in self.input_scales):
             raise ValueError(f"input_scales must be positive, got {self.input_scales}")
         self.proposal_params()  # validates proposal_method
+        self.merge_params()     # validates the merge_* keys
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Stage2Params":
@@ -255,6 +270,17 @@ class Stage2Params:
                               lattice_neighbours=self.lattice_neighbours,
                               lattice_steps=self.lattice_steps,
                               lattice_scales=self.lattice_scales)
+
+    def merge_params(self):
+        """The ``merge_*`` keys as :class:`rescu.merge.MergeParams`."""
+        from .merge import MergeParams
+
+        return MergeParams(similarity_ratio=self.merge_similarity_ratio,
+                           min_similarity=self.merge_min_similarity,
+                           size_tolerance=self.merge_size_tolerance,
+                           duplicate_iou=self.merge_duplicate_iou,
+                           conflict_cover=self.merge_conflict_cover,
+                           max_line_residual=self.merge_max_line_residual)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -990,7 +1016,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         if rp_index:
             summary["status"] = "untrained"
         out.extra["stage2"] = summary
-        return out
+        return _merge_split(out, feats, rp_index, params)
     prob = score_proposals(feats, ckpt)
     sel = select_examples(feats, params)      # distances to the DBSCAN centres
     boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
@@ -1029,4 +1055,24 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         total += len(new)
     summary["added"] = total
     out.extra["stage2"] = summary
-    return out
+    return _merge_split(out, feats, rp_index, params)
+
+
+def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[int],
+                 params: Stage2Params) -> ImageResult:
+    """The last step of :func:`predict_stage2`: merge RPs that are parts of one pattern
+    (:func:`rescu.merge.merge_split_patterns` on the stage-I instance features);
+    ``extra["stage2"]["merged"]`` lists the merged id pairs (ids before the merge)."""
+    if not params.merge or len(rp_index) < 2:
+        return out
+    from .merge import merge_split_patterns
+
+    inst_rp = np.asarray(feats["instance_rp"], np.int64).reshape(-1)
+    pattern_of = np.asarray(rp_index, np.int64)[inst_rp]
+    res, log = merge_split_patterns(out, np.asarray(feats["instance_boxes"], np.float64),
+                                    np.asarray(feats["instance_features"], np.float64),
+                                    pattern_of, params.merge_params())
+    if log:
+        res.extra["stage2"] = dict(res.extra.get("stage2", {}),
+                                   merged=[[int(v) for v in r["ids"]] for r in log])
+    return res

@@ -15,8 +15,10 @@ from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture(scope="module", autouse=True)
 def _one_thread():
+    """One torch thread, set before the module-scoped fixtures compute anything (the
+    float sums of a backbone pass depend on the thread count; tests compare runs)."""
     torch.set_num_threads(1)
 
 

@@ -26,6 +26,12 @@ def code(*modules):
     return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
 
 
+def stage2_upstream():
+    """The ``stage2`` keys of the features and training steps: all but the ``merge*``
+    keys, which act only in prediction (a merge change reruns prediction only)."""
+    return {k: v for k, v in config["stage2"].items() if not k.startswith("merge")}
+
+
 def images(dataset):
     return sorted(DATASETS[dataset]["images"])
 

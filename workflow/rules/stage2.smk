@@ -10,7 +10,7 @@ rule stage2_features:
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
-        stage2=config["stage2"],
+        stage2=stage2_upstream(),
     threads: 2
     resources:
         mem_mb=4000,
@@ -30,7 +30,7 @@ rule stage2_train:
     output:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
-        stage2=config["stage2"],
+        stage2=stage2_upstream(),
     log:
         "logs/{dataset}/stage2_train/{image}.log",
     benchmark:
@@ -45,7 +45,7 @@ rule stage2_predict:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("stage2"),
+        code=code("stage2", "merge"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
@@ -62,7 +62,7 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone", "finetune"),
+        code=code("stage2", "proposals", "backbone", "finetune", "merge"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
