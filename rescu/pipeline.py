@@ -331,16 +331,23 @@ def _scene_params(section: dict[str, Any]) -> Any:
     of the scene step and is not a SceneParams field)."""
     from . import scene as SC
 
-    return SC.SceneParams.from_dict({k: v for k, v in section.items() if k != "source"})
+    return SC.SceneParams.from_dict({k: v for k, v in section.items()
+                                     if k not in ("source", "completion")})
 
 
 def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
           params: dict[str, Any]) -> Failure | None:
-    """Vanishing points, translation symmetry, counts; rectified views as PNGs.
+    """Row completion, vanishing points, translation symmetry, counts; rectified views.
 
+    ``params`` is the config's ``scene`` section; its ``completion`` entry
+    (:class:`rescu.completion.CompletionParams`, absent = defaults) fills the missing
+    instances of equally spaced rows first (:func:`rescu.completion.complete_rows`).
     ``out_rectified_dir`` receives ``rp<id>.png`` for every pattern that has a VP (the
     folder may be empty).
     """
+    import cv2
+
+    from . import completion as CO
     from . import scene as SC
 
     meta = io.read_json(meta_path)
@@ -349,8 +356,11 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
     def run() -> None:
         p = _scene_params(params)
-        res = SC.analyse_scene(src, p)
+        cp = CO.CompletionParams.from_dict(params.get("completion") or {})
         rgb, _ = read_prepared(png, meta_path)
+        completed = CO.complete_rows(src, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cp,
+                                     scale_factor=float(meta["scale_factor"]), vp_params=p.vp)
+        res = SC.analyse_scene(completed, p)
         for pat in res.patterns:
             if pat.vanishing_point is None:
                 continue

@@ -111,8 +111,9 @@ class RPMatrix:
 class Instance:
     """One RP instance: a box in original pixels.
 
-    ``source`` is ``"stage1"`` (found by RESCU-I / GRASP) or ``"stage2"`` (added by
-    RESCU-II). ``score`` is a confidence in [0, 1].
+    ``source`` is ``"stage1"`` (found by RESCU-I / GRASP), ``"stage2"`` (added by
+    RESCU-II) or ``"completion"`` (filled into an equally spaced row by the scene step,
+    :mod:`rescu.completion`). ``score`` is a confidence in [0, 1].
     """
 
     bbox: BBox

@@ -16,7 +16,7 @@ rule scene:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene", "vp", "symmetry", "counting"),
+        code=code("scene", "vp", "symmetry", "counting", "completion"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
         rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
@@ -34,7 +34,7 @@ rule scene_no_ac:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene", "vp", "symmetry", "counting"),
+        code=code("scene", "vp", "symmetry", "counting", "completion"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
         rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
