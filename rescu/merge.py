@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from .metrics import cover_matrix, iou_matrix
 from .params import checked_mapping
 from .types import ImageResult, Instance, Pattern
 
@@ -109,19 +110,7 @@ def _boxes(p: Pattern) -> np.ndarray:
 
 def _iou_cover(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(A, B) IoU and intersection / smaller area of two box sets (x, y, w, h)."""
-    ax2, ay2 = a[:, 0] + a[:, 2], a[:, 1] + a[:, 3]
-    bx2, by2 = b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
-    iw = np.clip(np.minimum(ax2[:, None], bx2[None]) - np.maximum(a[:, None, 0], b[None, :, 0]),
-                 0, None)
-    ih = np.clip(np.minimum(ay2[:, None], by2[None]) - np.maximum(a[:, None, 1], b[None, :, 1]),
-                 0, None)
-    inter = iw * ih
-    aa, ab = a[:, 2] * a[:, 3], b[:, 2] * b[:, 3]
-    union = aa[:, None] + ab[None] - inter
-    iou = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-    small = np.minimum(aa[:, None], ab[None])
-    cover = np.where(small > 0, inter / np.where(small > 0, small, 1.0), 0.0)
-    return iou, cover
+    return iou_matrix(a, b), cover_matrix(a, b)
 
 
 def _nn_similarity(s: np.ndarray) -> float:

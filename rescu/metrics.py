@@ -69,6 +69,17 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
+def cover_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection over the smaller box's area between every box of ``a`` (A, 4) and
+    ``b`` (B, 4), ``[x, y, w, h]``: 1 when one box lies inside the other; (A, B)."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    inter = _intersection(a, b)
+    m = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(m > 0, inter / np.where(m > 0, m, 1.0), 0.0)
+
+
 def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     x0 = np.maximum(a[:, None, 0], b[None, :, 0])
     y0 = np.maximum(a[:, None, 1], b[None, :, 1])

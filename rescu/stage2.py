@@ -304,13 +304,9 @@ def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _cover(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """intersection / min(area a, area b), (A, B)."""
-    from .metrics import _intersection
+    from .metrics import cover_matrix
 
-    a = np.asarray(a, float).reshape(-1, 4)
-    b = np.asarray(b, float).reshape(-1, 4)
-    inter = _intersection(a, b)
-    m = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
-    return np.where(m > 0, inter / np.where(m > 0, m, 1.0), 0.0)
+    return cover_matrix(a, b)
 
 
 def _size_ok(boxes: np.ndarray, inst: np.ndarray, tol: float) -> np.ndarray:
