@@ -6,7 +6,7 @@ rule stage2_features:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone", "finetune"),
+        code=code("stage2", "proposals", "backbone", "finetune", "metrics"),
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
@@ -26,7 +26,7 @@ rule stage2_train:
     input:
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2"),
+        code=code("stage2", "metrics"),
     output:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
@@ -45,7 +45,7 @@ rule stage2_predict:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("stage2", "merge"),
+        code=code("stage2", "merge", "metrics"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
@@ -62,7 +62,7 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone", "finetune", "merge"),
+        code=code("stage2", "proposals", "backbone", "finetune", "merge", "metrics"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
