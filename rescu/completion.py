@@ -197,8 +197,10 @@ def gap_hypotheses(n: int, max_gaps: int) -> list[np.ndarray]:
     return out
 
 
-def _steps_ok(abc: np.ndarray, kmax: int, max_step_ratio: float) -> bool:
-    ks = np.arange(kmax + 1, dtype=float)
+def _steps_ok(abc: np.ndarray, k_lo: int, k_hi: int, max_step_ratio: float) -> bool:
+    """The row model is defined, increasing, and its image steps between lattice indices
+    k_lo..k_hi change by at most a factor ``max_step_ratio``."""
+    ks = np.arange(k_lo, k_hi + 1, dtype=float)
     den = abc[2] * ks + 1
     if np.any(den <= 1e-9):
         return False
@@ -359,7 +361,7 @@ def _complete_row(r: np.ndarray, c: np.ndarray, boxes: np.ndarray, fp: np.ndarra
         abc, rms = fit_projective_row(k, t)
         if len(r) >= 4 and rms > params.fit_tolerance * size:
             continue
-        if not np.isfinite(rms) or not _steps_ok(abc, int(k[-1]), params.max_step_ratio):
+        if not np.isfinite(rms) or not _steps_ok(abc, 0, int(k[-1]), params.max_step_ratio):
             continue
         missing = np.setdiff1d(np.arange(k[-1] + 1), k)
         cands = []
@@ -444,12 +446,7 @@ def _extend_ends(r: np.ndarray, pts: np.ndarray, t: np.ndarray, perp: np.ndarray
         j0, j1 = (0, 1) if side < 0 else (n - 1, n - 2)
         for m in range(1, params.end_instances + 1):
             km = -m if side < 0 else n - 1 + m
-            kk = np.arange(min(km, 0), max(km, n - 1) + 1)
-            den = abc[2] * kk + 1
-            if np.any(den <= 1e-9):
-                break
-            st = np.diff(row_model(abc, kk))
-            if np.any(st <= 0) or st.max() / st.min() > params.max_step_ratio:
+            if not _steps_ok(abc, min(km, 0), max(km, n - 1), params.max_step_ratio):
                 break
             tm = float(row_model(abc, [km])[0])
             lam = (tm - t[j0]) / (t[j1] - t[j0])  # < 0: beyond the end
