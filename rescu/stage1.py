@@ -32,7 +32,9 @@ Pipeline of :func:`discover`:
 P_d is a fraction of the image *diagonal* (processed pixels).
 
 An instance box is the bounding box of the positions of its column's features, grown
-on every side by ``box_grow`` times the median keypoint radius of the column.
+on every side by ``box_grow`` times the median keypoint radius of the column. An
+accepted RP loses instances nested in another of its instances (two parts of one
+object; :func:`drop_nested_instances`, ``max_nested_cover``).
 
 Known property (as in the paper): U = sum / (M N) grows with the matrix, so looser
 gates never lower U(Omega*); the grid then tends to pick loose values unless the
@@ -52,6 +54,7 @@ from scipy.spatial import cKDTree
 
 from .params import params_from_dict
 from .io import read_h5, write_h5
+from .metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from .types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
@@ -116,6 +119,11 @@ class Stage1Params:
         After an RP is accepted, features within its instances' extents (the box grown
         up to half the instance spacing, by at most ``extent_grow`` times its larger
         side; :func:`instance_extents`) are removed.
+    max_nested_cover : float
+        After an RP is accepted, an instance whose box overlaps another instance box of
+        the same RP by more than this fraction of the smaller box (two parts of one
+        object found as two instances) is dropped, keeping the instance with more words
+        (:func:`drop_nested_instances`); 1.0 keeps all.
     seed : int
         Tie-break of the initial URPs: correspondences with equal support are ranked by
         their feature indices ``(a, b)`` when 0 (default), by a permutation drawn from
@@ -156,6 +164,7 @@ class Stage1Params:
     max_iters: int = 30
     box_grow: float = 0.5
     extent_grow: float = 0.5
+    max_nested_cover: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -170,6 +179,9 @@ class Stage1Params:
                              f"or 'paper', got {self.orientation_mode!r}")
         if self.min_instances < 2 or self.min_words < 2:
             raise ValueError("Stage1Params: min_instances and min_words must be >= 2")
+        if not 0 < self.max_nested_cover <= 1:
+            raise ValueError("Stage1Params.max_nested_cover must be in (0, 1], got "
+                             f"{self.max_nested_cover!r}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 
@@ -411,6 +423,45 @@ def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5)
     return out
 
 
+def drop_nested_instances(features: Features, omega: np.ndarray, box_grow: float = 0.5,
+                          max_cover: float = 0.5) -> np.ndarray:
+    """Drop instances of an RP that overlap another of its instances (one object twice).
+
+    The search refuses a new instance whose feature box overlaps an existing one by IoU,
+    which lets a small box inside a large one through (two parts of one object found
+    as two instances: the count is one too high). Instances are visited by decreasing
+    number of words (ties: larger box, then lower index); one is kept when its box
+    (:func:`instance_boxes`) overlaps no kept box by more than ``max_cover`` of the
+    smaller box's area.
+
+    Parameters
+    ----------
+    omega : (M, N) int
+        Feature indices, -1 for missing.
+    box_grow : float
+        As :func:`instance_boxes`.
+    max_cover : float
+        Largest intersection over the smaller box's area, in (0, 1]; 1.0 keeps all.
+
+    Returns
+    -------
+    (M, N') int64
+        The kept columns in their original order (N' <= N).
+    """
+    om = np.asarray(omega, np.int64)
+    if om.ndim != 2 or om.shape[1] < 2 or max_cover >= 1.0:
+        return om
+    b = instance_boxes(features, om, box_grow)
+    cov = cover_matrix(b, b)
+    words = (om >= 0).sum(axis=0)
+    order = sorted(range(om.shape[1]), key=lambda j: (-words[j], -b[j, 2] * b[j, 3], j))
+    kept: list[int] = []
+    for j in order:
+        if not kept or cov[j, kept].max() <= max_cover:
+            kept.append(j)
+    return om[:, sorted(kept)]
+
+
 def instance_extents(features: Features, omega: np.ndarray, box_grow: float = 0.5,
                      extent_grow: float = 0.5) -> np.ndarray:
     """The image region each instance of an RP occupies, processed pixels.
@@ -498,13 +549,19 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
                 available[r] = False
             continue
         U, om = best
-        rps.append(RPMatrix(om.astype(np.int64), float(U),
-                            dict(pset, box_grow=params.box_grow)))
         available[om[om >= 0]] = False
         boxes = instance_extents(features, om, params.box_grow, params.extent_grow)
         x, y = ctx.xy[:, 0], ctx.xy[:, 1]
         for bx in boxes:
             available &= ~((x >= bx[0]) & (x <= bx[0] + bx[2]) & (y >= bx[1]) & (y <= bx[1] + bx[3]))
+        kept = drop_nested_instances(features, om, params.box_grow, params.max_nested_cover)
+        if kept.shape[1] != om.shape[1]:
+            om = kept[np.any(kept >= 0, axis=1)]       # words left without any feature go
+            if om.shape[1] < params.min_instances or om.shape[0] < 2:
+                continue                               # all instances were one object
+            U = matrix_objective(ctx, om, gates)
+        rps.append(RPMatrix(om.astype(np.int64), float(U),
+                            dict(pset, box_grow=params.box_grow)))
         if tried >= budget:
             break
     rps.sort(key=lambda r: -r.objective)
