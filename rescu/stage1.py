@@ -33,8 +33,8 @@ P_d is a fraction of the image *diagonal* (processed pixels).
 
 An instance box is the bounding box of the positions of its column's features, grown
 on every side by ``box_grow`` times the median keypoint radius of the column. An
-accepted RP loses instances nested in another of its instances (two parts of one
-object; :func:`drop_nested_instances`, ``max_nested_cover``).
+accepted RP loses instances that duplicate another of its instances (two parts of one
+object; :func:`drop_duplicate_instances`).
 
 Known property (as in the paper): U = sum / (M N) grows with the matrix, so looser
 gates never lower U(Omega*); the grid then tends to pick loose values unless the
@@ -58,6 +58,7 @@ from .metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from .types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
+from .vp import registered_centres
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
@@ -119,11 +120,12 @@ class Stage1Params:
         After an RP is accepted, features within its instances' extents (the box grown
         up to half the instance spacing, by at most ``extent_grow`` times its larger
         side; :func:`instance_extents`) are removed.
-    max_nested_cover : float
-        After an RP is accepted, an instance whose box overlaps another instance box of
-        the same RP by more than this fraction of the smaller box (two parts of one
-        object found as two instances) is dropped, keeping the instance with more words
-        (:func:`drop_nested_instances`); 1.0 keeps all.
+    max_nested_cover, min_centre_distance : float
+        After an RP is accepted, an instance that duplicates another of its instances
+        (two parts of one object found as two instances) is dropped, keeping the one with
+        more words (:func:`drop_duplicate_instances`): boxes overlapping by more than
+        ``max_nested_cover`` of the smaller box (1.0: off), or registered centres closer
+        than ``min_centre_distance`` x the median larger box side (0: off).
     seed : int
         Tie-break of the initial URPs: correspondences with equal support are ranked by
         their feature indices ``(a, b)`` when 0 (default), by a permutation drawn from
@@ -165,6 +167,7 @@ class Stage1Params:
     box_grow: float = 0.5
     extent_grow: float = 0.5
     max_nested_cover: float = 0.5
+    min_centre_distance: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -182,6 +185,9 @@ class Stage1Params:
         if not 0 < self.max_nested_cover <= 1:
             raise ValueError("Stage1Params.max_nested_cover must be in (0, 1], got "
                              f"{self.max_nested_cover!r}")
+        if not self.min_centre_distance >= 0:
+            raise ValueError("Stage1Params.min_centre_distance must be >= 0, got "
+                             f"{self.min_centre_distance!r}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 
@@ -423,16 +429,23 @@ def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5)
     return out
 
 
-def drop_nested_instances(features: Features, omega: np.ndarray, box_grow: float = 0.5,
-                          max_cover: float = 0.5) -> np.ndarray:
-    """Drop instances of an RP that overlap another of its instances (one object twice).
+def drop_duplicate_instances(features: Features, omega: np.ndarray, box_grow: float = 0.5,
+                             max_cover: float = 0.5, min_centre_distance: float = 0.5
+                             ) -> np.ndarray:
+    """Drop instances of an RP that duplicate another of its instances (one object twice).
 
     The search refuses a new instance whose feature box overlaps an existing one by IoU,
-    which lets a small box inside a large one through (two parts of one object found
-    as two instances: the count is one too high). Instances are visited by decreasing
-    number of words (ties: larger box, then lower index); one is kept when its box
-    (:func:`instance_boxes`) overlaps no kept box by more than ``max_cover`` of the
-    smaller box's area.
+    which lets through a small box inside a large one, or two small boxes on two parts
+    of one object (the count is one too high). Two instances are one object when
+
+    * their boxes (:func:`instance_boxes`) overlap by more than ``max_cover`` of the
+      smaller box's area, or
+    * their registered centres (each word's typical offset from the instance centre
+      removed, :func:`rescu.vp.registered_centres`) are closer than
+      ``min_centre_distance`` times the RP's median larger box side.
+
+    Instances are visited by decreasing number of words (ties: larger box, then lower
+    index); one is kept when it duplicates no kept instance.
 
     Parameters
     ----------
@@ -441,7 +454,9 @@ def drop_nested_instances(features: Features, omega: np.ndarray, box_grow: float
     box_grow : float
         As :func:`instance_boxes`.
     max_cover : float
-        Largest intersection over the smaller box's area, in (0, 1]; 1.0 keeps all.
+        Largest intersection over the smaller box's area, in (0, 1]; 1.0 turns the test off.
+    min_centre_distance : float
+        Fraction of the median larger box side, >= 0; 0 turns the test off.
 
     Returns
     -------
@@ -449,15 +464,20 @@ def drop_nested_instances(features: Features, omega: np.ndarray, box_grow: float
         The kept columns in their original order (N' <= N).
     """
     om = np.asarray(omega, np.int64)
-    if om.ndim != 2 or om.shape[1] < 2 or max_cover >= 1.0:
+    if om.ndim != 2 or om.shape[1] < 2:
         return om
     b = instance_boxes(features, om, box_grow)
-    cov = cover_matrix(b, b)
+    dup = cover_matrix(b, b) > max_cover if max_cover < 1.0 else np.zeros((len(b),) * 2, bool)
+    if min_centre_distance > 0:
+        fp = np.where((om >= 0)[..., None], features.xy[np.where(om >= 0, om, 0)], np.nan)
+        reg = registered_centres(b[:, :2] + b[:, 2:] / 2, fp.astype(np.float64))
+        d = np.linalg.norm(reg[:, None] - reg[None], axis=2)
+        dup |= d < min_centre_distance * float(np.median(b[:, 2:].max(axis=1)))
     words = (om >= 0).sum(axis=0)
     order = sorted(range(om.shape[1]), key=lambda j: (-words[j], -b[j, 2] * b[j, 3], j))
     kept: list[int] = []
     for j in order:
-        if not kept or cov[j, kept].max() <= max_cover:
+        if not kept or not dup[j, kept].any():
             kept.append(j)
     return om[:, sorted(kept)]
 
@@ -554,7 +574,8 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
         x, y = ctx.xy[:, 0], ctx.xy[:, 1]
         for bx in boxes:
             available &= ~((x >= bx[0]) & (x <= bx[0] + bx[2]) & (y >= bx[1]) & (y <= bx[1] + bx[3]))
-        kept = drop_nested_instances(features, om, params.box_grow, params.max_nested_cover)
+        kept = drop_duplicate_instances(features, om, params.box_grow,
+                                        params.max_nested_cover, params.min_centre_distance)
         if kept.shape[1] != om.shape[1]:
             om = kept[np.any(kept >= 0, axis=1)]       # words left without any feature go
             if om.shape[1] < params.min_instances or om.shape[0] < 2:

@@ -181,23 +181,28 @@ def test_instance_extents_reach_half_the_spacing():
     assert e2[1].tolist() == pytest.approx([100, 0, 100, 100])
 
 
-def test_drop_nested_instances_keeps_one_box_per_object():
-    from rescu.stage1 import drop_nested_instances
-    # instances 0 and 2: 20 x 20 hulls 100 px apart; instance 1: a small hull inside
-    # instance 0 (a part of the same object found as a second instance), fewer words
+def test_drop_duplicate_instances_keeps_one_instance_per_object():
+    from rescu.stage1 import drop_duplicate_instances
+    # instances 0 and 2: 20 x 20 hulls 100 px apart; instance 1: words 0 and 1 again on
+    # object 0 (a part of it found as a second instance), fewer words
     base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]
-    xy = np.vstack([base, base[:2] * 0.25 + [45, 45], base + [100, 0]]).astype(np.float32)
+    xy = np.vstack([base, base[:2] + [0.5, 0.5], base + [100, 0]]).astype(np.float32)
     k = len(xy)
     f = Features(xy, np.full(k, 4, np.float32), np.zeros(k, np.float32),
                  np.ones(k, np.float32), np.zeros((k, 128), np.float32), (400, 200))
     om = np.array([[0, 4, 6], [1, 5, 7], [2, -1, 8], [3, -1, 9]])
-    kept = drop_nested_instances(f, om, 0.5, max_cover=0.5)
-    assert kept.tolist() == om[:, [0, 2]].tolist()
-    assert drop_nested_instances(f, om, 0.5, max_cover=1.0).tolist() == om.tolist()
-    # side-by-side instances that touch are both kept
-    assert drop_nested_instances(f, om[:, [0, 2]], 0.5, 0.5).shape == (4, 2)
+    keep_02 = om[:, [0, 2]].tolist()
+    # its box lies inside instance 0's box
+    assert drop_duplicate_instances(f, om, 0.5, 0.5, 0.0).tolist() == keep_02
+    # its registered centre coincides with instance 0's
+    assert drop_duplicate_instances(f, om, 0.5, 1.0, 0.5).tolist() == keep_02
+    assert drop_duplicate_instances(f, om, 0.5, 1.0, 0.0).tolist() == om.tolist()
+    # instances of distinct objects are all kept
+    assert drop_duplicate_instances(f, om[:, [0, 2]], 0.5).shape == (4, 2)
     with pytest.raises(ValueError, match="max_nested_cover"):
         Stage1Params(max_nested_cover=0.0)
+    with pytest.raises(ValueError, match="min_centre_distance"):
+        Stage1Params(min_centre_distance=-1.0)
 
 
 def test_grid_reuses_searches_and_matches_fixed_choice():
