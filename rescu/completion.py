@@ -1,4 +1,4 @@
-"""Row completion from 3D equal spacing: fill interior gaps of equally spaced rows.
+"""Row and grid completion: fill gaps of equally spaced rows and empty cells of grids.
 
 An RP of identical objects in a row often misses one instance inside the row (occluded
 by a thin line, blurred): the count is one short and the gap breaks the cross-ratio
@@ -37,6 +37,22 @@ instances. It is accepted when its median NCC to the row instances is at least
 ``min_similarity``, and when, at the refined position, every 4 consecutive points of the
 completed row give ``|cr - 4/3| <= cr_tolerance`` (the TS test's t; cr = cross ratio,
 :func:`rescu.symmetry.cross_ratio`). An empty background gap has NCC near 0.
+
+Grids
+-----
+After the rows, an RP of two or more rows (:func:`rescu.vp.group_rows` with rows of two
+or more instances, ordered across) is completed as a grid, one pair of neighbouring
+rows at a time: :func:`lattice_pair_fit` finds the projective lattice (a homography
+from integer cells (u, v), v = 0 / 1 for the two rows) that puts most instances on
+cells, allowing empty cells between found instances and limiting the perspective by
+``max_step_ratio``; :func:`grid_missing_cells` lists the empty cells of the rectangle
+the two rows span (the column alignment of two rows is known up to a shift; the shifts
+leaving fewest empty cells are tried). Each empty cell, at most ``grid_max_missing``
+per row pair, gets a box of the row's median size scaled by the local lattice step and
+is verified by NCC as above. The lattice assumes rows and columns equally spaced in 3D
+(found instances may leave empty cells between them, up to ``max_gaps``); grids with
+unequal spacing get no fit and are left as they are. Instance positions are registered
+by their features (:func:`rescu.vp.registered_centres`).
 
 Accepted candidates become instances with ``source = "completion"`` and ``score`` = their
 median NCC. They are appended after the existing instances (the columns of
@@ -98,6 +114,15 @@ class CompletionParams:
     end_instances : int
         Row ends: an already equally spaced row (no interior gap) is extended by up to
         this many lattice steps beyond each end, each verified like a gap (0 = off).
+    grid : bool
+        Grid completion after row completion (see module docstring): cells of a
+        projective lattice spanned by two neighbouring rows that have no instance.
+    grid_tolerance : float
+        An instance lies on a lattice cell when its centre is within this fraction of
+        its size of the cell's image position.
+    grid_max_missing : int
+        A pair of rows with more empty cells than this (under its best column
+        alignment) is not completed: only nearly complete grids are filled.
     """
 
     enabled: bool = True
@@ -112,6 +137,9 @@ class CompletionParams:
     patch_size: int = 24
     min_row_instances: int = 3
     end_instances: int = 1
+    grid: bool = True
+    grid_tolerance: float = 0.25
+    grid_max_missing: int = 2
 
     def __post_init__(self) -> None:
         if self.max_gaps < 1:
@@ -133,6 +161,10 @@ class CompletionParams:
             raise ValueError("CompletionParams.end_instances must be >= 0")
         if self.min_row_instances < 3:
             raise ValueError("CompletionParams.min_row_instances must be >= 3")
+        if not 0 < self.grid_tolerance < 0.5:
+            raise ValueError("CompletionParams.grid_tolerance must be in (0, 0.5)")
+        if self.grid_max_missing < 1:
+            raise ValueError("CompletionParams.grid_max_missing must be >= 1")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "CompletionParams":
@@ -242,7 +274,7 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
                   params: CompletionParams = CompletionParams(),
                   scale_factor: float = 1.0,
                   vp_params: V.VPParams = V.VPParams()) -> ImageResult:
-    """Fill interior gaps of equally spaced rows of every pattern (see module docstring).
+    """Complete the rows and grids of every pattern (see module docstring).
 
     Parameters
     ----------
@@ -261,8 +293,10 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
     -------
     ImageResult
         A copy; ``result`` is not modified. Patterns with filled gaps get instances with
-        ``source="completion"`` appended and ``extra["rows"]`` set; every pattern gets
-        ``extra["completed"]`` (number of instances added).
+        ``source="completion"`` appended and ``extra["rows"]`` set (rows completed; grid
+        cells are appended after them); every pattern gets ``extra["completed"]``
+        (number of instances added) and ``extra["grid_completed"]`` (of those, by grid
+        completion).
     """
     if not isinstance(result, ImageResult):
         raise TypeError(f"result must be an ImageResult, got {type(result).__name__}")
@@ -284,6 +318,7 @@ def _complete_pattern(p: Pattern, gray: np.ndarray, params: CompletionParams, sf
                       vp_params: V.VPParams) -> Pattern:
     n = p.count
     if n < params.min_row_instances:
+        p.extra["completed"] = p.extra["grid_completed"] = 0
         return p
     boxes = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
     fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
@@ -307,10 +342,14 @@ def _complete_pattern(p: Pattern, gray: np.ndarray, params: CompletionParams, sf
             else:
                 row_ids.append(int(item))
         new_rows.append(row_ids)
-    p.extra["completed"] = len(added)
     if added:
         p.instances = list(p.instances) + added
         p.extra["rows"] = new_rows
+    grid_added = _complete_grid(p, gray, params, sf, vp_params) if params.grid else []
+    if grid_added:
+        p.instances = list(p.instances) + grid_added
+    p.extra["completed"] = len(added) + len(grid_added)
+    p.extra["grid_completed"] = len(grid_added)
     return p
 
 
@@ -478,3 +517,271 @@ def _extend_ends(r: np.ndarray, pts: np.ndarray, t: np.ndarray, perp: np.ndarray
     if len(items) == n:
         return None
     return items
+
+
+# ----------------------------------------------------------------------------- grids
+def lattice_pair_fit(ca: np.ndarray, cb: np.ndarray, tol_a: np.ndarray, tol_b: np.ndarray,
+                     max_step: int = 2, max_step_ratio: float = 1.5
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Projective lattice through two neighbouring rows of instance centres.
+
+    Every choice of two consecutive instances in row A and two in row B hypothesises the
+    homography ``H`` sending lattice points (0, 0), (ga, 0), (0, 1), (gb, 1) to them
+    (``ga, gb`` in 1..``max_step``: an empty cell may lie between two found instances);
+    an instance is an inlier when the image position of its nearest lattice point on its
+    row (v = 0 for A, 1 for B) is within its tolerance. The hypothesis with most inliers
+    (ties: fewer empty cells between the instances of each row, i.e. the coarsest
+    lattice, then smaller RMS) is refitted by least squares on its inliers.
+
+    Parameters
+    ----------
+    ca : (NA, 2) float
+        Centres of row A ordered along the row, pixels (NA >= 2).
+    cb : (NB, 2) float
+        Centres of row B, the same direction, pixels (NB >= 2).
+    tol_a, tol_b : (NA,), (NB,) float
+        Inlier tolerances, pixels.
+    max_step : int
+        Largest lattice step between two consecutive found instances of a row.
+    max_step_ratio : float
+        Perspective limit: the image length of a lattice step may change by at most this
+        factor from one column to the next (along either row) and from row A to row B
+        (a lattice whose rows differ more is a sheared mislabelling).
+
+    Returns
+    -------
+    (H, ua, ub) or None
+        ``H`` (3, 3) lattice -> pixels; ``ua`` (NA,), ``ub`` (NB,) int lattice columns of
+        the instances, ``INT_MIN`` for outliers. None when no hypothesis has at least two
+        inliers in each row, five inliers in all (four points fit any lattice exactly)
+        and three quarters of all instances as inliers.
+    """
+    ca, cb = np.asarray(ca, float), np.asarray(cb, float)
+    na, nb = len(ca), len(cb)
+    if na < 2 or nb < 2:
+        return None
+    best = None
+    for ga, gb in itertools.product(range(1, max_step + 1), repeat=2):
+        src = np.array([[0, 0], [ga, 0], [0, 1], [gb, 1]], np.float32)
+        for k in range(na - 1):
+            for m in range(nb - 1):
+                dst = np.array([ca[k], ca[k + 1], cb[m], cb[m + 1]], np.float32)
+                Hm = cv2.getPerspectiveTransform(src, dst)
+                got = _lattice_labels(Hm, ca, cb, tol_a, tol_b, max_step_ratio)
+                if got is not None and (best is None or got[0] > best[0]):
+                    best = got
+    if best is None:
+        return None
+    _, Hm, ua, ub = best
+    ok_a, ok_b = ua != _OUT, ub != _OUT
+    if ok_a.sum() + ok_b.sum() > 4:  # refit on all inliers (overdetermined)
+        lat = np.concatenate([np.stack([ua[ok_a], np.zeros(ok_a.sum())], 1),
+                              np.stack([ub[ok_b], np.ones(ok_b.sum())], 1)]).astype(np.float32)
+        img = np.concatenate([ca[ok_a], cb[ok_b]]).astype(np.float32)
+        H2, _ = cv2.findHomography(lat, img, 0)
+        if H2 is not None:
+            got = _lattice_labels(H2, ca, cb, tol_a, tol_b, max_step_ratio)
+            if got is not None and got[0] >= best[0]:
+                _, Hm, ua, ub = got
+    return Hm, ua, ub
+
+
+_OUT = np.iinfo(np.int64).min
+
+
+def _lattice_map(Hm: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Lattice points (P, 2) -> pixels (P, 2); NaN where behind the horizon (w <= 0)."""
+    q = np.c_[np.asarray(uv, float), np.ones(len(uv))] @ np.asarray(Hm, float).T
+    w = q[:, 2:]
+    return np.where(w > 1e-9, q[:, :2] / np.where(w > 1e-9, w, 1.0), np.nan)
+
+
+def _lattice_labels(Hm: np.ndarray, ca: np.ndarray, cb: np.ndarray, tol_a: np.ndarray,
+                    tol_b: np.ndarray, max_step_ratio: float
+                    ) -> tuple[tuple[int, int, float], np.ndarray, np.ndarray, np.ndarray] | None:
+    """((inliers, -empty cells, -rms), H, ua, ub) of one lattice hypothesis, or None
+    when invalid."""
+    try:
+        Hi = np.linalg.inv(np.asarray(Hm, float))
+    except np.linalg.LinAlgError:
+        return None
+    out = []
+    err2 = []
+    for c, v, tol in ((ca, 0.0, tol_a), (cb, 1.0, tol_b)):
+        uv = _lattice_map(Hi, c)
+        if not np.all(np.isfinite(uv)):
+            return None
+        u = np.round(uv[:, 0])
+        pred = _lattice_map(Hm, np.c_[u, np.full(len(u), v)])
+        e = np.linalg.norm(pred - c, axis=1)
+        ok = np.isfinite(e) & (e <= tol)
+        lab = np.where(ok, u, 0).astype(np.int64)
+        lab[~ok] = _OUT
+        if ok.sum() < 2 or len(set(lab[ok].tolist())) < ok.sum():  # two on one cell
+            return None
+        out.append(lab)
+        err2.extend((e[ok] ** 2).tolist())
+    n_in = int(sum((lab != _OUT).sum() for lab in out))
+    if n_in < max(5, 0.75 * (len(ca) + len(cb))):  # 4 points fit any lattice exactly
+        return None
+    # perspective limit: the step changes by at most max_step_ratio per lattice step,
+    # along each row and from one row to the other
+    lo = int(min(lab[lab != _OUT].min() for lab in out))
+    hi = int(max(lab[lab != _OUT].max() for lab in out))
+    st = np.array([[_lattice_step(Hm, u, v) for u in range(lo, hi + 1)] for v in (0.0, 1.0)])
+    if not np.all(np.isfinite(st)) or np.any(st <= 0):
+        return None
+    ratios = np.concatenate([(st[:, 1:] / st[:, :-1]).ravel(), st[0] / st[1]])
+    if np.any(np.maximum(ratios, 1 / ratios) > max_step_ratio):
+        return None
+    empty = sum(int(lab[lab != _OUT].max() - lab[lab != _OUT].min() + 1 - (lab != _OUT).sum())
+                for lab in out)
+    return (n_in, -empty, -float(np.sqrt(np.mean(err2)))), Hm, out[0], out[1]
+
+
+def grid_missing_cells(ua: np.ndarray, ub: np.ndarray, max_missing: int
+                       ) -> list[tuple[int, int]]:
+    """Empty cells of the lattice rectangle spanned by two rows' columns.
+
+    The lattice of two rows is known up to a shift ``s`` of row B's columns against row
+    A's (a sheared labelling is an equally good lattice). For each shift with at least
+    two shared columns the rectangle spanned by both rows has empty cells; the shifts
+    with fewest empty cells (the rows most aligned, as in a rectangular grid) are kept,
+    and the union of their empty cells is returned (each is verified on the image
+    afterwards, so a wrong shift only costs a rejected candidate).
+
+    Parameters
+    ----------
+    ua, ub : int arrays
+        Lattice columns of the inlier instances of row A (v = 0) and row B (v = 1).
+    max_missing : int
+        Shifts with more empty cells than this are ignored.
+
+    Returns
+    -------
+    list of (u, v)
+        Empty cells in the lattice of ``ua``/``ub`` (v = 0 row A, 1 row B), sorted.
+    """
+    A, B = set(int(x) for x in ua), set(int(x) for x in ub)
+    if len(A) < 2 or len(B) < 2:
+        return []
+    best: tuple[int, set[tuple[int, int]]] | None = None
+    for s in range(min(A) - max(B), max(A) - min(B) + 1):
+        Bs = {b + s for b in B}
+        if len(A & Bs) < 2:
+            continue
+        lo, hi = min(A | Bs), max(A | Bs)
+        cells = {(u, 0) for u in range(lo, hi + 1) if u not in A}
+        cells |= {(u - s, 1) for u in range(lo, hi + 1) if u not in Bs}
+        if not cells:
+            return []  # a complete rectangle under some alignment: nothing to fill
+        if len(cells) > max_missing:
+            continue
+        if best is None or len(cells) < best[0]:
+            best = (len(cells), set(cells))
+        elif len(cells) == best[0]:
+            best[1].update(cells)
+    return sorted(best[1]) if best else []
+
+
+def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: float,
+                   vp_params: V.VPParams) -> list[Instance]:
+    """Instances for the empty cells of grids of two or more rows (module docstring)."""
+    boxes = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+    if len(boxes) < 4:
+        return []
+    c, sz = V.instance_centres_sizes(boxes)
+    if np.any(sz <= 0):
+        return []
+    fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
+    if fp is not None and fp.ndim == 3 and fp.shape[1] <= len(c):
+        c = V.registered_centres(c, fp)  # partial boxes: locate instances by features
+    rows = [np.asarray(r, int) for r in V.group_rows(c, sz, vp_params.row_tolerance, 2)]
+    rows = [r for r in rows if len(r) >= 2]
+    if len(rows) < 2:
+        return []
+    dirs = [V.fit_line(c[r])[1] for r in rows]
+    d0 = dirs[0]
+    dm = np.sum([d if d @ d0 >= 0 else -d for d in dirs], axis=0)
+    dm /= np.linalg.norm(dm)
+    nrm = np.array([-dm[1], dm[0]])
+    rows = [rows[i] for i in np.argsort([float(np.mean(c[r] @ nrm)) for r in rows],
+                                        kind="stable")]
+    rows = [r[np.argsort(c[r] @ dm, kind="stable")] for r in rows]
+    new: list[Instance] = []
+    cen = [q for q in c]                       # registered centres and added instances
+    cb0 = boxes[:, :2] + boxes[:, 2:] / 2      # box centres
+    for ra, rb in zip(rows[:-1], rows[1:]):
+        # tolerance from the rows' median size: stage-I boxes of partial instances are small
+        tol = params.grid_tolerance * float(np.median(sz[np.r_[ra, rb]]))
+        fit = lattice_pair_fit(c[ra], c[rb], np.full(len(ra), tol), np.full(len(rb), tol),
+                               params.max_gaps + 1, params.max_step_ratio)
+        if fit is None:
+            continue
+        Hm, ua, ub = fit
+        cells = grid_missing_cells(ua[ua != _OUT], ub[ub != _OUT], params.grid_max_missing)
+        if not cells:
+            continue
+        inl = [(i, int(u), 0) for i, u in zip(ra, ua) if u != _OUT]
+        inl += [(i, int(u), 1) for i, u in zip(rb, ub) if u != _OUT]
+        # box size per cell: the row's median box, scaled by the local lattice step
+        # (stage-I boxes of partial instances are smaller than the object)
+        wh_step = []  # per row: median box (w, h) and median lattice step, pixels
+        for v in (0, 1):
+            iv = [(i, u) for i, u, vv in inl if vv == v]
+            wh_step.append((np.median(boxes[[i for i, _ in iv], 2:], axis=0),
+                            float(np.median([_lattice_step(Hm, u, v) for _, u in iv]))))
+        tmpl = []
+        for i, u, v in inl:
+            w, h = _cell_wh(Hm, wh_step[v], u, v)
+            q = _crop(gray, c[i, 0] * sf, c[i, 1] * sf, w * sf, h * sf, params.patch_size)
+            if q is not None:
+                tmpl.append(q)
+        if len(tmpl) < 2:
+            continue
+        base = _median_pair_ncc(tmpl)
+        if not np.isfinite(base) or base <= 0:
+            continue
+        thr = max(params.min_similarity, params.similarity_ratio * base)
+        mean_t = np.mean(tmpl, axis=0)
+        for u, v in cells:
+            xy = _lattice_map(Hm, np.array([[u, v]], float))[0]
+            if not np.all(np.isfinite(xy)):
+                continue
+            w, h = _cell_wh(Hm, wh_step[v], u, v)
+            if not np.isfinite(w * h):
+                continue
+            # perspective limit: the lattice step changes by at most max_step_ratio per
+            # step from the nearest instance of the row
+            u0 = min((t[1] for t in inl if t[2] == v), key=lambda x: (abs(x - u), x))
+            ratio = _lattice_step(Hm, u, v) / _lattice_step(Hm, u0, v)
+            lim = params.max_step_ratio ** max(1, abs(u - u0))
+            if not 1 / lim <= ratio <= lim:
+                continue
+            near = 0.5 * _lattice_step(Hm, u, v)  # instances do not overlap
+            if min(w, h) < 2 or min(np.min(np.linalg.norm(np.array(cen) - xy, axis=1)),
+                                    np.min(np.linalg.norm(cb0 - xy, axis=1))) < near:
+                continue  # an instance (of any row) is already there
+            got = _verify(gray, xy, float(w), float(h), tmpl, mean_t, thr, params, sf)
+            if got is None:
+                continue
+            q, w, h, sim = got
+            new.append(Instance(bbox=(float(q[0] - w / 2), float(q[1] - h / 2), float(w),
+                                      float(h)), score=float(np.clip(sim, 0.0, 1.0)),
+                                source=SOURCE))
+            cen.append(q)
+    return new
+
+
+def _lattice_step(Hm: np.ndarray, u: float, v: float) -> float:
+    """Image length (pixels) of one lattice step along the row at column u of row v."""
+    a, b = _lattice_map(Hm, np.array([[u - 0.5, v], [u + 0.5, v]], float))
+    return float(np.linalg.norm(b - a))
+
+
+def _cell_wh(Hm: np.ndarray, wh_step: tuple[np.ndarray, float], u: float, v: float
+             ) -> np.ndarray:
+    """Box (w, h) of cell (u, v), pixels: the row's median box scaled by the lattice step
+    there relative to the row's median step."""
+    wh, step = wh_step
+    return wh * (_lattice_step(Hm, u, v) / step)

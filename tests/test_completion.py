@@ -116,3 +116,79 @@ def test_params_and_input_checks() -> None:
         CO.complete_rows(_result(boxes, [0, 1, 2]), np.zeros((4, 4, 3)))
     with pytest.raises(TypeError, match="result"):
         CO.complete_rows("x", img)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- grids
+def _grid_scene(cols: list[float], erase: tuple[int, int] | None = None
+                ) -> tuple[np.ndarray, list[list[tuple[float, float, float, float]]]]:
+    """Grey image with two rows of identical textured squares at x = ``cols`` (unit 1.6
+    object sides), warped by ``H``; boxes per row.
+    ``erase``: (row, column) not drawn."""
+    rng = np.random.default_rng(0)
+    tex = cv2.resize(rng.integers(0, 256, (8, 8)).astype(np.uint8), (SIDE, SIDE),
+                     interpolation=cv2.INTER_NEAREST)
+    canvas = np.full((260, 700), 128, np.uint8)
+    canvas = np.clip(canvas + rng.normal(0, 3, canvas.shape), 0, 255).astype(np.uint8)
+    boxes: list[list[tuple[float, float, float, float]]] = []
+    for r, y0 in enumerate((40, 40 + int(1.6 * SIDE))):
+        row = []
+        for j, p in enumerate(cols):
+            x0 = int(round(30 + p * 1.6 * SIDE))
+            if (r, j) != erase:
+                canvas[y0:y0 + SIDE, x0:x0 + SIDE] = tex
+            q = np.array([[x0, y0], [x0 + SIDE, y0], [x0 + SIDE, y0 + SIDE], [x0, y0 + SIDE]],
+                         np.float64)
+            w = cv2.perspectiveTransform(q[None], H)[0]
+            lo, hi = w.min(0), w.max(0)
+            row.append((float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])))
+        boxes.append(row)
+    img = cv2.warpPerspective(canvas, H, (760, 320), flags=cv2.INTER_LINEAR, borderValue=128)
+    return img, boxes
+
+
+def _grid_result(boxes: list[list[tuple]], missing: tuple[int, int]) -> ImageResult:
+    inst = [Instance(b) for r, row in enumerate(boxes) for j, b in enumerate(row)
+            if (r, j) != missing]
+    return ImageResult(image="images/g.png", width=760, height=320, method="rescu-ii",
+                       patterns=[Pattern(id=0, score=1.0, instances=inst)])
+
+
+def test_grid_cell_completed() -> None:
+    cols = [0, 1, 2]  # a 2 x 3 grid; row 1 has two instances, too few for a row model
+    img, boxes = _grid_scene(cols)
+    res = _grid_result(boxes, (1, 2))
+    out = CO.complete_rows(res, img, CO.CompletionParams())
+    p = out.patterns[0]
+    assert p.count == 6 and p.extra["grid_completed"] == 1 and p.extra["completed"] == 1
+    new = p.instances[-1]
+    assert new.source == "completion" and 0.5 <= new.score <= 1.0
+    c_new = np.array(new.bbox[:2]) + np.array(new.bbox[2:]) / 2
+    gt = boxes[1][2]
+    assert np.linalg.norm(c_new - (np.array(gt[:2]) + np.array(gt[2:]) / 2)) < 0.25 * SIDE
+    # switched off, or nothing in the image there: no instance is added
+    off = CO.complete_rows(res, img, CO.CompletionParams(grid=False))
+    assert off.patterns[0].count == 5 and off.patterns[0].extra["grid_completed"] == 0
+    img_e, _ = _grid_scene(cols, erase=(1, 2))
+    assert CO.complete_rows(res, img_e, CO.CompletionParams()).patterns[0].count == 5
+
+
+def test_grid_missing_cells_and_lattice_fit() -> None:
+    # row B one short: its columns are known up to a shift, so both ends are candidates
+    assert CO.grid_missing_cells(np.array([0, 1, 2, 3]), np.array([0, 1, 2]), 2) == [
+        (-1, 1), (3, 1)]
+    assert CO.grid_missing_cells(np.array([0, 1, 2]), np.array([5, 6, 7]), 2) == []
+    assert CO.grid_missing_cells(np.array([0, 1, 2, 3, 4]), np.array([0, 1]), 2) == []
+    # exact projective lattice; row B has an empty cell between found instances
+    Hm = np.array([[60.0, 8.0, 50.0], [2.0, 70.0, 40.0], [0.02, 0.001, 1.0]])
+    ca = CO._lattice_map(Hm, np.array([[u, 0.0] for u in (0, 1, 2, 3)]))
+    cb = CO._lattice_map(Hm, np.array([[u, 1.0] for u in (0, 2, 3)]))
+    tol = np.full(4, 3.0)
+    fit = CO.lattice_pair_fit(ca, cb, tol, tol[:3])
+    assert fit is not None
+    _, ua, ub = fit
+    assert np.diff(ua).tolist() == [1, 1, 1] and np.diff(ub).tolist() == [2, 1]
+    assert ub[0] - ua[0] in (0, -1, 1)  # aligned up to a shift
+    # two points per row fit any lattice: no fit
+    assert CO.lattice_pair_fit(ca[:2], cb[:2], tol[:2], tol[:2]) is None
+    with pytest.raises(ValueError, match="grid_tolerance"):
+        CO.CompletionParams(grid_tolerance=0.6)
