@@ -578,8 +578,8 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
                                         params.max_nested_cover, params.min_centre_distance)
         if kept.shape[1] != om.shape[1]:
             om = kept[np.any(kept >= 0, axis=1)]       # words left without any feature go
-            if om.shape[1] < params.min_instances or om.shape[0] < 2:
-                continue                               # all instances were one object
+            if om.shape[1] < params.min_instances or om.shape[0] < params.min_words:
+                continue                               # what is left is no RP
             U = matrix_objective(ctx, om, gates)
         rps.append(RPMatrix(om.astype(np.int64), float(U),
                             dict(pset, box_grow=params.box_grow)))
