@@ -18,8 +18,9 @@ skipped between two found instances (interior gaps only). ``a, b, c`` are fitted
 linear least squares (``a k + b - c k t = t``). A hypothesis is kept when
 
 * the found positions fit the model within ``fit_tolerance`` x instance size (RMS),
-* the model is a valid projective row over the span (``c k + 1 > 0``) whose image step
-  between consecutive lattice points changes by at most ``max_step_ratio``,
+* the model is a valid projective row over the span (``c k + 1 > 0``) whose image steps
+  between consecutive lattice points over the whole span (end extensions included) are
+  within a factor ``max_step_ratio`` of each other (longest / shortest),
 * the row without the gap does not already pass the translation-symmetry (TS) test (4
   or more found instances), resp. does not already look evenly stepped (3 instances:
   step ratio <= ``max_step_ratio``),
@@ -96,8 +97,10 @@ class CompletionParams:
         Largest RMS residual of the found positions to the projective row model, as a
         fraction of the median instance size.
     max_step_ratio : float
-        Largest ratio of consecutive image steps of the model (perspective limit); a
-        3-instance row whose two steps are within this ratio counts as already complete.
+        Perspective limit: largest ratio of the longest to the shortest image step of
+        the model over a row's span (grids: over the lattice rectangle of two rows, both
+        rows); a 3-instance row whose two steps are within this ratio counts as already
+        complete.
     similarity_ratio : float
         Candidate accepted when its median NCC to the row instances >= this x the median
         instance-to-instance NCC.
@@ -231,7 +234,7 @@ def gap_hypotheses(n: int, max_gaps: int) -> list[np.ndarray]:
 
 def _steps_ok(abc: np.ndarray, k_lo: int, k_hi: int, max_step_ratio: float) -> bool:
     """The row model is defined, increasing, and its image steps between lattice indices
-    k_lo..k_hi change by at most a factor ``max_step_ratio``."""
+    k_lo..k_hi are within a factor ``max_step_ratio`` of each other."""
     ks = np.arange(k_lo, k_hi + 1, dtype=float)
     den = abc[2] * ks + 1
     if np.any(den <= 1e-9):
@@ -544,9 +547,9 @@ def lattice_pair_fit(ca: np.ndarray, cb: np.ndarray, tol_a: np.ndarray, tol_b: n
     max_step : int
         Largest lattice step between two consecutive found instances of a row.
     max_step_ratio : float
-        Perspective limit: the image length of a lattice step may change by at most this
-        factor from one column to the next (along either row) and from row A to row B
-        (a lattice whose rows differ more is a sheared mislabelling).
+        Perspective limit: the image lengths of the lattice steps over the rectangle of
+        both rows are within this factor of each other (a lattice whose rows differ
+        more is a sheared mislabelling).
 
     Returns
     -------
@@ -624,15 +627,12 @@ def _lattice_labels(Hm: np.ndarray, ca: np.ndarray, cb: np.ndarray, tol_a: np.nd
     n_in = int(sum((lab != _OUT).sum() for lab in out))
     if n_in < max(5, 0.75 * (len(ca) + len(cb))):  # 4 points fit any lattice exactly
         return None
-    # perspective limit: the step changes by at most max_step_ratio per lattice step,
-    # along each row and from one row to the other
+    # perspective limit: the steps over the lattice rectangle of both rows are within a
+    # factor max_step_ratio of each other (as for one row: _steps_ok)
     lo = int(min(lab[lab != _OUT].min() for lab in out))
     hi = int(max(lab[lab != _OUT].max() for lab in out))
     st = np.array([[_lattice_step(Hm, u, v) for u in range(lo, hi + 1)] for v in (0.0, 1.0)])
-    if not np.all(np.isfinite(st)) or np.any(st <= 0):
-        return None
-    ratios = np.concatenate([(st[:, 1:] / st[:, :-1]).ravel(), st[0] / st[1]])
-    if np.any(np.maximum(ratios, 1 / ratios) > max_step_ratio):
+    if not np.all(np.isfinite(st)) or np.any(st <= 0) or st.max() > max_step_ratio * st.min():
         return None
     empty = sum(int(lab[lab != _OUT].max() - lab[lab != _OUT].min() + 1 - (lab != _OUT).sum())
                 for lab in out)
@@ -751,12 +751,10 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
             w, h = _cell_wh(Hm, wh_step[v], u, v)
             if not np.isfinite(w * h):
                 continue
-            # perspective limit: the lattice step changes by at most max_step_ratio per
-            # step from the nearest instance of the row
-            u0 = min((t[1] for t in inl if t[2] == v), key=lambda x: (abs(x - u), x))
-            ratio = _lattice_step(Hm, u, v) / _lattice_step(Hm, u0, v)
-            lim = params.max_step_ratio ** max(1, abs(u - u0))
-            if not 1 / lim <= ratio <= lim:
+            # perspective limit: the cell's step within max_step_ratio of the row's steps
+            st = [_lattice_step(Hm, u, v)] + [_lattice_step(Hm, t[1], v) for t in inl
+                                               if t[2] == v]
+            if max(st) > params.max_step_ratio * min(st):
                 continue
             near = 0.5 * _lattice_step(Hm, u, v)  # instances do not overlap
             if min(w, h) < 2 or min(np.min(np.linalg.norm(np.array(cen) - xy, axis=1)),
