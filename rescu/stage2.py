@@ -200,8 +200,8 @@ class Stage2Params:
     lattice_neighbours: int = 4
     lattice_steps: int = 2
     lattice_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
-    lattice_score_threshold: float = 0.99
-    lattice_distance_ratio: float = 1.0
+    lattice_score_threshold: float = 0.95
+    lattice_distance_ratio: float = 1.25
     lattice_only: bool = True
     dbscan_eps: float | None = None
     dbscan_min_samples: int = 2
