@@ -17,7 +17,8 @@ Usage (after ``snakemake --cores 2``)::
         --ratios 1.0 1.25 1.5 --thresholds 0.99 0.97 0.95 0.9 --scene
 
 The dataset folders are read from ``config/config.yaml`` (synthetic:
-``<results>/data/synthetic``).
+``<results>/data/synthetic``; relative paths from the current folder, as snakemake
+reads them: run it from the repository root).
 """
 
 from __future__ import annotations
@@ -33,19 +34,13 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def dataset_dir(name: str, cfg: dict, results: Path) -> Path:
-    entry = cfg["datasets"][name] or {}
-    if entry.get("kind") == "synthetic":
-        return results / "data" / "synthetic"
-    return (Path(__file__).resolve().parents[1] / entry["path"]).resolve()
-
-
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
-    import yaml
 
     from rescu import io, pipeline
     from rescu import stage2 as S2
+    from rescu.config import load_config
+    from rescu.datasets import dataset_root
     from rescu.evaluation import count_frame, evaluate_rp_dataset
 
     ap = argparse.ArgumentParser(description=__doc__,
@@ -59,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", type=Path,
                     default=Path(__file__).resolve().parents[1] / "config" / "config.yaml")
     a = ap.parse_args(argv)
-    cfg = yaml.safe_load(a.config.read_text())
+    cfg = load_config(a.config)
     pd.set_option("display.width", 200)
     for name in a.datasets:
         root = a.results / name
@@ -68,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         if not stems:
             print(f"{name}: no stage-II artefacts under {root}", file=sys.stderr)
             continue
-        dd = dataset_dir(name, cfg, a.results)
+        dd = dataset_root(name, cfg["datasets"][name], str(a.results))
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
             preds = {"RESCU-I": root / "rescu-i"}
