@@ -66,6 +66,7 @@ All boxes are original pixels; the image is the processed one (original x
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Any
@@ -690,14 +691,15 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
     boxes = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
     if len(boxes) < 4:
         return []
-    c, sz = V.instance_centres_sizes(boxes)
+    fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
+    if fp is not None and (fp.ndim != 3 or fp.shape[1] > len(boxes)):
+        fp = None
+    # registered centres (partial boxes: instances located by their features), rows of
+    # two or more instances
+    c, sz, rows = V.pattern_rows(boxes, fp, dataclasses.replace(vp_params, min_row_instances=2))
     if np.any(sz <= 0):
         return []
-    fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
-    if fp is not None and fp.ndim == 3 and fp.shape[1] <= len(c):
-        c = V.registered_centres(c, fp)  # partial boxes: locate instances by features
-    rows = [np.asarray(r, int) for r in V.group_rows(c, sz, vp_params.row_tolerance, 2)]
-    rows = [r for r in rows if len(r) >= 2]
+    rows = [np.asarray(r, int) for r in rows if len(r) >= 2]
     if len(rows) < 2:
         return []
     dirs = [V.fit_line(c[r])[1] for r in rows]
