@@ -429,6 +429,14 @@ def instance_boxes(features: Features, omega: np.ndarray, box_grow: float = 0.5)
     return out
 
 
+def feature_points(features: Features, omega: np.ndarray) -> np.ndarray:
+    """Positions of an RP matrix's features, (M, N, 2) float, processed pixels; NaN where
+    a word has no feature in an instance (``omega`` -1)."""
+    om = np.asarray(omega, np.int64)
+    xy = features.xy[np.where(om >= 0, om, 0)].astype(np.float64)
+    return np.where((om >= 0)[..., None], xy, np.nan)
+
+
 def drop_duplicate_instances(features: Features, omega: np.ndarray, box_grow: float = 0.5,
                              max_cover: float = 0.5, min_centre_distance: float = 0.5
                              ) -> np.ndarray:
@@ -469,8 +477,7 @@ def drop_duplicate_instances(features: Features, omega: np.ndarray, box_grow: fl
     b = instance_boxes(features, om, box_grow)
     dup = cover_matrix(b, b) > max_cover if max_cover < 1.0 else np.zeros((len(b),) * 2, bool)
     if min_centre_distance > 0:
-        fp = np.where((om >= 0)[..., None], features.xy[np.where(om >= 0, om, 0)], np.nan)
-        reg = registered_centres(b[:, :2] + b[:, 2:] / 2, fp.astype(np.float64))
+        reg = registered_centres(b[:, :2] + b[:, 2:] / 2, feature_points(features, om))
         d = np.linalg.norm(reg[:, None] - reg[None], axis=2)
         dup |= d < min_centre_distance * float(np.median(b[:, 2:].max(axis=1)))
     words = (om >= 0).sum(axis=0)
@@ -694,8 +701,7 @@ def rps_to_patterns(features: Features, rps: list[RPMatrix]) -> list[Pattern]:
         if om.ndim != 2 or om.shape[1] == 0:
             continue
         boxes = instance_boxes(features, om, float(rp.params.get("box_grow", 0.5))) / sf
-        fp = np.where((om >= 0)[..., None], features.xy[np.where(om >= 0, om, 0)].astype(float) / sf,
-                      np.nan)
+        fp = feature_points(features, om) / sf
         fill = (om >= 0).mean(axis=0)  # instance score: fraction of the words present
         insts = [Instance(bbox=(float(b[0]), float(b[1]), float(b[2]), float(b[3])),
                           score=float(fl), source="stage1") for b, fl in zip(boxes, fill)]
