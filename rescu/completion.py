@@ -41,8 +41,8 @@ completed row give ``|cr - 4/3| <= cr_tolerance`` (the TS test's t; cr = cross r
 
 Grids
 -----
-After the rows, an RP of two or more rows (:func:`rescu.vp.group_rows` with rows of two
-or more instances, ordered across) is completed as a grid, one pair of neighbouring
+After the rows, an RP of two or more rows (:func:`rescu.vp.pattern_rows` with rows of
+two or more instances, ordered across) is completed as a grid, one pair of neighbouring
 rows at a time: :func:`lattice_pair_fit` finds the projective lattice (a homography
 from integer cells (u, v), v = 0 / 1 for the two rows) that puts most instances on
 cells, allowing empty cells between found instances and limiting the perspective by
@@ -123,7 +123,7 @@ class CompletionParams:
         projective lattice spanned by two neighbouring rows that have no instance.
     grid_tolerance : float
         An instance lies on a lattice cell when its centre is within this fraction of
-        its size of the cell's image position.
+        the median instance size of the two rows of the cell's image position.
     grid_max_missing : int
         A pair of rows with more empty cells than this (under its best column
         alignment) is not completed: only nearly complete grids are filled.
