@@ -126,3 +126,12 @@ def test_parameter_change_reruns_only_dependants(finished_run):
                      "stage2_train", "stage2_predict", "stage2_ablation", "generate_synthetic",
                      "line_vp"):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene change: {jobs}"
+
+
+def test_stage2_gate_change_reruns_prediction_only(finished_run):
+    work, _ = finished_run
+    changed = tiny_config(work, **{"stage2.lattice_score_threshold": 0.9})
+    jobs = planned_jobs(snakemake(work, changed, "-n"))
+    assert jobs.get("stage2_predict") == 3, jobs
+    for upstream in ("features", "rescu_i", "stage2_features", "stage2_train"):
+        assert upstream not in jobs, f"{upstream} must not rerun after a gate change: {jobs}"

@@ -26,10 +26,18 @@ def code(*modules):
     return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
 
 
+# stage2 keys read only by rescu.stage2.predict_stage2 (its gates and the merge step)
+STAGE2_PREDICT_ONLY = ("score_threshold", "max_distance_ratio", "lattice_score_threshold",
+                       "lattice_distance_ratio", "lattice_only", "nms_iou",
+                       "min_spacing_fraction", "max_new_fraction")
+
+
 def stage2_upstream():
-    """The ``stage2`` keys of the features and training steps: all but the ``merge*``
-    keys, which act only in prediction (a merge change reruns prediction only)."""
-    return {k: v for k, v in config["stage2"].items() if not k.startswith("merge")}
+    """The ``stage2`` keys of the features and training steps: all but those that act
+    only in prediction (``STAGE2_PREDICT_ONLY`` and the ``merge*`` keys), so that a
+    change of a prediction gate reruns prediction only."""
+    return {k: v for k, v in config["stage2"].items()
+            if not k.startswith("merge") and k not in STAGE2_PREDICT_ONLY}
 
 
 def images(dataset):
