@@ -273,6 +273,19 @@ def _median_pair_ncc(patches: list[np.ndarray]) -> float:
     return float(np.median(v)) if v else float("nan")
 
 
+def _acceptance(tmpl: list[np.ndarray], params: CompletionParams
+                ) -> tuple[float, np.ndarray] | None:
+    """(NCC threshold, mean instance crop) for candidates of a row or grid, from the
+    instances' crops (module docstring); None with fewer than two crops or when the
+    instances do not correlate with each other (median pair NCC <= 0)."""
+    if len(tmpl) < 2:
+        return None
+    base = _median_pair_ncc(tmpl)
+    if not np.isfinite(base) or base <= 0:
+        return None
+    return max(params.min_similarity, params.similarity_ratio * base), np.mean(tmpl, axis=0)
+
+
 # ----------------------------------------------------------------------------- main
 def complete_rows(result: ImageResult, gray: np.ndarray,
                   params: CompletionParams = CompletionParams(),
@@ -390,13 +403,10 @@ def _complete_row(r: np.ndarray, c: np.ndarray, boxes: np.ndarray, fp: np.ndarra
                    params.patch_size)
         if pc is not None:
             tmpl.append(pc)
-    if len(tmpl) < 2:
+    gate = _acceptance(tmpl, params)
+    if gate is None:
         return None
-    base = _median_pair_ncc(tmpl)
-    if not np.isfinite(base) or base <= 0:
-        return None
-    thr = max(params.min_similarity, params.similarity_ratio * base)
-    mean_t = np.mean(tmpl, axis=0)
+    thr, mean_t = gate
     if equal:
         return _extend_ends(r, pts, t, perp, wh, c, cen, d, nrm, size, gray, tmpl, mean_t,
                             thr, params, sf)
@@ -739,13 +749,10 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
             q = _crop(gray, c[i, 0] * sf, c[i, 1] * sf, w * sf, h * sf, params.patch_size)
             if q is not None:
                 tmpl.append(q)
-        if len(tmpl) < 2:
+        gate = _acceptance(tmpl, params)
+        if gate is None:
             continue
-        base = _median_pair_ncc(tmpl)
-        if not np.isfinite(base) or base <= 0:
-            continue
-        thr = max(params.min_similarity, params.similarity_ratio * base)
-        mean_t = np.mean(tmpl, axis=0)
+        thr, mean_t = gate
         for u, v in cells:
             xy = _lattice_map(Hm, np.array([[u, v]], float))[0]
             if not np.all(np.isfinite(xy)):
