@@ -107,6 +107,9 @@ def test_outputs_exist_and_parse(finished_run):
         assert len(list((res / "synthetic" / "stage2-ablation" / v).glob("*.json"))) == 3, v
         assert f"RESCU-II[{v}]" in s2, v
     assert (res / "tables" / "summary.md").read_text().strip()
+    # per-step logs live with their results (a second results folder keeps its own)
+    assert len(list((res / "logs" / "synthetic" / "scene").glob("*.log"))) == 3
+    assert not (work / "logs").exists()
     html = (res / "report" / "index.html").read_text()
     assert "<img" in html and "RESCU" in html
 

@@ -11,7 +11,7 @@ rule caption:
     params:
         caption=config["caption"],
     log:
-        "logs/{dataset}/caption/{image}.log",
+        LOGS + "/{dataset}/caption/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/caption/{{image}}.tsv"
     script:
@@ -26,6 +26,6 @@ rule overlay:
     output:
         png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
     log:
-        "logs/{dataset}/overlay/{image}.log",
+        LOGS + "/{dataset}/overlay/{image}.log",
     script:
         "../scripts/overlay.py"

@@ -7,6 +7,7 @@ from rescu.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
 from rescu.synth import synthetic_image_names
 
 RESULTS = config["results_dir"]
+LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
 BASEDIR = Path(workflow.basedir)
 
 wildcard_constraints:

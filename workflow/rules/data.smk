@@ -18,7 +18,7 @@ rule generate_synthetic:
     params:
         synth=config["synthetic"],
     log:
-        "logs/data/generate_synthetic.log",
+        LOGS + "/data/generate_synthetic.log",
     benchmark:
         f"{RESULTS}/benchmarks/data/generate_synthetic.tsv"
     script:
@@ -35,7 +35,7 @@ rule export_photos:
     params:
         names=config["package_photos"]["names"],
     log:
-        "logs/data/export_photos.log",
+        LOGS + "/data/export_photos.log",
     benchmark:
         f"{RESULTS}/benchmarks/data/export_photos.tsv"
     script:
@@ -54,7 +54,7 @@ rule prepare:
         max_side=config["image"]["max_side"],
         min_side=config["image"]["min_side"],
     log:
-        "logs/{dataset}/prepare/{image}.log",
+        LOGS + "/{dataset}/prepare/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/prepare/{{image}}.tsv"
     script:

@@ -33,7 +33,7 @@ rule rp_tables:
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:
-        "logs/tables/rp_tables.log",
+        LOGS + "/tables/rp_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -56,7 +56,7 @@ rule ablation_tables:
         evaluation=config["evaluation"],
         variants=list(config["ablation"]["variants"]),
     log:
-        "logs/tables/ablation_tables.log",
+        LOGS + "/tables/ablation_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -84,7 +84,7 @@ rule stage2_ablation_tables:
         evaluation=config["evaluation"],
         variants=list(config["stage2_ablation"]["variants"]),
     log:
-        "logs/tables/stage2_ablation_tables.log",
+        LOGS + "/tables/stage2_ablation_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -106,7 +106,7 @@ rule counting_tables:
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:
-        "logs/tables/counting_tables.log",
+        LOGS + "/tables/counting_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -132,7 +132,7 @@ rule vp_tables:
         datasets=dataset_params(vp_datasets()),
         evaluation=config["evaluation"],
     log:
-        "logs/tables/vp_tables.log",
+        LOGS + "/tables/vp_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -152,7 +152,7 @@ rule ts_tables:
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
     log:
-        "logs/tables/ts_tables.log",
+        LOGS + "/tables/ts_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -168,7 +168,7 @@ rule result_tables:
     params:
         datasets={d: per_image(f"{RESULTS}/{{dataset}}/final/{{image}}.json", [d]) for d in DATASETS},
     log:
-        "logs/tables/result_tables.log",
+        LOGS + "/tables/result_tables.log",
     script:
         "../scripts/tables.py"
 
@@ -188,6 +188,6 @@ rule summary:
     params:
         backbone=config["stage2"].get("backbone", ""),
     log:
-        "logs/tables/summary.log",
+        LOGS + "/tables/summary.log",
     script:
         "../scripts/tables.py"

@@ -10,7 +10,7 @@ rule features:
     params:
         features=config["features"],
     log:
-        "logs/{dataset}/features/{image}.log",
+        LOGS + "/{dataset}/features/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/features/{{image}}.tsv"
     script:

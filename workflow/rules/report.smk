@@ -35,6 +35,6 @@ rule report:
         samples=report_samples(),
         results=RESULTS,
     log:
-        "logs/report.log",
+        LOGS + "/report.log",
     script:
         "../scripts/report.py"

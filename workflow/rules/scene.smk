@@ -23,7 +23,7 @@ rule scene:
     params:
         scene=scene_params(),
     log:
-        "logs/{dataset}/scene/{image}.log",
+        LOGS + "/{dataset}/scene/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/scene/{{image}}.tsv"
     script:
@@ -41,7 +41,7 @@ rule scene_no_ac:
     params:
         scene=scene_params(ac_threshold_deg=0.0),
     log:
-        "logs/{dataset}/scene_no_ac/{image}.log",
+        LOGS + "/{dataset}/scene_no_ac/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/scene_no_ac/{{image}}.tsv"
     script:
@@ -57,7 +57,7 @@ rule line_vp:
     params:
         scene={"vp": config["scene"]["vp"]},  # the baseline needs only the VP parameters
     log:
-        "logs/{dataset}/line_vp/{image}.log",
+        LOGS + "/{dataset}/line_vp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/line_vp/{{image}}.tsv"
     script:

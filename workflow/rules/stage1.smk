@@ -14,7 +14,7 @@ rule rescu_i:
     params:
         stage1=config["stage1"],
     log:
-        "logs/{dataset}/rescu-i/{image}.log",
+        LOGS + "/{dataset}/rescu-i/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/rescu-i/{{image}}.tsv"
     script:
@@ -32,7 +32,7 @@ rule grasp:
     params:
         grasp=config["grasp"],
     log:
-        "logs/{dataset}/grasp/{image}.log",
+        LOGS + "/{dataset}/grasp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/grasp/{{image}}.tsv"
     script:
@@ -53,7 +53,7 @@ rule ablation:
         stage1=config["stage1"],
         variants=config["ablation"]["variants"],
     log:
-        "logs/{dataset}/ablation/{image}.log",
+        LOGS + "/{dataset}/ablation/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/ablation/{{image}}.tsv"
     script:

@@ -15,7 +15,7 @@ rule stage2_features:
     resources:
         mem_mb=4000,
     log:
-        "logs/{dataset}/stage2_features/{image}.log",
+        LOGS + "/{dataset}/stage2_features/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_features/{{image}}.tsv"
     script:
@@ -32,7 +32,7 @@ rule stage2_train:
     params:
         stage2=stage2_upstream(),
     log:
-        "logs/{dataset}/stage2_train/{image}.log",
+        LOGS + "/{dataset}/stage2_train/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_train/{{image}}.tsv"
     script:
@@ -51,7 +51,7 @@ rule stage2_predict:
     params:
         stage2=config["stage2"],
     log:
-        "logs/{dataset}/stage2_predict/{image}.log",
+        LOGS + "/{dataset}/stage2_predict/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict/{{image}}.tsv"
     script:
@@ -75,7 +75,7 @@ rule stage2_ablation:
     resources:
         mem_mb=4000,
     log:
-        "logs/{dataset}/stage2_ablation/{image}.log",
+        LOGS + "/{dataset}/stage2_ablation/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_ablation/{{image}}.tsv"
     script:
