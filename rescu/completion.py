@@ -57,8 +57,9 @@ by their features (:func:`rescu.vp.registered_centres`).
 
 Accepted candidates become instances with ``source = "completion"`` and ``score`` = their
 median NCC. They are appended after the existing instances (the columns of
-``feature_points`` keep belonging to the first instances) and ``extra["rows"]`` of the
-pattern lists each row's instance indices in order along the row, filled gaps included.
+``feature_points`` keep belonging to the first instances) and ``extra["completed_rows"]``
+of the pattern lists each completed row's instance indices in order along the row, filled
+gaps included (the scene step's own ``extra["rows"]`` are the rows its VP and TS used).
 All boxes are original pixels; the image is the processed one (original x
 ``scale_factor``).
 """
@@ -310,8 +311,9 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
     -------
     ImageResult
         A copy; ``result`` is not modified. Patterns with filled gaps get instances with
-        ``source="completion"`` appended and ``extra["rows"]`` set (rows completed; grid
-        cells are appended after them); every pattern gets ``extra["completed"]``
+        ``source="completion"`` appended and ``extra["completed_rows"]`` set (every row,
+        completed ones with their new instances; grid cells are appended after them);
+        every pattern gets ``extra["completed"]``
         (number of instances added) and ``extra["grid_completed"]`` (of those, by grid
         completion).
     """
@@ -361,7 +363,7 @@ def _complete_pattern(p: Pattern, gray: np.ndarray, params: CompletionParams, sf
         new_rows.append(row_ids)
     if added:
         p.instances = list(p.instances) + added
-        p.extra["rows"] = new_rows
+        p.extra["completed_rows"] = new_rows
     grid_added = _complete_grid(p, gray, params, sf, vp_params) if params.grid else []
     if grid_added:
         p.instances = list(p.instances) + grid_added

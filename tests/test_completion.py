@@ -56,7 +56,7 @@ def test_interior_gap_completed() -> None:
     c_gt = np.array(boxes[2][:2]) + np.array(boxes[2][2:]) / 2
     assert np.linalg.norm(c_new - c_gt) < 0.2 * SIDE
     assert 0.5 <= new[0].score <= 1.0
-    assert p.extra["rows"] == [[0, 1, 5, 2, 3, 4]]
+    assert p.extra["completed_rows"] == [[0, 1, 5, 2, 3, 4]]
     # the input is not modified, the output is deterministic
     assert res.patterns[0].count == 5
     again = CO.complete_rows(res, img, CO.CompletionParams())
