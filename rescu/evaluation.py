@@ -48,7 +48,7 @@ import pandas as pd
 from .io import (GroundTruthRP, InputError, atomic_path, load_coco_rps,
                  load_vanishing_points, read_json, read_result)
 from .counting import counting_patterns
-from .metrics import METRICS, score_image
+from .metrics import METRICS, match_boxes, score_image
 from .types import ImageResult
 from .params import checked_mapping
 
@@ -605,6 +605,73 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
     return pd.DataFrame(rows, columns=["dataset", "image", "method", "subset", "hard",
                                        "pattern", "gt_rp", "det_count", "gt_count",
                                        "abs_error", "exact", "dominant", "counted"])
+
+
+def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
+                 min_rp_precision: float = 0.5,
+                 images: Iterable[str] | None = None) -> pd.DataFrame:
+    """Why counts are wrong: the instances of every miscounted ground-truth RP.
+
+    For each GT RP counted by a detected RP (as in :func:`count_frame`: the accepted
+    detected RP with the most instances) whose count differs from the GT count, one row
+    per GT instance (``kind`` "matched" or "missed", IOD > ``h`` one-to-one matching
+    against that detected RP) and one per detected instance matching none of them
+    (``kind`` "extra", with its ``source``: stage1 / stage2 / completion).
+
+    Returns
+    -------
+    DataFrame
+        ``image, gt_rp, pattern, det_count, gt_count, kind, x, y, w, h`` (box, pixels),
+        ``source`` (extra rows), and where the dataset has ``truth.json`` (synthetic
+        benchmark) ``row, col, occluded_fraction, blur_sigma, equal_spacing`` of the GT
+        instance / RP. Empty when every count is exact.
+    """
+    ds = _load(dataset_dir, {"pred": pred_dir}, images)
+    preds = ds.preds["pred"]
+    rows: list[dict[str, Any]] = []
+    for f, gts in ds.gt.items():
+        res = preds[f]
+        if res is None:
+            continue
+        s = score_image(_boxes(res), [g.boxes for g in gts], h, min_rp_precision)
+        counted = counting_patterns([p.count for p in res.patterns], s.rp_assignment)
+        truth = ds.truth.get(f, {})
+        tpat = truth.get("patterns") or []
+        for g, i in sorted(counted.items()):
+            gt_boxes = np.asarray(gts[g].boxes, float).reshape(-1, 4)
+            pat = res.patterns[i]
+            if pat.count == len(gt_boxes):
+                continue
+            det = np.array([ins.bbox for ins in pat.instances], float).reshape(-1, 4)
+            pairs = match_boxes(det, gt_boxes, h)
+            hit_g, hit_d = {b for _, b in pairs}, {a for a, _ in pairs}
+            # the truth record of this GT RP: same category name (synthetic: unique)
+            tp = [q for q in tpat if isinstance(q, dict) and q.get("category") == gts[g].category]
+            tp0 = tp[0] if len(tp) == 1 else {}
+            tinst = tp0.get("instances") or []
+            base = {"image": f, "gt_rp": int(g), "pattern": int(i),
+                    "det_count": int(pat.count), "gt_count": int(len(gt_boxes))}
+            for j, b in enumerate(gt_boxes):
+                r = dict(base, kind="matched" if j in hit_g else "missed",
+                         x=b[0], y=b[1], w=b[2], h=b[3], source=None)
+                t = tinst[j] if len(tinst) == len(gt_boxes) else {}
+                tc = np.asarray(t.get("center", [np.nan, np.nan]), float)
+                if np.linalg.norm(tc - (b[:2] + b[2:] / 2)) <= 0.5 * max(b[2], b[3]):
+                    r.update(row=t.get("row"), col=t.get("col"),
+                             occluded_fraction=t.get("occluded_fraction"))
+                if truth:
+                    r.update(blur_sigma=truth.get("blur_sigma"),
+                             equal_spacing=tp0.get("equal_spacing"))
+                rows.append(r)
+            for a, ins in enumerate(pat.instances):
+                if a not in hit_d:
+                    b = det[a]
+                    rows.append(dict(base, kind="extra", x=b[0], y=b[1], w=b[2], h=b[3],
+                                     source=ins.source))
+    cols = ["image", "gt_rp", "pattern", "det_count", "gt_count", "kind", "x", "y", "w",
+            "h", "source", "row", "col", "occluded_fraction", "blur_sigma", "equal_spacing"]
+    df = pd.DataFrame(rows)
+    return df.reindex(columns=cols if len(df) else cols)
 
 
 def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],

@@ -286,6 +286,26 @@ def test_counting_table_counts_each_gt_rp_once(tiny) -> None:
     assert counted["det_count"].tolist() == [3, 2, 3]
 
 
+def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
+    ds, preds, tmp = tiny
+    assert E.count_errors(ds, preds["gt"]).empty
+    less = E.count_errors(ds, write_preds(tmp / "p_less", "less", count_delta=-1))
+    assert sorted(less["gt_count"].unique().tolist()) == [3, 4, 5]
+    assert (less["det_count"] == less["gt_count"] - 1).all()
+    missed = less[less["kind"] == "missed"]
+    assert len(missed) == 3 and not (less["kind"] == "extra").any()
+    # the dropped instance is each row's last box
+    for _, r in missed.iterrows():
+        rps = dict((len(b), b) for _, b, _ in SCENE[r["image"]])
+        assert [r["x"], r["y"], r["w"], r["h"]] == rps[r["gt_count"]][-1]
+    more = E.count_errors(ds, write_preds(tmp / "p_more", "more", count_delta=1))
+    extra = more[more["kind"] == "extra"]
+    assert len(extra) == 3 and (extra["source"] == "stage1").all()
+    assert not (more["kind"] == "missed").any()
+    assert (more.loc[more["kind"] == "matched"].groupby(["image", "gt_rp"]).size()
+            == more.groupby(["image", "gt_rp"])["gt_count"].first()).all()
+
+
 def test_vp_tables(tiny) -> None:
     ds, preds, tmp = tiny
     shifted = write_preds(tmp / "p_vps", "shift", vp_shift=7.0)

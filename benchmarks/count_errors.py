@@ -1,0 +1,70 @@
+"""Why counts are wrong: the instances behind every count error of a finished run.
+
+For each ground-truth RP whose count is wrong (the counting table's exact-count rate
+counts it as a miss), lists the GT instances the counting RP missed and the detected
+instances that match none (with their source: stage1 / stage2 / completion), with the
+synthetic benchmark's truth (row, column, occluded fraction, blur, equal spacing) where
+the dataset has it (:func:`rescu.evaluation.count_errors`). Prints; asserts nothing.
+
+Usage (after ``snakemake --cores 2``, from the repository root)::
+
+    python benchmarks/count_errors.py results                      # synthetic, final
+    python benchmarks/count_errors.py results/holdout --method rescu-ii
+    python benchmarks/count_errors.py results --dataset cmp_facade --all
+
+``--method`` is the per-image JSON folder under ``<results>/<dataset>/`` (final,
+rescu-ii, rescu-i, grasp, scene). The dataset folder comes from ``config/config.yaml``
+(or ``--config``), as in the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import pandas as pd
+
+    from rescu.config import load_config
+    from rescu.datasets import dataset_root
+    from rescu.evaluation import count_errors, counting_table
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run")
+    ap.add_argument("--dataset", default="synthetic")
+    ap.add_argument("--method", default="final", help="per-image JSON folder to evaluate")
+    ap.add_argument("--all", action="store_true", help="also list the matched instances")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="config file (default config/config.yaml)")
+    a = ap.parse_args(argv)
+    cfg = load_config(a.config)
+    if a.dataset not in cfg["datasets"]:
+        ap.error(f"dataset {a.dataset!r} is not in the config ({', '.join(cfg['datasets'])})")
+    data = dataset_root(a.dataset, cfg["datasets"][a.dataset], str(a.results))
+    pred = a.results / a.dataset / a.method
+    for path, what in ((data / "annotations.json", "ground truth"), (pred, "predictions")):
+        if not path.exists():
+            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
+            return 2
+    t = counting_table(data, {a.method: pred}).iloc[0]
+    print(f"{a.dataset} / {a.method}: {int(t['n_matched'])} matched GT RPs, exact-count "
+          f"rate {t['exact_rate']:.3f}, count MAE {t['count_mae']:.3f}")
+    df = count_errors(data, pred)
+    if df.empty:
+        print("every count is exact")
+        return 0
+    if not a.all:
+        df = df[df["kind"] != "matched"]
+    df = df.dropna(axis=1, how="all")
+    pd.set_option("display.width", 250)
+    pd.set_option("display.max_rows", None)
+    print(df.round(2).to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
