@@ -670,8 +670,7 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
                                      source=ins.source))
     cols = ["image", "gt_rp", "pattern", "det_count", "gt_count", "kind", "x", "y", "w",
             "h", "source", "row", "col", "occluded_fraction", "blur_sigma", "equal_spacing"]
-    df = pd.DataFrame(rows)
-    return df.reindex(columns=cols if len(df) else cols)
+    return pd.DataFrame(rows, columns=cols)
 
 
 def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
