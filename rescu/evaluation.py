@@ -48,7 +48,7 @@ import pandas as pd
 from .io import (GroundTruthRP, InputError, atomic_path, load_coco_rps,
                  load_vanishing_points, read_json, read_result)
 from .counting import counting_patterns
-from .metrics import METRICS, match_boxes, score_image
+from .metrics import METRICS, ImageScores, match_boxes, score_image
 from .types import ImageResult
 from .params import checked_mapping
 
@@ -565,6 +565,15 @@ def ablation_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 
 
 # ----------------------------------------------------------------------------- counting
+def _score_counting(res: ImageResult | None, gts: list[GroundTruthRP], h: float,
+                    min_rp_precision: float) -> tuple[ImageScores, dict[int, int]]:
+    """An image's scores and ``{GT RP index: detected RP index that counts it}``
+    (:func:`rescu.counting.counting_patterns`); no prediction counts nothing."""
+    s = score_image(_boxes(res), [g.boxes for g in gts], h, min_rp_precision)
+    det_counts = [p.count for p in res.patterns] if res is not None else []
+    return s, counting_patterns(det_counts, s.rp_assignment)
+
+
 def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                 h: float = 0.5, min_rp_precision: float = 0.5,
         images: Iterable[str] | None = None) -> pd.DataFrame:
@@ -586,10 +595,9 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
     for method, preds in ds.preds.items():
         for f, gts in ds.gt.items():
             res = preds[f]
-            s = score_image(_boxes(res), [g.boxes for g in gts], h, min_rp_precision)
+            s, counting = _score_counting(res, gts, h, min_rp_precision)
             dom = _dominant_index(res)
-            det_counts = [p.count for p in res.patterns] if res is not None else []
-            counted = set(counting_patterns(det_counts, s.rp_assignment).values())
+            counted = set(counting.values())
             for i, g in enumerate(s.rp_assignment):
                 if g is None and i != dom:
                     continue
@@ -633,8 +641,7 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
         res = preds[f]
         if res is None:
             continue
-        s = score_image(_boxes(res), [g.boxes for g in gts], h, min_rp_precision)
-        counted = counting_patterns([p.count for p in res.patterns], s.rp_assignment)
+        _, counted = _score_counting(res, gts, h, min_rp_precision)
         truth = ds.truth.get(f, {})
         tpat = truth.get("patterns") or []
         for g, i in sorted(counted.items()):
