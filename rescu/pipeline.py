@@ -162,8 +162,8 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         S.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
         res.patterns = S.rps_to_patterns(feats, out.rps)
-        res.extra.update(chosen_params=out.chosen, objective=out.objective,
-                         n_features=len(feats))
+        res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
+                         objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:
@@ -214,8 +214,8 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
             o = S.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
             res.patterns = S.rps_to_patterns(feats, o.rps)
-            res.extra.update(chosen_params=o.chosen, objective=o.objective,
-                             ablation=over)
+            res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
+                             objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)
 
     def empty(f: Failure) -> None:

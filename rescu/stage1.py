@@ -14,6 +14,10 @@ Pipeline of :func:`discover`:
    adaptive grid (the product of the grids of the names in ``adaptive``, the others
    fixed) the table is only *filtered* by the gates (P_d, P_s, P_theta) to rank its
    initial URPs; the set with the largest U(Omega*) is chosen (the paper's rule).
+   When no grid point's probe gives a valid RP at all (U(Omega*) = 0 everywhere: the
+   best-supported initial URPs are pieces of edges or too small), the grid carries no
+   information and the fixed ``P_d``, ``P_s``, ``P_theta`` are used (``chosen_by`` is
+   "fixed"), not the first (tightest) grid point, which finds the fewest RPs;
    Reuse work across the grid: each distinct initial URP is searched once with the
    loosest gates, and Omega* of a grid point is that matrix pruned under the grid
    point's gates (so the 45 grid points cost a few searches, not 45). The grid points
@@ -221,12 +225,17 @@ class Stage1Output:
         U(Omega*) of the best RP (0 when there is none).
     timings : dict
         Seconds per step.
+    chosen_by : str
+        "grid" when the adaptive grid chose ``chosen``; "fixed" when the fixed
+        parameters were used (no adaptive names, no valid RP at any grid point, or
+        fewer than 4 features).
     """
 
     rps: list[RPMatrix]
     chosen: dict[str, float]
     objective: float
     timings: dict[str, float] = field(default_factory=dict)
+    chosen_by: str = "fixed"
 
 
 @dataclass
@@ -598,8 +607,11 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
 
 def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
                       params: Stage1Params, grid: list[dict[str, float]],
-                      diag: float) -> dict[str, float]:
+                      diag: float) -> dict[str, float] | None:
     """The adaptive parameter set: the grid point with the largest U(Omega*).
+
+    Returns the chosen grid point, or None when no grid point gives a valid RP
+    (U(Omega*) = 0 at every one); :func:`discover` then uses the fixed parameters.
 
     Reuse work across the grid: a grid point only changes the gates (P_d, P_s,
     P_theta). For every grid point its best ``grid_initials`` initial URPs are ranked
@@ -644,7 +656,7 @@ def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
                 u_best = max(u_best, U)
         if u_best > best_u + 1e-12:
             best_u, chosen = u_best, pset
-    return chosen
+    return chosen if best_u > 0 else None
 
 
 def discover(features: Features, params: Stage1Params | None = None) -> Stage1Output:
@@ -677,14 +689,17 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     pd_max = max(p["P_d"] for p in grid)
     table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol, params.seed)
     t2 = time.perf_counter()
-    chosen = grid[0]
+    chosen, chosen_by = fixed, "fixed"
     if len(grid) > 1:
-        chosen = choose_parameters(ctx, table, features, params, grid, diag)
+        pick = choose_parameters(ctx, table, features, params, grid, diag)
+        if pick is not None:
+            chosen, chosen_by = pick, "grid"
     t3 = time.perf_counter()
     rps = run_discovery(ctx, table, features, params, chosen, diag)
     t4 = time.perf_counter()
     timings = {"match": t1 - t0, "precompute": t2 - t1, "grid": t3 - t2, "search": t4 - t3}
-    return Stage1Output(rps, dict(chosen), rps[0].objective if rps else 0.0, timings)
+    return Stage1Output(rps, dict(chosen), rps[0].objective if rps else 0.0, timings,
+                        chosen_by)
 
 
 def rps_to_patterns(features: Features, rps: list[RPMatrix]) -> list[Pattern]:
