@@ -15,9 +15,11 @@ Pipeline of :func:`discover`:
    fixed) the table is only *filtered* by the gates (P_d, P_s, P_theta) to rank its
    initial URPs; the set with the largest U(Omega*) is chosen (the paper's rule).
    When no grid point's probe gives a valid RP at all (U(Omega*) = 0 everywhere: the
-   best-supported initial URPs are pieces of edges or too small), the grid carries no
-   information and the fixed ``P_d``, ``P_s``, ``P_theta`` are used (``chosen_by`` is
-   "fixed"), not the first (tightest) grid point, which finds the fewest RPs;
+   best-supported initial URPs are pieces of edges or too small), the grid is probed
+   again with ``grid_retry_initials`` initial URPs per grid point (``chosen_by``
+   "grid-retry"); when that finds none either, the grid carries no information and the
+   fixed ``P_d``, ``P_s``, ``P_theta`` are used (``chosen_by`` "fixed"), not the first
+   (tightest) grid point, which finds the fewest RPs;
    Reuse work across the grid: each distinct initial URP is searched once with the
    loosest gates, and Omega* of a grid point is that matrix pruned under the grid
    point's gates (so the 45 grid points cost a few searches, not 45). The grid points
@@ -50,7 +52,7 @@ from __future__ import annotations
 import itertools
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -102,6 +104,10 @@ class Stage1Params:
         Searches (from distinct initial URPs) per accepted RP; the best is kept.
     grid_initials : int
         Searches per parameter set when choosing the adaptive parameters.
+    grid_retry_initials : int
+        When those searches give no valid RP at any grid point, the grid is probed
+        again with this many searches per parameter set (0, or not more than
+        ``grid_initials``: no retry; the fixed parameters are used).
     match_k, match_max_dist, match_min_sep : candidate correspondences (RootSIFT kNN).
     spatial_k : int
         Spatial neighbours per feature when forming initial URPs.
@@ -156,6 +162,7 @@ class Stage1Params:
     n_initials: int = 40
     initials_per_pattern: int = 3
     grid_initials: int = 1
+    grid_retry_initials: int = 5
     match_k: int = 12
     match_max_dist: float = 0.5
     match_min_sep: float = 1.0
@@ -192,6 +199,10 @@ class Stage1Params:
         if not self.min_centre_distance >= 0:
             raise ValueError("Stage1Params.min_centre_distance must be >= 0, got "
                              f"{self.min_centre_distance!r}")
+        if int(self.grid_retry_initials) != self.grid_retry_initials \
+                or self.grid_retry_initials < 0:
+            raise ValueError("Stage1Params.grid_retry_initials must be an integer >= 0, got "
+                             f"{self.grid_retry_initials!r}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 
@@ -226,9 +237,10 @@ class Stage1Output:
     timings : dict
         Seconds per step.
     chosen_by : str
-        "grid" when the adaptive grid chose ``chosen``; "fixed" when the fixed
-        parameters were used (no adaptive names, no valid RP at any grid point, or
-        fewer than 4 features).
+        "grid" when the adaptive grid chose ``chosen``; "grid-retry" when it did so only
+        in the retry probe (``grid_retry_initials``); "fixed" when the fixed parameters
+        were used (no adaptive names, no valid RP at any grid point, or fewer than 4
+        features).
     """
 
     rps: list[RPMatrix]
@@ -694,6 +706,11 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
         pick = choose_parameters(ctx, table, features, params, grid, diag)
         if pick is not None:
             chosen, chosen_by = pick, "grid"
+        elif params.grid_retry_initials > max(1, params.grid_initials):
+            retry = replace(params, grid_initials=params.grid_retry_initials)
+            pick = choose_parameters(ctx, table, features, retry, grid, diag)
+            if pick is not None:
+                chosen, chosen_by = pick, "grid-retry"
     t3 = time.perf_counter()
     rps = run_discovery(ctx, table, features, params, chosen, diag)
     t4 = time.perf_counter()

@@ -95,10 +95,33 @@ def test_no_recurrence_under_the_adaptive_grid_falls_back_to_the_fixed_parameter
     assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
 
 
+def test_a_failed_probe_is_retried_with_more_initials_before_the_fallback(monkeypatch):
+    import rescu.stage1 as S
+    img, _ = make_scene()
+    f = extract_features(img)
+    calls = []
+    real = S.choose_parameters
+
+    def probe(ctx, table, features, params, grid, diag):
+        calls.append(params.grid_initials)
+        return None if len(calls) == 1 else real(ctx, table, features, params, grid, diag)
+
+    monkeypatch.setattr(S, "choose_parameters", probe)
+    out = discover(f, Stage1Params(grid_retry_initials=4))
+    assert calls == [1, 4] and out.chosen_by == "grid-retry" and len(out.rps) == 1
+    calls.clear()
+    out = discover(f, Stage1Params(grid_retry_initials=0))
+    assert calls == [1] and out.chosen_by == "fixed"
+    assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
+    with pytest.raises(ValueError, match="grid_retry_initials"):
+        Stage1Params(grid_retry_initials=-1)
+
+
 def test_grid_without_a_valid_probe_uses_the_fixed_parameters_not_the_tightest():
     """Held-out synthetic scene (seed 7, image 19): five rows of objects, but the
-    best-supported initial URP of every grid point prunes to no valid RP. The tightest
-    grid point (P_d 0.1, P_s 0.1) then found nothing; the fixed parameters find the rows."""
+    best-supported initial URPs of every grid point (5 of them in the retry) prune to no
+    valid RP. The tightest grid point (P_d 0.1, P_s 0.1) then found nothing; the fixed
+    parameters find the rows."""
     from rescu.synth import SynthParams, render_synthetic_image
     scene = render_synthetic_image(SynthParams(seed=7), 19)
     f = extract_features(scene.rgb)
