@@ -26,9 +26,12 @@ $(STAMP): requirements.txt pyproject.toml
 run: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES)
 
-# the synthetic benchmark again with another seed (config/holdout.yaml) -> results/holdout/
+# the synthetic benchmark again with another seed (config/holdout.yaml) -> results/holdout/;
+# make holdout SEED=11 -> that seed, in results/holdout-11/
+SEED ?=
 holdout: setup
-	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/holdout.yaml
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/holdout.yaml \
+	  $(if $(SEED),--config 'synthetic={seed: $(SEED)}' results_dir=results/holdout-$(SEED))
 
 report: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --report results/snakemake-report.html

@@ -1,11 +1,17 @@
 # RESCU: recurrence-based 3D scene understanding from a single image.
 # Table of contents: config + validation, one rule file per stage, the final targets.
-from snakemake.utils import min_version, validate
+from snakemake.utils import min_version, update_config, validate
+
+from rescu.config import typed_cli_overrides
 
 min_version("9.0")
 
 
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
+
+
+# --config values arrive as strings inside mappings/lists ({seed: 11} -> "11"): retype them
+update_config(config, typed_cli_overrides(workflow.config_settings.config))
 
 
 validate(config, os.path.join(workflow.basedir, "config", "config.schema.yaml"))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from .io import InputError
 
@@ -38,6 +38,41 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
         else:
             out[k] = copy.deepcopy(v)
     return out
+
+
+def typed_cli_overrides(overrides: Any) -> Any:
+    """``snakemake --config`` values with the types YAML's safe loader gives them.
+
+    Snakemake reads a ``--config`` value with YAML's BaseLoader, which keeps every scalar
+    inside a mapping or list a string: ``--config 'synthetic={seed: 11}'`` gives
+    ``{"seed": "11"}`` and ``max_images: null`` gives ``"null"``, which the schema rejects.
+    Every string that the safe loader reads as a number, boolean or null becomes that
+    (recursively through mappings and lists); other strings stay as they are. Apply it to
+    the command line's values only, not to config files (those are typed already).
+
+    Parameters
+    ----------
+    overrides : mapping, list or scalar
+        ``workflow.config_settings.config`` in a Snakefile.
+
+    Returns
+    -------
+    The same structure with plain dicts and lists.
+    """
+    import yaml
+
+    if isinstance(overrides, Mapping):
+        return {k: typed_cli_overrides(v) for k, v in overrides.items()}
+    if isinstance(overrides, (list, tuple)):
+        return [typed_cli_overrides(v) for v in overrides]
+    if isinstance(overrides, str):
+        try:
+            v = yaml.safe_load(overrides)
+        except yaml.YAMLError:
+            return overrides
+        if v is None or isinstance(v, (bool, int, float)):
+            return v
+    return overrides
 
 
 def validate_config(config: dict[str, Any], source: str = "config") -> dict[str, Any]:

@@ -36,6 +36,27 @@ def _image_folder(root: Path) -> tuple[Path, str]:
     return root, ""
 
 
+def selected_datasets(config: dict[str, Any]) -> set[str] | None:
+    """The datasets named by the config's ``run_datasets`` (None: every enabled one).
+
+    ``run_datasets`` is a list of names or one string of comma-separated names (what
+    ``snakemake --config run_datasets=synthetic,chess`` passes). A named dataset runs even
+    when its spec says ``enabled: false``. A name that is not in ``datasets`` is an
+    :class:`InputError` listing the configured names; an empty selection is one too.
+    """
+    sel = config.get("run_datasets")
+    if sel is None:
+        return None
+    names = [n.strip() for n in sel.split(",")] if isinstance(sel, str) else list(sel)
+    names = [n for n in names if n]
+    known = list(config["datasets"])
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        what = f"unknown dataset(s) {unknown}" if unknown else "names no dataset"
+        raise InputError(f"config run_datasets: {what}; the configured datasets are {known}")
+    return set(names)
+
+
 def build_image_table(config: dict[str, Any], results_dir: str,
                       log: Callable[[str], None] = print) -> dict[str, dict[str, Any]]:
     """The images of every configured dataset, known before anything runs.
@@ -43,14 +64,18 @@ def build_image_table(config: dict[str, Any], results_dir: str,
     Returns ``{dataset: {"root": Path, "kind": str, "images": {stem: path}, "names":
     {stem: "images/<file>"}, "has_rps": bool, "has_vps": bool}}``. A folder dataset
     whose folder is missing is skipped with a message (``log``); two images with the
-    same stem in one dataset are an error naming both.
+    same stem in one dataset are an error naming both. Only the datasets of
+    ``run_datasets`` are listed when it is set (:func:`selected_datasets`), otherwise
+    those not marked ``enabled: false``.
     """
     from .synth import synthetic_image_names
 
+    selected = selected_datasets(config)
     table: dict[str, dict[str, Any]] = {}
     for name, spec in config["datasets"].items():
         spec = spec or {}
-        if not spec.get("enabled", True):
+        runs = name in selected if selected is not None else spec.get("enabled", True)
+        if not runs:
             continue
         kind = spec.get("kind", "folder")
         root = dataset_root(name, spec, results_dir)

@@ -167,3 +167,44 @@ def test_malformed_config_names_file_and_field(tmp_path):
     p.write_text("datasets:\n  mine: {kind: folder}\n")
     with pytest.raises(InputError, match=r"datasets\.mine"):
         load_config(p)
+
+
+def test_command_line_overrides_get_yaml_types_back():
+    from rescu.config import typed_cli_overrides
+
+    # what snakemake's BaseLoader makes of --config 'synthetic={seed: 11}' and friends
+    raw = {"synthetic": {"seed": "11", "sizes": [["640", "480"]]},
+           "datasets": {"cmp_facade": {"max_images": "null", "enabled": "false",
+                                       "path": "../data/2024 photos"}},
+           "stage1": {"P_s": "0.3", "orientation_mode": "wrapped"},
+           "run_datasets": "synthetic,chess", "results_dir": "results/x"}
+    t = typed_cli_overrides(raw)
+    assert t["synthetic"] == {"seed": 11, "sizes": [[640, 480]]}
+    assert t["datasets"]["cmp_facade"] == {"max_images": None, "enabled": False,
+                                           "path": "../data/2024 photos"}
+    assert t["stage1"] == {"P_s": 0.3, "orientation_mode": "wrapped"}
+    assert t["run_datasets"] == "synthetic,chess" and t["results_dir"] == "results/x"
+    assert raw["synthetic"]["seed"] == "11"            # input unchanged
+    load_config(overrides=t)                           # and the schema accepts it
+
+
+def test_run_datasets_selects_and_names_unknown_datasets(tmp_path):
+    from rescu.datasets import build_image_table, selected_datasets
+
+    cfg = load_config()
+    assert selected_datasets(cfg) is None
+    every = set(build_image_table(cfg, str(tmp_path), log=lambda m: None))
+    assert "synthetic" in every and "photos" in every
+    for sel in (["synthetic"], "synthetic", " synthetic, "):
+        table = build_image_table({**cfg, "run_datasets": sel}, str(tmp_path))
+        assert list(table) == ["synthetic"]
+    # a named dataset runs even when the config switches it off
+    off = {**cfg, "datasets": {**cfg["datasets"], "photos": {"kind": "package_photos",
+                                                           "enabled": False}}}
+    assert "photos" not in build_image_table(off, str(tmp_path), log=lambda m: None)
+    assert list(build_image_table({**off, "run_datasets": ["photos"]}, str(tmp_path))) == \
+        ["photos"]
+    with pytest.raises(InputError, match=r"run_datasets: unknown dataset\(s\) \['chesss'\]"):
+        build_image_table({**cfg, "run_datasets": "synthetic,chesss"}, str(tmp_path))
+    with pytest.raises(InputError, match="run_datasets: names no dataset"):
+        selected_datasets({**cfg, "run_datasets": []})

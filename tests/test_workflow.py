@@ -140,18 +140,26 @@ def test_stage2_gate_change_reruns_prediction_only(finished_run):
         assert upstream not in jobs, f"{upstream} must not rerun after a gate change: {jobs}"
 
 
-def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path):
+@pytest.mark.parametrize("seed", [None, 11])
+def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path, seed):
     """config/holdout.yaml (``make holdout``): the synthetic benchmark with another seed,
-    every other dataset off, everything (logs included) under results/holdout."""
-    proc = snakemake(tmp_path, REPO / "config" / "holdout.yaml", "-n")
+    every other dataset off, everything (logs included) under results/holdout.
+    ``make holdout SEED=11`` passes the seed on the command line (a nested --config
+    value, which snakemake gives as a string and the Snakefile retypes)."""
+    extra = () if seed is None else (
+        "--config", f"synthetic={{seed: {seed}}}", f"results_dir=results/holdout-{seed}",
+        "datasets={cmp_facade: {max_images: null}}")
+    out_dir = "results/holdout/" if seed is None else f"results/holdout-{seed}/"
+    proc = snakemake(tmp_path, REPO / "config" / "holdout.yaml", "-n", *extra)
     jobs = planned_jobs(proc)
     holdout = yaml.safe_load((REPO / "config" / "holdout.yaml").read_text())
     n = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["synthetic"]["n_images"]
     assert holdout["synthetic"]["seed"] != 0 and holdout["results_dir"] == "results/holdout"
+    assert holdout["run_datasets"] == ["synthetic"]
     assert jobs.get("generate_synthetic") == 1 and jobs.get("scene") == n, jobs
     assert "export_photos" not in jobs, jobs
     text = proc.stdout + proc.stderr
     outs = re.findall(r"^\s+(?:output|log): (.*)$", text, re.M)
     paths = [p.strip() for line in outs for p in line.split(",")]
-    assert paths and all(p.startswith("results/holdout/") for p in paths), \
-        [p for p in paths if not p.startswith("results/holdout/")][:5]
+    assert paths and all(p.startswith(out_dir) for p in paths), \
+        [p for p in paths if not p.startswith(out_dir)][:5]
