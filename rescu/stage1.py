@@ -619,11 +619,16 @@ def run_discovery(ctx: SearchContext, table: URPTable, features: Features,
 
 def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
                       params: Stage1Params, grid: list[dict[str, float]],
-                      diag: float) -> dict[str, float] | None:
+                      diag: float,
+                      searches: dict[tuple[int, ...], tuple[np.ndarray, dict]] | None = None
+                      ) -> dict[str, float] | None:
     """The adaptive parameter set: the grid point with the largest U(Omega*).
 
     Returns the chosen grid point, or None when no grid point gives a valid RP
     (U(Omega*) = 0 at every one); :func:`discover` then uses the fixed parameters.
+    ``searches`` (initial URP -> its loose search and first-prune parts) is filled and
+    reused when given: a second call on the same grid (the retry with more initials)
+    does not repeat the searches of the first.
 
     Reuse work across the grid: a grid point only changes the gates (P_d, P_s,
     P_theta). For every grid point its best ``grid_initials`` initial URPs are ranked
@@ -638,7 +643,7 @@ def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
     loose = {n: max(p[n] for p in grid) for n in ADAPTIVE_NAMES}
     g_loose = Gates(loose["P_d"] * diag, loose["P_s"], loose["P_theta"])
     avail = np.ones(len(ctx.xy), bool)
-    cache: dict[tuple[int, ...], tuple[np.ndarray, dict]] = {}
+    cache = {} if searches is None else searches
     # ungated affinities of each distinct pruned matrix: grid points whose gates prune
     # a loose matrix to the same Omega* share them and only apply their own gates
     obj_parts: dict[tuple, Any] = {}
@@ -703,12 +708,13 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     t2 = time.perf_counter()
     chosen, chosen_by = fixed, "fixed"
     if len(grid) > 1:
-        pick = choose_parameters(ctx, table, features, params, grid, diag)
+        searches: dict[tuple[int, ...], tuple[np.ndarray, dict]] = {}
+        pick = choose_parameters(ctx, table, features, params, grid, diag, searches)
         if pick is not None:
             chosen, chosen_by = pick, "grid"
         elif params.grid_retry_initials > max(1, params.grid_initials):
             retry = replace(params, grid_initials=params.grid_retry_initials)
-            pick = choose_parameters(ctx, table, features, retry, grid, diag)
+            pick = choose_parameters(ctx, table, features, retry, grid, diag, searches)
             if pick is not None:
                 chosen, chosen_by = pick, "grid-retry"
     t3 = time.perf_counter()

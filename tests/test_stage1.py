@@ -102,13 +102,18 @@ def test_a_failed_probe_is_retried_with_more_initials_before_the_fallback(monkey
     calls = []
     real = S.choose_parameters
 
-    def probe(ctx, table, features, params, grid, diag):
+    shared = []
+
+    def probe(ctx, table, features, params, grid, diag, searches=None):
         calls.append(params.grid_initials)
-        return None if len(calls) == 1 else real(ctx, table, features, params, grid, diag)
+        shared.append(searches)
+        return None if len(calls) == 1 else real(ctx, table, features, params, grid, diag,
+                                                  searches)
 
     monkeypatch.setattr(S, "choose_parameters", probe)
     out = discover(f, Stage1Params(grid_retry_initials=4))
     assert calls == [1, 4] and out.chosen_by == "grid-retry" and len(out.rps) == 1
+    assert shared[0] is shared[1] is not None     # the retry reuses the first probe's searches
     calls.clear()
     out = discover(f, Stage1Params(grid_retry_initials=0))
     assert calls == [1] and out.chosen_by == "fixed"
