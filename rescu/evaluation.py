@@ -680,6 +680,89 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
     return pd.DataFrame(rows, columns=cols)
 
 
+def rp_gt_label(boxes: np.ndarray, gt_rps: Sequence[GroundTruthRP], h: float = 0.5) -> int:
+    """The ground-truth RP a detected RP belongs to: the one that the most of its boxes
+    match (IOD > ``h``, not one-to-one), when that is at least half of them (and at
+    least one); else -1.
+
+    Parameters
+    ----------
+    boxes : (K, 4) float
+        The detected RP's instance boxes ``[x, y, w, h]``, pixels.
+    gt_rps : sequence of GroundTruthRP
+    h : float
+        IOD threshold.
+    """
+    from .metrics import iod_matrix
+
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    best, label = 0, -1
+    for g, rp in enumerate(gt_rps):
+        iod = iod_matrix(b, np.asarray(rp.boxes, float).reshape(-1, 4))
+        n = int((iod.max(1) > h).sum()) if iod.size else 0
+        if n > best:
+            best, label = n, g
+    return label if best >= max(1, len(b) // 2) else -1
+
+
+def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
+                    inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
+                    params: Any = None, h: float = 0.5) -> list[dict[str, Any]]:
+    """Is RESCU-II's split-RP merge right on one image? The merge evidence of every pair
+    of the RPs stage II works on, labelled by the ground truth.
+
+    Parameters
+    ----------
+    stage1 : ImageResult
+        The RESCU-I result (its instance boxes are the evidence's boxes).
+    rp_index : sequence of int
+        Positions in ``stage1.patterns`` of the RPs stage II works on (``rp_index`` of
+        the stage-II features file).
+    inst_feats : (N, D) float
+        Backbone feature of every stage-I instance (``instance_features``).
+    inst_rp : (N,) int
+        Position in ``rp_index`` of each instance's RP (``instance_rp``).
+    gt_rps : sequence of GroundTruthRP
+        The image's ground truth (may be empty: every label is then -1).
+    params : rescu.merge.MergeParams, optional
+        Default ``MergeParams()``.
+    h : float
+        IOD threshold of :func:`rp_gt_label`.
+
+    Returns
+    -------
+    list of dict
+        One per pair with evidence (both RPs have two or more instances with features):
+        ``a, b`` (pattern positions), ``gt_a, gt_b`` (:func:`rp_gt_label`), ``same``
+        (both the same GT RP), and :func:`rescu.merge.pair_evidence`'s ``merge, ratio,
+        s_ab, s_aa, s_bb, size_ratio, conflicts, line_residual``. The pipeline's merge
+        also sees the stage-II instances in the conflict and line tests, so its decision
+        can differ in those (never in the appearance test).
+    """
+    from .merge import MergeParams, pair_evidence
+
+    params = params if params is not None else MergeParams()
+    f = np.asarray(inst_feats, np.float64)
+    irp = np.asarray(inst_rp).reshape(-1)
+    if f.ndim != 2 or len(f) != len(irp):
+        raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
+                         f"got {f.shape}")
+    boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
+             for pi in rp_index]
+    label = [rp_gt_label(b, gt_rps, h) for b in boxes]
+    rows = []
+    for x in range(len(rp_index)):
+        for y in range(x + 1, len(rp_index)):
+            ev = pair_evidence(f[irp == x], f[irp == y], boxes[x], boxes[y], params)
+            if np.isnan(ev["ratio"]):       # an RP with fewer than 2 featured instances
+                continue
+            rows.append({"a": int(rp_index[x]), "b": int(rp_index[y]), "gt_a": label[x],
+                         "gt_b": label[y], "same": bool(label[x] >= 0 and label[x] == label[y]),
+                         **{k: ev[k] for k in ("merge", "ratio", "s_ab", "s_aa", "s_bb",
+                                               "size_ratio", "conflicts", "line_residual")}})
+    return rows
+
+
 def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                    h: float = 0.5, min_rp_precision: float = 0.5,
         images: Iterable[str] | None = None) -> pd.DataFrame:

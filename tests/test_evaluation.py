@@ -399,3 +399,50 @@ def test_real_annotations_as_predictions(tmp_path: Path) -> None:
     for m in METRICS:
         v = df[m].dropna()
         assert len(v) > 0 and (v == 1.0).all()
+
+
+# ----------------------------------------------------------------------------- merge pairs
+def test_rp_gt_label_takes_the_gt_rp_most_boxes_fall_in() -> None:
+    from rescu.io import GroundTruthRP
+
+    gts = [GroundTruthRP("a", [tuple(b) for b in _row(4)], {}),
+           GroundTruthRP("b", [tuple(b) for b in _row(4, y0=100)], {})]
+    parts = np.array(_row(4, x0=15, y0=15, size=8))              # inside GT RP a's boxes
+    assert E.rp_gt_label(parts, gts) == 0
+    assert E.rp_gt_label(np.array(_row(3, x0=12, y0=102, size=10)), gts) == 1
+    assert E.rp_gt_label(np.array(_row(3, y0=300)), gts) == -1     # in no GT box
+    mixed = np.concatenate([parts[:1], np.array(_row(3, y0=300))])  # 1 of 4: under half
+    assert E.rp_gt_label(mixed, gts) == -1
+    assert E.rp_gt_label(parts, []) == -1
+
+
+def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> None:
+    from rescu.io import GroundTruthRP
+
+    def pat(i, boxes):
+        return Pattern(id=i, score=1.0, instances=[Instance(bbox=tuple(b)) for b in boxes])
+
+    left, right = _row(3), _row(3, x0=130)          # one row split into two RPs
+    other = _row(3, y0=200)                          # a row of other objects
+    single = [[10, 300, 20, 20]]                     # an RP stage II does not use
+    res = ImageResult(image="x.png", width=400, height=400, method="rescu-i",
+                      patterns=[pat(0, left), pat(1, single), pat(2, right), pat(3, other)])
+    rng = np.random.default_rng(0)
+    e1, e2 = np.eye(8)[0], np.eye(8)[1]
+    feats = np.concatenate([e1 + 0.05 * rng.standard_normal((6, 8)),
+                            e2 + 0.05 * rng.standard_normal((3, 8))])
+    inst_rp = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])   # positions in rp_index
+    gts = [GroundTruthRP("row", [tuple(b) for b in left + right], {}),
+           GroundTruthRP("other", [tuple(b) for b in other], {})]
+    rows = E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, gts)
+    got = {(r["a"], r["b"]): r for r in rows}
+    assert set(got) == {(0, 2), (0, 3), (2, 3)}
+    assert got[(0, 2)]["same"] and got[(0, 2)]["merge"]
+    assert got[(0, 2)]["ratio"] > 0.9 and got[(0, 2)]["line_residual"] == 0
+    for k in ((0, 3), (2, 3)):
+        assert not got[k]["same"] and not got[k]["merge"]
+        assert got[k]["gt_b"] == 1
+    # without ground truth every label is -1 and no pair is "same"
+    assert not any(r["same"] for r in E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, []))
+    with pytest.raises(ValueError, match="inst_feats"):
+        E.merge_pair_rows(res, [0, 2, 3], feats[:5], inst_rp, gts)

@@ -1,0 +1,106 @@
+"""Is RESCU-II's split-RP merge right? The merge evidence of every pair of stage-I RPs,
+labelled by the ground truth.
+
+For every image of a finished run with two or more stage-II RPs, computes
+:func:`rescu.merge.pair_evidence` (the test ``rescu.stage2`` runs before merging, with
+the ``merge_*`` keys of the config) on the stored stage-I instance features
+(``<results>/<dataset>/stage2/<image>.feats.h5``) and boxes (``rescu-i/<image>.json``),
+and labels the pair *same* when both RPs match the same ground-truth RP
+(:func:`rescu.evaluation.merge_pair_rows`, :func:`rescu.evaluation.rp_gt_label`). Prints the
+pairs that pass the size, overlap-conflict and line gates (the appearance test decides
+those), sorted by the appearance ratio ``S_AB / min(S_AA, S_BB)``, and a summary:
+merges right / wrong, same-RP pairs not merged, and the pairs that pass every test but
+the line test (split grids, or rows of different RPs). Asserts nothing.
+
+The evidence is recomputed on the stage-I boxes; the pipeline's merge also sees the
+stage-II instances' boxes in the conflict and line gates, so a pair can differ from the
+``merged`` list of ``rescu-ii/<image>.json`` in those gates (never in the appearance).
+
+Usage (after a run, from the repository root)::
+
+    python benchmarks/merge_pairs.py results                        # synthetic
+    python benchmarks/merge_pairs.py results/holdout-11
+    python benchmarks/merge_pairs.py results --dataset spb_facades
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import pandas as pd
+
+    from rescu.config import load_config
+    from rescu.datasets import dataset_root
+    from rescu.evaluation import merge_pair_rows
+    from rescu.io import load_coco_rps, read_h5, read_result
+    from rescu.stage2 import Stage2Params
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run")
+    ap.add_argument("--dataset", default="synthetic")
+    ap.add_argument("--iod", type=float, default=0.5, help="IOD threshold h of a GT match")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="config file (default config/config.yaml)")
+    a = ap.parse_args(argv)
+    cfg = load_config(a.config)
+    if a.dataset not in cfg["datasets"]:
+        ap.error(f"dataset {a.dataset!r} is not in the config ({', '.join(cfg['datasets'])})")
+    params = Stage2Params.from_dict(cfg["stage2"]).merge_params()
+    data = dataset_root(a.dataset, cfg["datasets"][a.dataset], str(a.results))
+    ann = data / "annotations.json"
+    s2 = a.results / a.dataset / "stage2"
+    for path, what in ((ann, "ground truth"), (s2, "stage-II features")):
+        if not path.exists():
+            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
+            return 2
+    truth = {Path(k).stem: v for k, v in load_coco_rps(ann).items()}
+    rows = []
+    for fh in sorted(s2.glob("*.feats.h5")):
+        name = fh.name[:-len(".feats.h5")]
+        arr, _ = read_h5(fh)
+        rp_index = [int(v) for v in np.asarray(arr["rp_index"]).reshape(-1)]
+        if len(rp_index) < 2:
+            continue
+        s1 = read_result(a.results / a.dataset / "rescu-i" / f"{name}.json")
+        rows += [dict(image=name, **r) for r in merge_pair_rows(
+            s1, rp_index, arr["instance_features"], arr["instance_rp"], truth.get(name, []),
+            params, a.iod)]
+    df = pd.DataFrame(rows)
+    if df.empty:
+        print(f"{a.dataset}: no image with two or more stage-II RPs")
+        return 0
+    line_ok = (df.line_residual <= params.max_line_residual if params.max_line_residual > 0
+               else pd.Series(True, index=df.index))
+    gated = df[(df.size_ratio <= params.size_tolerance) & (df.conflicts == 0) & line_ok]
+    pd.set_option("display.width", 250)
+    pd.set_option("display.max_rows", None)
+    print(f"{a.dataset}: {len(df)} RP pairs in {df.image.nunique()} images; {len(gated)} pass "
+          f"the size / conflict / line gates (rho = {params.similarity_ratio}, "
+          f"min S_AB = {params.min_similarity}):")
+    if len(gated):
+        print(gated.sort_values("ratio", ascending=False).round(3).to_string(index=False))
+    m = df["merge"]
+    looks = ((df.ratio >= params.similarity_ratio) & (df.s_ab >= params.min_similarity)
+             & (df.size_ratio <= params.size_tolerance) & (df.conflicts == 0))
+    if params.max_line_residual > 0:
+        only_line = looks & ~line_ok
+        print(f"stopped by the line test alone: {int(only_line.sum())} pairs (same RP "
+              f"{int((only_line & df.same).sum())}, different "
+              f"{int((only_line & ~df.same).sum())})")
+    print(f"merged: {int(m.sum())} (right {int((m & df.same).sum())}, wrong "
+          f"{int((m & ~df.same).sum())}); same-RP pairs: {int(df.same.sum())}, not merged "
+          f"{int((~m & df.same).sum())} ({int((~m & df.same & df.index.isin(gated.index)).sum())}"
+          f" of them stopped by the appearance test)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
