@@ -6,7 +6,7 @@ For every image of a finished run with two or more stage-II RPs, computes
 the ``merge_*`` keys of the config) on the stored stage-I instance features
 (``<results>/<dataset>/stage2/<image>.feats.h5``) and boxes (``rescu-i/<image>.json``),
 and labels the pair *same* when both RPs match the same ground-truth RP
-(:func:`rescu.evaluation.merge_pair_rows`, :func:`rescu.evaluation.rp_gt_label`). Prints the
+(:func:`rescu.evaluation.merge_pair_rows`: the RP-level matching of the tables). Prints the
 pairs that pass the size, overlap-conflict and line gates (the appearance test decides
 those), sorted by the appearance ratio ``S_AB / min(S_AA, S_BB)``, and a summary:
 merges right / wrong, same-RP pairs not merged, and the pairs that pass every test but
@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", type=Path, help="results folder of a finished run")
     ap.add_argument("--dataset", default="synthetic")
-    ap.add_argument("--iod", type=float, default=0.5, help="IOD threshold h of a GT match")
+    ap.add_argument("--iod", type=float, default=0.5, help="IOD threshold h of the RP-level matching")
     ap.add_argument("--config", type=Path, default=None,
                     help="config file (default config/config.yaml)")
     a = ap.parse_args(argv)

@@ -680,34 +680,10 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
     return pd.DataFrame(rows, columns=cols)
 
 
-def rp_gt_label(boxes: np.ndarray, gt_rps: Sequence[GroundTruthRP], h: float = 0.5) -> int:
-    """The ground-truth RP a detected RP belongs to: the one that the most of its boxes
-    match (IOD > ``h``, not one-to-one), when that is at least half of them (and at
-    least one); else -1.
-
-    Parameters
-    ----------
-    boxes : (K, 4) float
-        The detected RP's instance boxes ``[x, y, w, h]``, pixels.
-    gt_rps : sequence of GroundTruthRP
-    h : float
-        IOD threshold.
-    """
-    from .metrics import iod_matrix
-
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    best, label = 0, -1
-    for g, rp in enumerate(gt_rps):
-        iod = iod_matrix(b, np.asarray(rp.boxes, float).reshape(-1, 4))
-        n = int((iod.max(1) > h).sum()) if iod.size else 0
-        if n > best:
-            best, label = n, g
-    return label if best >= max(1, len(b) // 2) else -1
-
-
 def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
                     inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
-                    params: Any = None, h: float = 0.5) -> list[dict[str, Any]]:
+                    params: Any = None, h: float = 0.5, min_rp_precision: float = 0.5
+                    ) -> list[dict[str, Any]]:
     """Is RESCU-II's split-RP merge right on one image? The merge evidence of every pair
     of the RPs stage II works on, labelled by the ground truth.
 
@@ -726,15 +702,16 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
         The image's ground truth (may be empty: every label is then -1).
     params : rescu.merge.MergeParams, optional
         Default ``MergeParams()``.
-    h : float
-        IOD threshold of :func:`rp_gt_label`.
+    h, min_rp_precision : float
+        The RP-level matching of :func:`rescu.metrics.score_image` that assigns each RP
+        to a GT RP (IOD threshold; smallest precision of an accepted RP).
 
     Returns
     -------
     list of dict
         One per pair with evidence (both RPs have two or more instances with features):
-        ``a, b`` (pattern positions), ``gt_a, gt_b`` (:func:`rp_gt_label`), ``same``
-        (both the same GT RP), and :func:`rescu.merge.pair_evidence`'s ``merge, ratio,
+        ``a, b`` (pattern positions), ``gt_a, gt_b`` (the assigned GT RP index, -1 for
+        none), ``same`` (both assigned to the same GT RP), and :func:`rescu.merge.pair_evidence`'s ``merge, ratio,
         s_ab, s_aa, s_bb, size_ratio, conflicts, line_residual``. The pipeline's merge
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
@@ -749,7 +726,8 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
                          f"got {f.shape}")
     boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
              for pi in rp_index]
-    label = [rp_gt_label(b, gt_rps, h) for b in boxes]
+    assigned = score_image(boxes, [g.boxes for g in gt_rps], h, min_rp_precision).rp_assignment
+    label = [-1 if g is None else int(g) for g in assigned]
     rows = []
     for x in range(len(rp_index)):
         for y in range(x + 1, len(rp_index)):

@@ -402,20 +402,6 @@ def test_real_annotations_as_predictions(tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- merge pairs
-def test_rp_gt_label_takes_the_gt_rp_most_boxes_fall_in() -> None:
-    from rescu.io import GroundTruthRP
-
-    gts = [GroundTruthRP("a", [tuple(b) for b in _row(4)], {}),
-           GroundTruthRP("b", [tuple(b) for b in _row(4, y0=100)], {})]
-    parts = np.array(_row(4, x0=15, y0=15, size=8))              # inside GT RP a's boxes
-    assert E.rp_gt_label(parts, gts) == 0
-    assert E.rp_gt_label(np.array(_row(3, x0=12, y0=102, size=10)), gts) == 1
-    assert E.rp_gt_label(np.array(_row(3, y0=300)), gts) == -1     # in no GT box
-    mixed = np.concatenate([parts[:1], np.array(_row(3, y0=300))])  # 1 of 4: under half
-    assert E.rp_gt_label(mixed, gts) == -1
-    assert E.rp_gt_label(parts, []) == -1
-
-
 def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> None:
     from rescu.io import GroundTruthRP
 
@@ -442,6 +428,10 @@ def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> No
     for k in ((0, 3), (2, 3)):
         assert not got[k]["same"] and not got[k]["merge"]
         assert got[k]["gt_b"] == 1
+    # an RP matching no GT RP is labelled -1
+    only_row = {(r["a"], r["b"]): r for r in E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp,
+                                                                 gts[:1])}
+    assert only_row[(0, 3)]["gt_b"] == -1 and only_row[(0, 2)]["same"]
     # without ground truth every label is -1 and no pair is "same"
     assert not any(r["same"] for r in E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, []))
     with pytest.raises(ValueError, match="inst_feats"):
