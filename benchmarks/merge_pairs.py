@@ -5,11 +5,12 @@ For every image of a finished run with two or more stage-II RPs, computes
 :func:`rescu.merge.pair_evidence` (the test ``rescu.stage2`` runs before merging, with
 the ``merge_*`` keys of the config) on the stored stage-I instance features
 (``<results>/<dataset>/stage2/<image>.feats.h5``) and boxes (``rescu-i/<image>.json``),
-and labels the pair *same* when both RPs match the same ground-truth RP
+and labels the pair *same* when both RPs are assigned to the same ground-truth RP,
+*different* when to two, *unlabelled* when either is assigned to none
 (:func:`rescu.evaluation.merge_pair_rows`: the RP-level matching of the tables). Prints the
 pairs that pass the size, overlap-conflict and line gates (the appearance test decides
 those), sorted by the appearance ratio ``S_AB / min(S_AA, S_BB)``, and a summary:
-merges right / wrong, same-RP pairs not merged, and the pairs that pass every test but
+merges by label, same-RP pairs not merged, and the pairs that pass every test but
 the line test (split grids, or rows of different RPs). Asserts nothing.
 
 The evidence is recomputed on the stage-I boxes; the pipeline's merge also sees the
@@ -88,17 +89,22 @@ def main(argv: list[str] | None = None) -> int:
     if len(gated):
         print(gated.sort_values("ratio", ascending=False).round(3).to_string(index=False))
     m = df["merge"]
+    known = (df.gt_a >= 0) & (df.gt_b >= 0)       # both RPs assigned to a GT RP
+    diff = known & ~df.same
+
+    def split(sel: pd.Series) -> str:
+        return (f"same RP {int((sel & df.same).sum())}, different {int((sel & diff).sum())}, "
+                f"unlabelled {int((sel & ~known).sum())}")
+
     looks = ((df.ratio >= params.similarity_ratio) & (df.s_ab >= params.min_similarity)
              & (df.size_ratio <= params.size_tolerance) & (df.conflicts == 0))
     if params.max_line_residual > 0:
-        only_line = looks & ~line_ok
-        print(f"stopped by the line test alone: {int(only_line.sum())} pairs (same RP "
-              f"{int((only_line & df.same).sum())}, different "
-              f"{int((only_line & ~df.same).sum())})")
-    print(f"merged: {int(m.sum())} (right {int((m & df.same).sum())}, wrong "
-          f"{int((m & ~df.same).sum())}); same-RP pairs: {int(df.same.sum())}, not merged "
-          f"{int((~m & df.same).sum())} ({int((~m & df.same & df.index.isin(gated.index)).sum())}"
-          f" of them stopped by the appearance test)")
+        print(f"stopped by the line test alone: {int((looks & ~line_ok).sum())} pairs "
+              f"({split(looks & ~line_ok)})")
+    print(f"merged: {int(m.sum())} ({split(m)}); same-RP pairs: {int(df.same.sum())}, not "
+          f"merged {int((~m & df.same).sum())} "
+          f"({int((~m & df.same & df.index.isin(gated.index)).sum())} of them stopped by the "
+          f"appearance test)")
     return 0
 
 
