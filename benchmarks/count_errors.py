@@ -19,7 +19,6 @@ rescu-ii, rescu-i, grasp, scene). The dataset folder comes from ``config/config.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -29,22 +28,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
-    from rescu.config import load_config
-    from rescu.datasets import dataset_root
+    from _cli import run_dataset, run_parser
+
     from rescu.evaluation import count_errors, counting_table
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", default="synthetic")
+    ap = run_parser(__doc__)
     ap.add_argument("--method", default="final", help="per-image JSON folder to evaluate")
     ap.add_argument("--all", action="store_true", help="also list the matched instances")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="config file (default config/config.yaml)")
     a = ap.parse_args(argv)
-    cfg = load_config(a.config)
-    if a.dataset not in cfg["datasets"]:
-        ap.error(f"dataset {a.dataset!r} is not in the config ({', '.join(cfg['datasets'])})")
-    data = dataset_root(a.dataset, cfg["datasets"][a.dataset], str(a.results))
+    _, data = run_dataset(ap, a)
     pred = a.results / a.dataset / a.method
     for path, what in ((data / "annotations.json", "ground truth"), (pred, "predictions")):
         if not path.exists():

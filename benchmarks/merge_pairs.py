@@ -26,7 +26,6 @@ Usage (after a run, from the repository root)::
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -38,24 +37,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
-    from rescu.config import load_config
-    from rescu.datasets import dataset_root
+    from _cli import run_dataset, run_parser
+
     from rescu.evaluation import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
     from rescu.stage2 import Stage2Params
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", default="synthetic")
-    ap.add_argument("--iod", type=float, default=0.5, help="IOD threshold h of the RP-level matching")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="config file (default config/config.yaml)")
+    ap = run_parser(__doc__)
+    ap.add_argument("--iod", type=float, default=0.5,
+                    help="IOD threshold h of the RP-level matching")
     a = ap.parse_args(argv)
-    cfg = load_config(a.config)
-    if a.dataset not in cfg["datasets"]:
-        ap.error(f"dataset {a.dataset!r} is not in the config ({', '.join(cfg['datasets'])})")
+    cfg, data = run_dataset(ap, a)
     params = Stage2Params.from_dict(cfg["stage2"]).merge_params()
-    data = dataset_root(a.dataset, cfg["datasets"][a.dataset], str(a.results))
     ann = data / "annotations.json"
     s2 = a.results / a.dataset / "stage2"
     for path, what in ((ann, "ground truth"), (s2, "stage-II features")):
