@@ -711,8 +711,9 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     list of dict
         One per pair with evidence (both RPs have two or more instances with features):
         ``a, b`` (pattern positions), ``gt_a, gt_b`` (the assigned GT RP index, -1 for
-        none), ``same`` (both assigned to the same GT RP), and :func:`rescu.merge.pair_evidence`'s ``merge, ratio,
-        s_ab, s_aa, s_bb, size_ratio, conflicts, line_residual``. The pipeline's merge
+        none), ``same`` (both assigned to the same GT RP), and the ``merge, ratio, s_ab,
+        s_aa, s_bb, size_ratio, conflicts, line_residual`` of
+        :func:`rescu.merge.pair_evidence`. The pipeline's merge
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
     """
