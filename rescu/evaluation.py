@@ -40,7 +40,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -51,6 +51,9 @@ from .counting import counting_patterns
 from .metrics import METRICS, ImageScores, match_boxes, score_image
 from .types import ImageResult
 from .params import checked_mapping
+
+if TYPE_CHECKING:     # imported where used: no table rule reads rescu/merge.py
+    from .merge import MergeParams
 
 CROSS_RATIO_EQUAL = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -682,7 +685,8 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
 
 def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
                     inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
-                    params: Any = None, h: float = 0.5, min_rp_precision: float = 0.5
+                    params: MergeParams | None = None, h: float = 0.5,
+                    min_rp_precision: float = 0.5
                     ) -> list[dict[str, Any]]:
     """Is RESCU-II's split-RP merge right on one image? The merge evidence of every pair
     of the RPs stage II works on, labelled by the ground truth.
@@ -700,8 +704,8 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
         Position in ``rp_index`` of each instance's RP (``instance_rp``).
     gt_rps : sequence of GroundTruthRP
         The image's ground truth (may be empty: every label is then -1).
-    params : rescu.merge.MergeParams, optional
-        Default ``MergeParams()``.
+    params : MergeParams, optional
+        The merge's tunables; default ``MergeParams()``.
     h, min_rp_precision : float
         The RP-level matching of :func:`rescu.metrics.score_image` that assigns each RP
         to a GT RP (IOD threshold; smallest precision of an accepted RP).
