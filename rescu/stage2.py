@@ -32,6 +32,9 @@ Departures from the paper (documented, environment-driven):
   the RP instances" is a random shift/scale of each instance box by at most
   ``jitter`` times the spread of the RP's instance sizes (at least ``min_jitter`` of the
   size), pooled from the same maps.
+* Local appearance deformation is optional (``occlude_prob``, off by default): random
+  occluders over part of the instances in the augmented copies (random erasing,
+  :func:`occlude_instances`). The paper's version is not specified further.
 * Hard negatives: each instance box shifted by half its size, and doubled in size.
 * A size gate: a proposal can only be an instance of an RP when its width and height are
   within a factor ``size_tolerance`` of those of one of its stage-I instances (the paper's
@@ -132,6 +135,12 @@ class Stage2Params:
         Negatives sampled per positive example.
     n_augment : int
         Augmented image copies (one backbone pass each).
+    occlude_prob : float
+        Local appearance deformation in the augmented copies: each instance (in every
+        copy) is partly covered by a random occluder with this probability (0: off), so
+        the head also learns what a partly hidden instance looks like.
+    occlude_fraction : tuple of float
+        (min, max) share of the instance box the occluder covers (a band from one side).
     n_jitter : int
         Geometrically deformed copies of each instance box.
     jitter, min_jitter : float
@@ -211,6 +220,8 @@ class Stage2Params:
     negative_quantile: float = 0.3
     negatives_per_positive: float = 3.0
     n_augment: int = 2
+    occlude_prob: float = 0.0
+    occlude_fraction: tuple[float, float] = (0.2, 0.5)
     n_jitter: int = 4
     jitter: float = 0.5
     min_jitter: float = 0.04
@@ -249,6 +260,12 @@ class Stage2Params:
             raise ValueError(f"val_split must be in [0, 1), got {self.val_split}")
         if not self.input_scales or any(s <= 0 for s in self.input_scales):
             raise ValueError(f"input_scales must be positive, got {self.input_scales}")
+        if not 0 <= self.occlude_prob <= 1:
+            raise ValueError(f"occlude_prob must be in [0, 1], got {self.occlude_prob}")
+        frac = tuple(self.occlude_fraction)
+        if len(frac) != 2 or not 0 <= frac[0] <= frac[1] <= 1:
+            raise ValueError(f"occlude_fraction must be (min, max) with 0 <= min <= max <= 1,"
+                             f" got {self.occlude_fraction}")
         self.proposal_params()  # validates proposal_method
         self.merge_params()     # validates the merge_* keys
 
@@ -256,7 +273,7 @@ class Stage2Params:
     def from_dict(cls, d: dict[str, Any]) -> "Stage2Params":
         """Build from a config mapping; raises ValueError naming any unknown key."""
         d = checked_mapping(cls, d, "stage2 parameter")
-        for k in ("input_scales", "window_scales", "lattice_scales"):
+        for k in ("input_scales", "window_scales", "lattice_scales", "occlude_fraction"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])
         if "hidden_sizes" in d:
@@ -406,6 +423,55 @@ def _augment_image(rgb: np.ndarray, k: int, rng: np.random.Generator
     out = np.clip(img, 0, 255).astype(np.uint8)
     oh, ow = out.shape[:2]
     return np.ascontiguousarray(out), np.array([ow / w, oh / h], np.float32), flip
+
+
+def occlude_instances(rgb: np.ndarray, boxes: np.ndarray, prob: float,
+                      fraction: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+    """Cover part of some instance boxes with random occluders (random erasing).
+
+    Each box is picked with probability ``prob``; its occluder is a band from a random
+    side (left, right, top or bottom) covering a uniform share in ``fraction`` of the
+    box, filled with a random colour plus Gaussian noise (sigma 12 grey levels).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    boxes : (N, 4) float
+        ``[x, y, w, h]`` in the pixels of ``rgb``.
+    prob : float
+        In [0, 1].
+    fraction : (float, float)
+        0 <= min <= max <= 1.
+    rng : numpy Generator
+
+    Returns
+    -------
+    (H, W, 3) uint8
+        A copy of ``rgb`` (``rgb`` itself is not changed).
+    """
+    out = np.array(rgb, np.uint8, copy=True)
+    H, W = out.shape[:2]
+    for x, y, w, h in np.asarray(boxes, np.float64).reshape(-1, 4):
+        if rng.random() >= prob:
+            continue
+        side = int(rng.integers(4))
+        f = float(rng.uniform(fraction[0], fraction[1]))
+        x0, y0, x1, y1 = x, y, x + w, y + h
+        if side == 0:
+            x1 = x + f * w
+        elif side == 1:
+            x0 = x1 - f * w
+        elif side == 2:
+            y1 = y + f * h
+        else:
+            y0 = y1 - f * h
+        c0, r0 = max(0, int(round(x0))), max(0, int(round(y0)))
+        c1, r1 = min(W, int(round(x1))), min(H, int(round(y1)))
+        if c1 <= c0 or r1 <= r0:
+            continue
+        fill = rng.uniform(0, 255, 3)[None, None, :] + rng.normal(0, 12, (r1 - r0, c1 - c0, 1))
+        out[r0:r1, c0:c1] = np.clip(fill, 0, 255).astype(np.uint8)
+    return out
 
 
 def _transform_boxes(b: np.ndarray, scale: np.ndarray, flip: bool, width: int) -> np.ndarray:
@@ -580,6 +646,11 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         for k in range(params.n_augment):
             img, sc, flip = _augment_image(rgb, k, r)
             sets = [_transform_boxes(x, sc, flip, w) for x in (inst, jit, hneg, boxes[aug_idx])]
+            if params.occlude_prob > 0:
+                # own stream: the other augmentations stay as they are without occluders
+                img = occlude_instances(img, sets[0], params.occlude_prob,
+                                        tuple(params.occlude_fraction),
+                                        np.random.default_rng([params.seed, 7919, k]))
             f = image_features(net, img, sets, scales, params.pool_size)
             for key, v in zip(("inst", "jit", "hneg", "prop"), f):
                 aug[key].append(v)

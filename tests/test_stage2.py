@@ -8,8 +8,8 @@ torch = pytest.importorskip("torch")
 from rescu import io  # noqa: E402
 from rescu.metrics import iod_matrix  # noqa: E402
 from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
-                          load_checkpoint, predict_stage2, save_checkpoint, select_examples,
-                          train_heads)
+                          load_checkpoint, occlude_instances, predict_stage2,
+                          save_checkpoint, select_examples, train_heads)
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
 FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
@@ -111,6 +111,38 @@ def test_deterministic(six, tmp_path):
     for k, v in ckpt["state_dict"].items():
         assert torch.equal(v, ckpt2["state_dict"][k]), k
     assert predict_stage2(feats2, ckpt2, s1, p).to_json() == out.to_json()
+
+
+def test_occluders_cover_a_band_of_chosen_boxes_only():
+    img, boxes = squares(n=4)
+    before = img.copy()
+    same = occlude_instances(img, np.array(boxes), 0.0, (0.2, 0.5), np.random.default_rng(0))
+    assert np.array_equal(same, img)
+    out = occlude_instances(img, np.array(boxes), 1.0, (0.3, 0.3), np.random.default_rng(0))
+    assert np.array_equal(img, before)                   # the input is not changed
+    changed = np.any(out != img, axis=2)
+    inside = np.zeros(changed.shape, bool)
+    for x, y, w, h in boxes:
+        x, y, w, h = int(x), int(y), int(w), int(h)
+        inside[y:y + h, x:x + w] = True
+        share = changed[y:y + h, x:x + w].mean()
+        assert 0.25 <= share <= 0.31                     # a 30 % band (a few pixels may match)
+    assert not changed[~inside].any()
+    again = occlude_instances(img, np.array(boxes), 1.0, (0.3, 0.3), np.random.default_rng(0))
+    assert np.array_equal(out, again)
+    with pytest.raises(ValueError, match="occlude_prob"):
+        Stage2Params(occlude_prob=1.5)
+    with pytest.raises(ValueError, match="occlude_fraction"):
+        Stage2Params.from_dict({"occlude_fraction": [0.5, 0.2]})
+
+
+def test_occlusion_changes_only_the_augmented_copies(six):
+    img, boxes, s1, p, feats, *_ = six
+    occ = compute_stage2_features(img, 1.0, s1, Stage2Params(**FAST, occlude_prob=1.0))
+    assert np.array_equal(occ["instance_features"], feats["instance_features"])
+    assert np.array_equal(occ["proposal_features"], feats["proposal_features"])
+    d = np.linalg.norm(occ["aug_instance_features"] - feats["aug_instance_features"], axis=2)
+    assert np.all(d > 1e-3)                              # every instance covered in each copy
 
 
 def test_h5_and_checkpoint_round_trip(six, tmp_path):
