@@ -1,0 +1,171 @@
+"""RESCU-II with other stage-II settings on a finished run, scored beside RESCU-I and the
+run's own RESCU-II.
+
+Re-runs the three stage-II steps (features, head, prediction; :mod:`rescu.stage2`) in
+memory on every image of one dataset of a finished run, from its prepared images
+(``<results>/<dataset>/prepared/``) and stage-I results (``rescu-i/``), with the config's
+``stage2`` keys overridden by ``--set KEY=VALUE`` (values read as YAML; each override is
+checked by :class:`rescu.stage2.Stage2Params`). The results go to
+``<out>/<image>.json`` (default ``<results>/benchmarks/stage2-variants/<name>/``, beside
+a ``params.json`` of the settings; a folder made with other settings is refused, an
+image already there is not recomputed). Then prints the mean per-image instance and RP
+precision / recall at IOD 0.5 of RESCU-I, the run's RESCU-II and the variant, on the
+images all three have (and on the synthetic ``hard`` images), with the paired Wilcoxon
+p-value of the variant against the run's RESCU-II. Asserts nothing.
+
+The merge of split RPs and everything after stage II (scene, completion) is not re-run:
+compare with the run's ``rescu-ii/`` (as the RP discovery table does), not with
+``final/``.
+
+Usage (after a run, from the repository root)::
+
+    python benchmarks/stage2_variants.py results --set occlude_prob=0.5
+    python benchmarks/stage2_variants.py results/holdout-11 --set occlude_prob=0.5
+    python benchmarks/stage2_variants.py results --name ft --set finetune=true \\
+        --set device=cuda --workers 6          # end-to-end fine-tuning, on a GPU
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """``["KEY=VALUE", ...]`` -> ``{KEY: YAML value}``; ValueError on an item without '='."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for it in items:
+        key, sep, val = it.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
+        out[key.strip()] = yaml.safe_load(val)
+    return out
+
+
+def _one(job: tuple[str, str, str, str, dict[str, Any], int]) -> tuple[str, str, float]:
+    """Stage II of one image; returns (stem, status, seconds). Runs in a worker."""
+    png, meta, s1_json, out_json, params, threads = job
+    t = time.time()
+    stem = Path(out_json).stem
+    try:
+        from rescu import io
+        from rescu import stage2 as S2
+        from rescu.pipeline import limit_threads, read_prepared
+
+        limit_threads(threads)
+
+        p = S2.Stage2Params.from_dict(params)
+        rgb, m = read_prepared(png, meta)
+        s1 = io.read_result(s1_json)
+        feats = S2.compute_stage2_features(rgb, float(m["scale_factor"]), s1, p)
+        ckpt, info = S2.train_heads(feats, s1, p)
+        res = S2.predict_stage2(feats, ckpt, s1, p)
+        res.method = "rescu-ii"
+        res.extra["stage2"] = {**info, "prediction": res.extra.get("stage2", {})}
+        if "finetune_info" in feats:
+            res.extra["stage2"]["finetune"] = json.loads(S2._str(feats["finetune_info"]))
+        io.write_json(out_json, res)
+        return stem, "ok", time.time() - t
+    except Exception as e:  # one bad image never stops the rest
+        return stem, f"error: {type(e).__name__}: {e}", time.time() - t
+
+
+def main(argv: list[str] | None = None) -> int:
+    from _cli import run_dataset, run_parser
+
+    from rescu.evaluation import evaluate_rp_dataset, paired_wilcoxon
+    from rescu.metrics import METRICS
+    from rescu.stage2 import Stage2Params
+
+    ap = run_parser(__doc__)
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a stage2 key (repeatable; value read as YAML)")
+    ap.add_argument("--name", default=None, help="variant name (default: from the --set items)")
+    ap.add_argument("--out", type=Path, default=None, help="folder of the variant's JSONs")
+    ap.add_argument("--workers", type=int, default=1, help="images computed in parallel")
+    ap.add_argument("--threads", type=int, default=2,
+                    help="CPU threads per image (default 2, as the pipeline's stage-II rules: "
+                         "float sums depend on it)")
+    a = ap.parse_args(argv)
+    cfg, data = run_dataset(ap, a)
+    try:
+        over = parse_sets(a.sets)
+        params = {**cfg["stage2"], **over}
+        Stage2Params.from_dict(params)
+    except ValueError as e:
+        ap.error(str(e))
+    name = a.name or ("_".join(f"{k}={v}" for k, v in over.items()) or "config")
+    out = a.out or a.results / "benchmarks" / "stage2-variants" / name
+    run = a.results / a.dataset
+    for d in (run / "prepared", run / "rescu-i", run / "rescu-ii", data / "annotations.json"):
+        if not d.exists():
+            print(f"{d}: not found (run the pipeline first)", file=sys.stderr)
+            return 2
+    out.mkdir(parents=True, exist_ok=True)
+    pfile = out / "params.json"
+    record = {"dataset": a.dataset, "stage2": params}
+    if pfile.exists() and json.loads(pfile.read_text()) != json.loads(json.dumps(record)):
+        print(f"{out}: made with other settings ({pfile}); choose another --name or --out",
+              file=sys.stderr)
+        return 2
+    pfile.write_text(json.dumps(record, indent=1, sort_keys=True))
+    stems = sorted(p.stem for p in (run / "rescu-i").glob("*.json")
+                   if (run / "prepared" / f"{p.stem}.png").exists())
+    jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
+             str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, a.threads)
+            for s in stems if not (out / f"{s}.json").exists()]
+    t0 = time.time()
+    if a.workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(a.workers) as pool:
+            done = list(pool.imap_unordered(_one, jobs))
+    else:
+        done = [_one(j) for j in jobs]
+    for stem, status, sec in sorted(done):
+        if status != "ok":
+            print(f"{stem}: {status}", file=sys.stderr)
+    if jobs:
+        sec = [s for _, st, s in done if st == "ok"]
+        print(f"{name}: {len(sec)} of {len(jobs)} images computed in {time.time() - t0:.0f} s "
+              f"(per image: median {np.median(sec) if sec else float('nan'):.1f} s, "
+              f"{a.workers} worker(s)); results in {out}")
+    have = {p.stem for p in out.glob("*.json") if p.name != "params.json"}
+    have &= {p.stem for p in (run / "rescu-ii").glob("*.json")}
+    ann = json.loads((data / "annotations.json").read_text())
+    images = [im["file_name"] for im in ann["images"] if Path(im["file_name"]).stem in have]
+    if not images:
+        print("no image with results of all three methods")
+        return 0
+    df = evaluate_rp_dataset(data, {"RESCU-I": run / "rescu-i", "RESCU-II": run / "rescu-ii",
+                                    name: out}, images=images)
+    groups = [("all", df)]
+    if df["hard"].notna().any():
+        groups.append(("hard", df[df["hard"] == True]))  # noqa: E712 (object column)
+    for label, g in groups:
+        if g.empty:
+            continue
+        print(f"\n{a.dataset} — {label} ({g.image.nunique()} images), mean per image:")
+        print(f"{'method':>28s} " + " ".join(f"{m:>19s}" for m in METRICS))
+        for m in ("RESCU-I", "RESCU-II", name):
+            gm = g[g.method == m]
+            print(f"{m:>28s} " + " ".join(f"{gm[k].mean():19.3f}" for k in METRICS))
+        a2 = g[g.method == "RESCU-II"].set_index("image")
+        v2 = g[g.method == name].set_index("image").loc[a2.index]
+        ps = [paired_wilcoxon(a2[k].to_numpy(float), v2[k].to_numpy(float))[0]
+              for k in METRICS]
+        print(f"{'p (variant vs RESCU-II)':>28s} " + " ".join(f"{p:19.3f}" for p in ps))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

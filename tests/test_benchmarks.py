@@ -1,0 +1,52 @@
+"""The benchmark scripts' own argument handling (their figures come from finished runs)."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load(name):
+    sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_stage2_variants_sets_and_refusals(tmp_path, capsys):
+    sv = load("stage2_variants")
+    assert sv.parse_sets(["occlude_prob=0.5", "finetune=true", "window_scales=[1, 1.2]",
+                          "device=cuda"]) == {"occlude_prob": 0.5, "finetune": True,
+                                              "window_scales": [1, 1.2], "device": "cuda"}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        sv.parse_sets(["occlude_prob"])
+    # an unknown or invalid stage2 key is a usage error naming it
+    with pytest.raises(SystemExit):
+        sv.main([str(tmp_path), "--set", "no_such_key=1"])
+    assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sv.main([str(tmp_path), "--set", "occlude_prob=3"])
+    assert "occlude_prob" in capsys.readouterr().err
+    # a results folder without a run: a clear message, exit 2, nothing written
+    assert sv.main([str(tmp_path), "--set", "occlude_prob=0.5"]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    assert not (tmp_path / "benchmarks").exists()
+
+
+def test_stage2_variants_refuses_a_folder_of_other_settings(tmp_path, capsys):
+    sv = load("stage2_variants")
+    for d in ("prepared", "rescu-i", "rescu-ii"):
+        (tmp_path / "synthetic" / d).mkdir(parents=True)
+    (tmp_path / "data" / "synthetic").mkdir(parents=True)
+    (tmp_path / "data" / "synthetic" / "annotations.json").write_text(
+        '{"images": [], "annotations": [], "categories": []}')
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.5"]) == 0
+    assert "no image" in capsys.readouterr().out
+    assert (tmp_path / "benchmarks" / "stage2-variants" / "v" / "params.json").is_file()
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.5"]) == 0
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.3"]) == 2
+    assert "other settings" in capsys.readouterr().err
