@@ -1,8 +1,9 @@
 """RESCU-II with other stage-II settings on a finished run, scored beside RESCU-I and the
 run's own RESCU-II.
 
-Re-runs the three stage-II steps (features, head, prediction; :mod:`rescu.stage2`) in
-memory on every image of one dataset of a finished run, from its prepared images
+Re-runs the three stage-II steps of the pipeline (:func:`rescu.pipeline.stage2_features`,
+``stage2_train``, ``stage2_predict``; features and head in a temporary folder) on every
+image of one dataset of a finished run, from its prepared images
 (``<results>/<dataset>/prepared/``) and stage-I results (``rescu-i/``), with the config's
 ``stage2`` keys overridden by ``--set KEY=VALUE`` (values read as YAML; each override is
 checked by :class:`rescu.stage2.Stage2Params`). The results go to
@@ -13,9 +14,8 @@ precision / recall at IOD 0.5 of RESCU-I, the run's RESCU-II and the variant, on
 images all three have (and on the synthetic ``hard`` images), with the paired Wilcoxon
 p-value of the variant against the run's RESCU-II. Asserts nothing.
 
-The merge of split RPs and everything after stage II (scene, completion) is not re-run:
-compare with the run's ``rescu-ii/`` (as the RP discovery table does), not with
-``final/``.
+What comes after stage II (scene, completion) is not re-run: compare with the run's
+``rescu-ii/`` (as the RP discovery table does), not with ``final/``.
 
 Usage (after a run, from the repository root)::
 
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -51,38 +52,37 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _one(job: tuple[str, str, str, str, dict[str, Any], int]) -> tuple[str, str, float]:
-    """Stage II of one image; returns (stem, status, seconds). Runs in a worker."""
+def _one(job: tuple[str, str, str, str, dict[str, Any], int]
+         ) -> tuple[str, str, float, int | None]:
+    """Stage II of one image through the pipeline's own three steps (features and head in
+    a temporary folder); returns (stem, status, seconds, fine-tuning epochs or None).
+    Runs in a worker; a failing image gets the pipeline's empty result."""
     png, meta, s1_json, out_json, params, threads = job
     t = time.time()
     stem = Path(out_json).stem
-    try:
-        from rescu import io
-        from rescu import stage2 as S2
-        from rescu.pipeline import limit_threads, read_prepared
+    from rescu import io, pipeline
 
-        limit_threads(threads)
-
-        p = S2.Stage2Params.from_dict(params)
-        rgb, m = read_prepared(png, meta)
-        s1 = io.read_result(s1_json)
-        feats = S2.compute_stage2_features(rgb, float(m["scale_factor"]), s1, p)
-        ckpt, info = S2.train_heads(feats, s1, p)
-        res = S2.predict_stage2(feats, ckpt, s1, p)
-        res.method = "rescu-ii"
-        res.extra["stage2"] = {**info, "prediction": res.extra.get("stage2", {})}
+    pipeline.limit_threads(threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
+        fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
+                or pipeline.stage2_train(h5, s1_json, ckpt, params)
+                or pipeline.stage2_predict(h5, ckpt, s1_json, out_json, meta, params))
+        feats, _ = io.read_h5(h5)
+        epochs = None
         if "finetune_info" in feats:
-            res.extra["stage2"]["finetune"] = json.loads(S2._str(feats["finetune_info"]))
-        io.write_json(out_json, res)
-        return stem, "ok", time.time() - t
-    except Exception as e:  # one bad image never stops the rest
-        return stem, f"error: {type(e).__name__}: {e}", time.time() - t
+            from rescu.stage2 import _str
+
+            epochs = json.loads(_str(feats["finetune_info"])).get("epochs")
+    status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
+    return stem, status, time.time() - t, epochs
 
 
 def main(argv: list[str] | None = None) -> int:
     from _cli import run_dataset, run_parser
 
     from rescu.evaluation import evaluate_rp_dataset, paired_wilcoxon
+    from rescu.io import write_json
     from rescu.metrics import METRICS
     from rescu.stage2 import Stage2Params
 
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{out}: made with other settings ({pfile}); choose another --name or --out",
               file=sys.stderr)
         return 2
-    pfile.write_text(json.dumps(record, indent=1, sort_keys=True))
+    write_json(pfile, record)
     stems = sorted(p.stem for p in (run / "rescu-i").glob("*.json")
                    if (run / "prepared" / f"{p.stem}.png").exists())
     jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
@@ -131,14 +131,19 @@ def main(argv: list[str] | None = None) -> int:
             done = list(pool.imap_unordered(_one, jobs))
     else:
         done = [_one(j) for j in jobs]
-    for stem, status, sec in sorted(done):
+    for stem, status, _, _ in sorted(done):
         if status != "ok":
             print(f"{stem}: {status}", file=sys.stderr)
     if jobs:
-        sec = [s for _, st, s in done if st == "ok"]
+        sec = [s for _, st, s, _ in done if st == "ok"]
         print(f"{name}: {len(sec)} of {len(jobs)} images computed in {time.time() - t0:.0f} s "
               f"(per image: median {np.median(sec) if sec else float('nan'):.1f} s, "
               f"{a.workers} worker(s)); results in {out}")
+        ep = [e for _, _, _, e in done if e is not None]
+        if ep:
+            print(f"fine-tuned backbone on {len(ep)} images: epochs median {np.median(ep):.0f}, "
+                  f"{sum(e >= int(params['max_epochs']) for e in ep)} stopped at max_epochs "
+                  f"({params['max_epochs']})")
     have = {p.stem for p in out.glob("*.json") if p.name != "params.json"}
     have &= {p.stem for p in (run / "rescu-ii").glob("*.json")}
     ann = json.loads((data / "annotations.json").read_text())
