@@ -11,8 +11,10 @@ checked by :class:`rescu.stage2.Stage2Params`). The results go to
 a ``params.json`` of the settings; a folder made with other settings is refused, an
 image already there is not recomputed). Then prints the mean per-image instance and RP
 precision / recall at IOD 0.5 of RESCU-I, the run's RESCU-II and the variant, on the
-images all three have (and on the synthetic ``hard`` images), with the paired Wilcoxon
-p-value of the variant against the run's RESCU-II. Asserts nothing.
+images all three have, in the tables' format (:func:`rescu.evaluation.summary_markdown`;
+synthetic data also per subset and hard / not hard), and the paired Wilcoxon p-value of
+the variant against the run's RESCU-II (:func:`rescu.evaluation.significance_table`).
+Asserts nothing.
 
 What comes after stage II (scene, completion) is not re-run: compare with the run's
 ``rescu-ii/`` (as the RP discovery table does), not with ``final/``.
@@ -68,11 +70,11 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], int]
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
                 or pipeline.stage2_train(h5, s1_json, ckpt, params)
                 or pipeline.stage2_predict(h5, ckpt, s1_json, out_json, meta, params))
-        feats, _ = io.read_h5(h5)
         epochs = None
-        if "finetune_info" in feats:
+        if params.get("finetune") and fail is None:
             from rescu.stage2 import _str
 
+            feats, _ = io.read_h5(h5)
             epochs = json.loads(_str(feats["finetune_info"])).get("epochs")
     status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
     return stem, status, time.time() - t, epochs
@@ -81,9 +83,9 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], int]
 def main(argv: list[str] | None = None) -> int:
     from _cli import run_dataset, run_parser
 
-    from rescu.evaluation import evaluate_rp_dataset, paired_wilcoxon
+    from rescu.evaluation import (evaluate_rp_dataset, frame_markdown, significance_table,
+                                  summary_markdown, summary_table)
     from rescu.io import write_json
-    from rescu.metrics import METRICS
     from rescu.stage2 import Stage2Params
 
     ap = run_parser(__doc__)
@@ -153,22 +155,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     df = evaluate_rp_dataset(data, {"RESCU-I": run / "rescu-i", "RESCU-II": run / "rescu-ii",
                                     name: out}, images=images)
-    groups = [("all", df)]
-    if df["hard"].notna().any():
-        groups.append(("hard", df[df["hard"] == True]))  # noqa: E712 (object column)
-    for label, g in groups:
-        if g.empty:
-            continue
-        print(f"\n{a.dataset} — {label} ({g.image.nunique()} images), mean per image:")
-        print(f"{'method':>28s} " + " ".join(f"{m:>19s}" for m in METRICS))
-        for m in ("RESCU-I", "RESCU-II", name):
-            gm = g[g.method == m]
-            print(f"{m:>28s} " + " ".join(f"{gm[k].mean():19.3f}" for k in METRICS))
-        a2 = g[g.method == "RESCU-II"].set_index("image")
-        v2 = g[g.method == name].set_index("image").loc[a2.index]
-        ps = [paired_wilcoxon(a2[k].to_numpy(float), v2[k].to_numpy(float))[0]
-              for k in METRICS]
-        print(f"{'p (variant vs RESCU-II)':>28s} " + " ".join(f"{p:19.3f}" for p in ps))
+    print("\n" + summary_markdown(summary_table(df), decimals=3))
+    sig = significance_table(df)
+    sig = sig[(sig.method_a == "RESCU-II") & (sig.method_b == name)]
+    print(f"Paired Wilcoxon p, {name} against the run's RESCU-II:\n")
+    print(frame_markdown(sig[["subset", "metric", "n_pairs", "mean_a", "mean_b", "p_value"]],
+                         decimals=3))
     return 0
 
 
