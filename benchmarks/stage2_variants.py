@@ -72,10 +72,10 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], int]
                 or pipeline.stage2_predict(h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
-            from rescu.stage2 import _str
+            from rescu.stage2 import finetune_record
 
             feats, _ = io.read_h5(h5)
-            epochs = json.loads(_str(feats["finetune_info"])).get("epochs")
+            epochs = (finetune_record(feats) or {}).get("epochs")
     status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
     return stem, status, time.time() - t, epochs
 

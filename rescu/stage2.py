@@ -313,6 +313,27 @@ def _str(v: Any) -> str:
     return str(v)
 
 
+def finetune_record(feats: dict[str, np.ndarray]) -> dict[str, Any] | None:
+    """The end-to-end fine-tuning record stored with an image's stage-II features.
+
+    Parameters
+    ----------
+    feats : dict
+        Output of :func:`compute_stage2_features` (or its HDF5 file read back by
+        :func:`rescu.io.read_h5`).
+
+    Returns
+    -------
+    dict or None
+        :func:`rescu.finetune.finetune_backbone`'s record (``status``, ``epochs``, the
+        loss history, ...); None when the features were computed with a frozen backbone
+        (``finetune: false``).
+    """
+    if "finetune_info" not in feats:
+        return None
+    return json.loads(_str(feats["finetune_info"]))
+
+
 def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     from .metrics import iou_matrix
 

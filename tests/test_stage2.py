@@ -8,6 +8,7 @@ torch = pytest.importorskip("torch")
 from rescu import io  # noqa: E402
 from rescu.metrics import iod_matrix  # noqa: E402
 from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
+                          finetune_record,
                           load_checkpoint, occlude_instances, predict_stage2,
                           save_checkpoint, select_examples, train_heads)
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
@@ -243,13 +244,12 @@ def test_cuda_device_refused_without_cuda():
 def test_finetune_pools_from_the_finetuned_backbone(six):
     """finetune=True (run on the CPU here, tiny image): same boxes, features from a
     backbone trained end to end, and the rest of stage II runs on them unchanged."""
-    import json
-
     img, boxes, s1, p, feats, _, _, _ = six
     pf = Stage2Params(**{**FAST, "finetune": True, "max_epochs": 2})
     ft = compute_stage2_features(img, 1.0, s1, pf)
-    info = json.loads(bytes(ft["finetune_info"]).decode())
-    assert info["status"] == "finetuned" and 1 <= info["epochs"] <= 2
+    info = finetune_record(ft)
+    assert info is not None and info["status"] == "finetuned" and 1 <= info["epochs"] <= 2
+    assert finetune_record(feats) is None  # frozen backbone: no record
     for k in ("proposals", "instance_boxes", "jitter_boxes", "hard_negative_boxes"):
         assert np.array_equal(ft[k], feats[k]), k
     for k in ("proposal_features", "instance_features", "aug_proposal_features"):
