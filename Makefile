@@ -11,7 +11,7 @@ CORES  ?= 2
 # On your own machine, CPU-only torch wheels: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH_INDEX ?=
 
-.PHONY: setup run holdout test report clean
+.PHONY: setup run holdout stress test report clean
 
 setup: $(STAMP)
 
@@ -32,6 +32,15 @@ SEED ?=
 holdout: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/holdout.yaml \
 	  $(if $(SEED),--config 'synthetic={seed: $(SEED)}' results_dir=results/holdout-$(SEED))
+
+# stage II under heavy occlusion (config/stress.yaml) -> results/stress/tables/
+# stage2_ablation.md (RESCU-I vs RESCU-II) and counting.md; make stress SEED=202 ->
+# results/stress-202/
+STRESS_DIR = results/stress$(if $(SEED),-$(SEED))
+stress: setup
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/stress.yaml \
+	  $(if $(SEED),--config 'synthetic={seed: $(SEED)}' results_dir=$(STRESS_DIR)) \
+	  -- $(STRESS_DIR)/tables/stage2_ablation.md $(STRESS_DIR)/tables/counting.md
 
 report: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --report results/snakemake-report.html

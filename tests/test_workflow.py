@@ -163,3 +163,32 @@ def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path, seed):
     paths = [p.strip() for line in outs for p in line.split(",")]
     assert paths and all(p.startswith(out_dir) for p in paths), \
         [p for p in paths if not p.startswith(out_dir)][:5]
+
+
+def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
+    """config/stress.yaml (``make stress``): every synthetic image hard, more and larger
+    occluders than the default set, its own seed and folder; ``make stress`` asks for the
+    stage-II and counting tables only (no GRASP, no stage-I ablation)."""
+    stress = yaml.safe_load((REPO / "config" / "stress.yaml").read_text())
+    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["synthetic"]
+    holdout = yaml.safe_load((REPO / "config" / "holdout.yaml").read_text())["synthetic"]
+    syn = stress["synthetic"]
+    assert syn["seed"] not in (default["seed"], holdout["seed"])
+    assert syn["hard_fraction"] == 1.0
+    assert syn["occluded_instances"][0] > default["occluded_instances"][0]
+    assert syn["occlusion_fraction"][1] > default["occlusion_fraction"][1]
+    assert stress["run_datasets"] == ["synthetic"] and stress["results_dir"] == "results/stress"
+    out_dir = "results/stress/"
+    proc = snakemake(tmp_path, REPO / "config" / "stress.yaml", "-n", "--",
+                     out_dir + "tables/stage2_ablation.md", out_dir + "tables/counting.md")
+    jobs = planned_jobs(proc)
+    n = default["n_images"]
+    assert jobs.get("generate_synthetic") == 1 and jobs.get("stage2_predict") == n, jobs
+    assert jobs.get("stage2_ablation") == n and jobs.get("scene") == n, jobs
+    for absent in ("grasp", "ablation", "export_photos", "line_vp", "prepare_photos"):
+        assert absent not in jobs, jobs
+    text = proc.stdout + proc.stderr
+    outs = re.findall(r"^\s+(?:output|log): (.*)$", text, re.M)
+    paths = [p.strip() for line in outs for p in line.split(",")]
+    assert paths and all(p.startswith(out_dir) for p in paths), \
+        [p for p in paths if not p.startswith(out_dir)][:5]
