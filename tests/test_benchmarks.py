@@ -50,3 +50,16 @@ def test_stage2_variants_refuses_a_folder_of_other_settings(tmp_path, capsys):
     assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.5"]) == 0
     assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.3"]) == 2
     assert "other settings" in capsys.readouterr().err
+
+
+def test_stage2_misses_without_a_run(tmp_path, capsys):
+    sm = load("stage2_misses")
+    assert sm.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    # a run whose RESCU-II found everything: no row, a count of 0
+    (tmp_path / "synthetic" / "rescu-ii").mkdir(parents=True)
+    (tmp_path / "data" / "synthetic").mkdir(parents=True)
+    (tmp_path / "data" / "synthetic" / "annotations.json").write_text(
+        '{"images": [], "annotations": [], "categories": []}')
+    assert sm.main([str(tmp_path)]) == 0
+    assert "0 GT instances missed" in capsys.readouterr().out

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -192,3 +193,38 @@ def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
     paths = [p.strip() for line in outs for p in line.split(",")]
     assert paths and all(p.startswith(out_dir) for p in paths), \
         [p for p in paths if not p.startswith(out_dir)][:5]
+
+
+def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
+    """benchmarks/stage2_misses.py on a finished run: one row per GT instance that no
+    RESCU-II instance covers (IOD >= 0.5), each with one of its causes; a GT RP with
+    nothing found has only 'rp not found' rows, the others never."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import stage2_misses as SM
+
+    from rescu.evaluation import load_predictions
+    from rescu.io import load_coco_rps
+    from rescu.metrics import iod_matrix
+
+    work, _ = finished_run
+    res = work / "results"
+    data = res / "data" / "synthetic"
+    stage2 = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["stage2"]
+    df = SM.classify_misses(data, res, "synthetic", stage2)
+    gt = load_coco_rps(data / "annotations.json")
+    preds = load_predictions(res / "synthetic" / "rescu-ii", gt.keys())
+    expected = 0
+    for f, gts in gt.items():
+        det = np.array([i.bbox for p in preds[f].patterns for i in p.instances],
+                       float).reshape(-1, 4)
+        for g, rp in enumerate(gts):
+            G = np.asarray(rp.boxes, float).reshape(-1, 4)
+            found = (iod_matrix(det, G) >= 0.5).any(0) if len(det) else np.zeros(len(G), bool)
+            expected += int((~found).sum())
+            rows = df[(df["image"] == f) & (df["gt_rp"] == g)]
+            assert len(rows) == int((~found).sum())
+            if len(rows):
+                assert (rows["cause"] == "rp not found").all() == (not found.any())
+    assert len(df) == expected
+    assert set(df["cause"]) <= set(SM.CAUSES)
+    assert df["occluded_fraction"].notna().all()  # the synthetic truth knows every one
