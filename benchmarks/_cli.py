@@ -29,3 +29,11 @@ def run_dataset(ap: argparse.ArgumentParser, a: argparse.Namespace
     if a.dataset not in cfg["datasets"]:
         ap.error(f"dataset {a.dataset!r} is not in the config ({', '.join(cfg['datasets'])})")
     return cfg, dataset_root(a.dataset, cfg["datasets"][a.dataset], str(a.results))
+
+
+def print_rows(df: Any) -> None:
+    """Print a DataFrame whole (every row, wide lines, 2 decimals), without its index."""
+    import pandas as pd
+
+    with pd.option_context("display.width", 250, "display.max_rows", None):
+        print(df.round(2).to_string(index=False))

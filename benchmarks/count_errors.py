@@ -26,9 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main(argv: list[str] | None = None) -> int:
-    import pandas as pd
-
-    from _cli import run_dataset, run_parser
+    from _cli import print_rows, run_dataset, run_parser
 
     from rescu.evaluation import count_errors, counting_table
 
@@ -52,9 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     if not a.all:
         df = df[df["kind"] != "matched"]
     df = df.dropna(axis=1, how="all")
-    pd.set_option("display.width", 250)
-    pd.set_option("display.max_rows", None)
-    print(df.round(2).to_string(index=False))
+    print_rows(df)
     return 0
 
 

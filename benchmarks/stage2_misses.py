@@ -120,7 +120,7 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
-    from _cli import run_dataset, run_parser
+    from _cli import print_rows, run_dataset, run_parser
 
     ap = run_parser(__doc__)
     ap.add_argument("--iod", type=float, default=0.5, help="IOD for 'found' (default 0.5)")
@@ -145,9 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         out["occluded"] = df[occ]["cause"].value_counts().reindex(CAUSES, fill_value=0)
     print(out.to_string())
     if a.list:
-        pd.set_option("display.width", 250)
-        pd.set_option("display.max_rows", None)
-        print(df.round(2).to_string(index=False))
+        print_rows(df)
     return 0
 
 

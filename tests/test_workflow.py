@@ -55,6 +55,15 @@ def snakemake(workdir: Path, configfile: Path, *args: str) -> subprocess.Complet
     return proc
 
 
+def assert_outputs_under(proc: subprocess.CompletedProcess, out_dir: str) -> None:
+    """Every output and log path a dry run plans lies under ``out_dir``."""
+    text = proc.stdout + proc.stderr
+    outs = re.findall(r"^\s+(?:output|log): (.*)$", text, re.M)
+    paths = [p.strip() for line in outs for p in line.split(",")]
+    assert paths and all(p.startswith(out_dir) for p in paths), \
+        [p for p in paths if not p.startswith(out_dir)][:5]
+
+
 def planned_jobs(proc: subprocess.CompletedProcess) -> dict[str, int]:
     """Job counts per rule from a dry run's 'Job stats' table ({} when nothing to do)."""
     text = proc.stdout + proc.stderr
@@ -159,11 +168,7 @@ def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path, seed):
     assert holdout["run_datasets"] == ["synthetic"]
     assert jobs.get("generate_synthetic") == 1 and jobs.get("scene") == n, jobs
     assert "export_photos" not in jobs, jobs
-    text = proc.stdout + proc.stderr
-    outs = re.findall(r"^\s+(?:output|log): (.*)$", text, re.M)
-    paths = [p.strip() for line in outs for p in line.split(",")]
-    assert paths and all(p.startswith(out_dir) for p in paths), \
-        [p for p in paths if not p.startswith(out_dir)][:5]
+    assert_outputs_under(proc, out_dir)
 
 
 def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
@@ -188,11 +193,7 @@ def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
     assert jobs.get("stage2_ablation") == n and jobs.get("scene") == n, jobs
     for absent in ("grasp", "ablation", "export_photos", "line_vp", "prepare_photos"):
         assert absent not in jobs, jobs
-    text = proc.stdout + proc.stderr
-    outs = re.findall(r"^\s+(?:output|log): (.*)$", text, re.M)
-    paths = [p.strip() for line in outs for p in line.split(",")]
-    assert paths and all(p.startswith(out_dir) for p in paths), \
-        [p for p in paths if not p.startswith(out_dir)][:5]
+    assert_outputs_under(proc, out_dir)
 
 
 def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
