@@ -287,6 +287,46 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
     return _guard("stage2-predict", ckpt.get("failure"), run, empty)
 
 
+def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
+                            meta_path: str, out_jsons: dict[str, str], params: dict[str, Any],
+                            variants: dict[str, dict[str, Any]]) -> Failure | None:
+    """RESCU-II once per prediction-only variant, from the run's own features and head.
+
+    Each variant is a mapping of ``stage2`` keys that act only in prediction
+    (:func:`rescu.stage2.is_predict_only`; a ValueError names any other) overriding
+    ``params``; ``out_jsons`` maps each variant to its per-image JSON (method
+    ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
+    """
+    from . import stage2 as S2
+
+    meta = io.read_json(meta_path)
+    plist = {}
+    for name, over in variants.items():
+        bad = [k for k in over if not S2.is_predict_only(k)] if isinstance(over, dict) else over
+        if not isinstance(over, dict) or bad:
+            raise ValueError(f"prediction-only stage-II variant {name!r}: {bad!r} are not "
+                             f"prediction keys of the stage2 section")
+        plist[name] = S2.Stage2Params.from_dict({**params, **over})
+    ckpt = S2.load_checkpoint(ckpt_path)
+
+    def run() -> None:
+        feats, _ = io.read_h5(feats_h5)
+        s1 = io.read_result(stage1_json)
+        for name, p in plist.items():
+            res = S2.predict_stage2(feats, ckpt["head"], s1, p)
+            res.method = f"rescu-ii[{name}]"
+            res.extra["stage2"] = {**ckpt.get("info", {}),
+                                   "prediction": res.extra.get("stage2", {})}
+            res.extra["ablation"] = dict(variants[name])
+            io.write_json(out_jsons[name], res)
+
+    def empty(f: Failure) -> None:
+        for name in variants:
+            io.write_json(out_jsons[name], empty_result(meta, f"rescu-ii[{name}]", f))
+
+    return _guard("stage2-predict-variants", ckpt.get("failure"), run, empty)
+
+
 def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[str, str],
                     params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> Failure | None:
     """RESCU-II once per stage-II ablation variant (e.g. another ``proposal_method``).

@@ -35,6 +35,12 @@ Departures from the paper (documented, environment-driven):
 * Local appearance deformation is optional (``occlude_prob``, off by default): random
   occluders over part of the instances in the augmented copies (random erasing,
   :func:`occlude_instances`). The paper's version is not specified further.
+* Partly hidden instances (optional, ``visible_half``, off by default): a lattice window
+  is also scored with one half of its pooled grid (left, right, top or bottom) kept and
+  the other half replaced by the RP's mean instance feature
+  (:func:`visible_half_features`), so an instance whose visible half looks right can pass
+  the lattice gate; only for windows inside the span of the RP's instances
+  (interpolation, not extrapolation past a row's end). Not in the paper.
 * Hard negatives: each instance box shifted by half its size, and doubled in size.
 * A size gate: a proposal can only be an instance of an RP when its width and height are
   within a factor ``size_tolerance`` of those of one of its stage-I instances (the paper's
@@ -59,6 +65,21 @@ from .types import ImageResult, Instance
 from .params import checked_mapping
 
 METHOD = "rescu-ii"
+
+#: ``stage2`` keys read only by :func:`predict_stage2` (its gates, the visible-half
+#: scoring and, by prefix, the ``merge*`` keys): changing them needs neither new
+#: features nor a new head.
+PREDICT_ONLY_KEYS = ("score_threshold", "max_distance_ratio", "lattice_score_threshold",
+                     "lattice_distance_ratio", "lattice_only", "nms_iou",
+                     "min_spacing_fraction", "max_new_fraction", "visible_half",
+                     "visible_half_min_score", "visible_half_threshold",
+                     "visible_half_margin")
+
+
+def is_predict_only(key: str) -> bool:
+    """True when the ``stage2`` key ``key`` acts only in prediction (see
+    :data:`PREDICT_ONLY_KEYS`)."""
+    return key in PREDICT_ONLY_KEYS or key.startswith("merge")
 
 
 # ----------------------------------------------------------------------------- params
@@ -112,6 +133,18 @@ class Stage2Params:
         Smallest class probability of a new instance from a lattice window.
     lattice_distance_ratio : float
         ``max_distance_ratio`` for lattice windows.
+    visible_half : bool
+        Also score every lattice window by its visible half
+        (:func:`visible_half_features`): off by default.
+    visible_half_min_score : float
+        A window's own (whole-box) probability of its best RP must be at least this
+        before its halves are tried.
+    visible_half_threshold : float
+        A half-imputed feature replaces the window's own only when the head gives it at
+        least this probability for the RP (and more than the window's own).
+    visible_half_margin : float
+        Only windows whose centre lies within the bounding box of the RP's instance
+        centres grown by this times the median instance (width, height).
     lattice_only : bool
         New instances come only from lattice windows (the other proposals are training
         examples only); on real stage-I output the off-lattice additions were mostly
@@ -212,6 +245,10 @@ class Stage2Params:
     lattice_score_threshold: float = 0.95
     lattice_distance_ratio: float = 1.25
     lattice_only: bool = True
+    visible_half: bool = False
+    visible_half_min_score: float = 0.2
+    visible_half_threshold: float = 0.99
+    visible_half_margin: float = 0.5
     dbscan_eps: float | None = None
     dbscan_min_samples: int = 2
     top_p: int = 40
@@ -266,6 +303,13 @@ class Stage2Params:
         if len(frac) != 2 or not 0 <= frac[0] <= frac[1] <= 1:
             raise ValueError(f"occlude_fraction must be (min, max) with 0 <= min <= max <= 1,"
                              f" got {self.occlude_fraction}")
+        if self.visible_half and self.pool_size % 2:
+            raise ValueError(f"visible_half needs an even pool_size, got {self.pool_size}")
+        for k in ("visible_half_min_score", "visible_half_threshold"):
+            if not 0 <= getattr(self, k) <= 1:
+                raise ValueError(f"{k} must be in [0, 1], got {getattr(self, k)}")
+        if self.visible_half_margin < 0:
+            raise ValueError(f"visible_half_margin must be >= 0, got {self.visible_half_margin}")
         self.proposal_params()  # validates proposal_method
         self.merge_params()     # validates the merge_* keys
 
@@ -1046,22 +1090,127 @@ def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- step 3
-def score_proposals(feats: dict[str, np.ndarray], ckpt: dict[str, Any]) -> np.ndarray:
-    """Class probabilities of every proposal, (P, R + 1) float32 (column 0 background)."""
+def score_features(x: np.ndarray, ckpt: dict[str, Any]) -> np.ndarray:
+    """Class probabilities of box features ``x`` (N, D), (N, R + 1) float32 (column 0
+    background; an untrained head gives background 1)."""
     import torch
 
-    pf = np.asarray(feats["proposal_features"], np.float32)
+    x = np.asarray(x, np.float32).reshape(len(x), -1)
     n_cls = int(ckpt["n_classes"])
-    if not ckpt["state_dict"] or len(pf) == 0:
-        out = np.zeros((len(pf), n_cls), np.float32)
+    if not ckpt["state_dict"] or len(x) == 0:
+        out = np.zeros((len(x), n_cls), np.float32)
         out[:, 0] = 1.0
         return out
     head = _make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
     head.load_state_dict(ckpt["state_dict"])
     head.eval()
-    x = (torch.from_numpy(pf) - ckpt["mean"]) / ckpt["std"]
+    xt = (torch.from_numpy(x) - ckpt["mean"]) / ckpt["std"]
     with torch.no_grad():
-        return torch.softmax(head(x), dim=1).numpy().astype(np.float32)
+        return torch.softmax(head(xt), dim=1).numpy().astype(np.float32)
+
+
+def score_proposals(feats: dict[str, np.ndarray], ckpt: dict[str, Any]) -> np.ndarray:
+    """Class probabilities of every proposal, (P, R + 1) float32 (column 0 background)."""
+    return score_features(np.asarray(feats["proposal_features"], np.float32), ckpt)
+
+
+def impute_half(x: np.ndarray, fill: np.ndarray, side: int, pool_size: int) -> np.ndarray:
+    """Box features with one half of the RoI grid kept and the other taken from ``fill``.
+
+    Parameters
+    ----------
+    x : (N, C * pool_size**2) float
+        Pooled box features (:func:`rescu.backbone.pool_boxes`: a (C, rows, cols) grid,
+        flattened).
+    fill : (C * pool_size**2,) float
+        The feature whose cells replace the hidden half (e.g. an RP's mean instance).
+    side : int
+        The half kept: 0 left, 1 right, 2 top, 3 bottom.
+    pool_size : int
+        Even grid size.
+
+    Returns
+    -------
+    (N, C * pool_size**2) float32, each row L2-normalised as pooled features are.
+    """
+    if pool_size % 2 or side not in (0, 1, 2, 3):
+        raise ValueError(f"need an even pool_size and side in 0..3, got {pool_size}, {side}")
+    x = np.asarray(x, np.float32)
+    n, d = x.shape
+    c = d // (pool_size * pool_size)
+    g = x.reshape(n, c, pool_size, pool_size).copy()
+    f = np.asarray(fill, np.float32).reshape(c, pool_size, pool_size)
+    h = pool_size // 2
+    hidden = {0: (slice(None), slice(h, None)), 1: (slice(None), slice(0, h)),
+              2: (slice(h, None), slice(None)), 3: (slice(0, h), slice(None))}[side]
+    g[(slice(None), slice(None)) + hidden] = f[(slice(None),) + hidden]
+    g = g.reshape(n, d)
+    return g / (np.linalg.norm(g, axis=1, keepdims=True) + 1e-12)
+
+
+def visible_half_features(feats: dict[str, np.ndarray], ckpt: dict[str, Any],
+                          params: Stage2Params = Stage2Params()
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Proposal features with each lattice window's best half-imputed feature.
+
+    An instance hidden in part (by another object, a shadow, the image border) still
+    shows one half. For every lattice window (``feats["proposal_lattice"]``) whose own
+    best RP probability is at least ``visible_half_min_score`` and under the lattice
+    gate ``lattice_score_threshold`` (a window that passes keeps its own feature), and
+    every RP k whose instance centres' bounding box, grown by ``visible_half_margin``
+    times the median instance size, holds the window's centre, the window's left /
+    right / top / bottom half is kept and the other half replaced by RP k's mean
+    instance feature (:func:`impute_half`). The imputed feature with the highest probability of its RP
+    replaces the window's own when that probability is at least
+    ``visible_half_threshold`` and above the window's own best RP probability. The
+    replaced rows then pass every gate of :func:`predict_stage2` (class, probability,
+    feature distance) as any window does.
+
+    Returns
+    -------
+    features : (P, D) float32
+        ``feats["proposal_features"]`` with the replaced rows.
+    replaced : (P,) bool
+    """
+    own_f = np.asarray(feats["proposal_features"], np.float32)
+    pf = own_f.copy()
+    replaced = np.zeros(len(pf), bool)
+    lat = np.asarray(feats.get("proposal_lattice", np.zeros(len(pf), np.int8))).reshape(-1) > 0
+    rp_index = np.asarray(feats["rp_index"]).reshape(-1)
+    if len(lat) != len(pf) or not lat.any() or not ckpt["state_dict"] or not len(rp_index):
+        return pf, replaced
+    prob = score_features(own_f[lat], ckpt)
+    idx = np.nonzero(lat)[0]
+    top = prob[:, 1:].max(1)
+    keep = (top >= params.visible_half_min_score) & (top < params.lattice_score_threshold)
+    idx, best = idx[keep], prob[keep, 1:].max(1)
+    best = np.maximum(best, np.nextafter(np.float32(params.visible_half_threshold), -1))
+    if not len(idx):
+        return pf, replaced
+    inst = np.asarray(feats["instance_features"], np.float32)
+    inst_rp = np.asarray(feats["instance_rp"], np.int64).reshape(-1)
+    ib = np.asarray(feats["instance_boxes"], np.float64).reshape(-1, 4)
+    pb = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)[idx]
+    pc = pb[:, :2] + pb[:, 2:] / 2
+    for k in range(len(rp_index)):
+        own = inst_rp == k
+        if not own.any():
+            continue
+        ic = ib[own, :2] + ib[own, 2:] / 2
+        grow = params.visible_half_margin * np.median(ib[own, 2:], 0)
+        inside = np.all((pc >= ic.min(0) - grow) & (pc <= ic.max(0) + grow), 1)
+        if not inside.any():
+            continue
+        mean = inst[own].mean(0)
+        for side in range(4):
+            g = impute_half(own_f[idx[inside]], mean, side, params.pool_size)
+            pk = score_features(g, ckpt)[:, k + 1]
+            rows = np.nonzero(inside)[0]
+            better = pk > best[rows]
+            best[rows[better]] = pk[better]
+            pf[idx[rows[better]]] = g[better]
+            replaced[idx[rows[better]]] = True
+    return pf, replaced
 
 
 def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: ImageResult,
@@ -1105,6 +1254,10 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
             summary["status"] = "untrained"
         out.extra["stage2"] = summary
         return _merge_split(out, feats, rp_index, params)
+    replaced = np.zeros(len(np.asarray(feats["proposals"]).reshape(-1, 4)), bool)
+    if params.visible_half:
+        pf, replaced = visible_half_features(feats, ckpt, params)
+        feats = dict(feats, proposal_features=pf)
     prob = score_proposals(feats, ckpt)
     sel = select_examples(feats, params)      # distances to the DBSCAN centres
     boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
@@ -1116,7 +1269,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         lat = np.zeros(len(boxes), bool)
     thr = np.where(lat, params.lattice_score_threshold, params.score_threshold)
     ratio = np.where(lat, params.lattice_distance_ratio, params.max_distance_ratio)
-    total = 0
+    total = by_half = 0
     for k, pi in enumerate(rp_index):
         pat = out.patterns[pi]
         own = np.array([i.bbox for i in stage1.patterns[pi].instances], np.float64)
@@ -1141,7 +1294,10 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         pat.instances = list(pat.instances) + new
         pat.extra = dict(pat.extra, stage2_added=len(new))
         total += len(new)
+        by_half += int(replaced[cand].sum())
     summary["added"] = total
+    if params.visible_half:
+        summary["added_by_visible_half"] = by_half
     out.extra["stage2"] = summary
     return _merge_split(out, feats, rp_index, params)
 

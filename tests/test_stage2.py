@@ -8,9 +8,9 @@ torch = pytest.importorskip("torch")
 from rescu import io  # noqa: E402
 from rescu.metrics import iod_matrix  # noqa: E402
 from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
-                          finetune_record,
+                          finetune_record, impute_half, visible_half_features,
                           load_checkpoint, occlude_instances, predict_stage2,
-                          save_checkpoint, select_examples, train_heads)
+                          save_checkpoint, score_features, select_examples, train_heads)
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
 FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
@@ -258,3 +258,100 @@ def test_finetune_pools_from_the_finetuned_backbone(six):
     assert tinfo["status"] == "trained"
     out = predict_stage2(ft, ckpt, s1, pf)
     assert out.patterns[0].count >= 4
+
+
+def test_impute_half_keeps_the_named_half():
+    c, n = 3, 2
+    x = np.arange(n * c * 4, dtype=np.float32).reshape(n, c * 4) + 1
+    fill = -np.ones(c * 4, np.float32)
+    grid = x.reshape(n, c, 2, 2)
+    for side, kept, hidden in ((0, (slice(None), 0), (slice(None), 1)),
+                               (1, (slice(None), 1), (slice(None), 0)),
+                               (2, (0, slice(None)), (1, slice(None))),
+                               (3, (1, slice(None)), (0, slice(None)))):
+        g = impute_half(x, fill, side, 2)
+        assert g.shape == x.shape
+        assert np.allclose(np.linalg.norm(g, axis=1), 1.0)
+        raw = np.concatenate([grid[(slice(None), slice(None)) + kept].reshape(n, -1),
+                              -np.ones((n, c * 2), np.float32)], 1)
+        gg = g.reshape(n, c, 2, 2)
+        scale = np.linalg.norm(raw, axis=1)[:, None, None]
+        assert np.allclose(gg[(slice(None), slice(None)) + kept] * scale,
+                           grid[(slice(None), slice(None)) + kept]), side
+        assert np.allclose(gg[(slice(None), slice(None)) + hidden] * scale, -1.0), side
+    with pytest.raises(ValueError, match="pool_size"):
+        impute_half(x, fill, 0, 3)
+    with pytest.raises(ValueError, match="pool_size"):
+        Stage2Params(visible_half=True, pool_size=3)
+
+
+def _template_head(t: np.ndarray, gain: float, bias: float) -> dict:
+    """A checkpoint whose head gives P(RP 0) = sigmoid(gain * <t, x> - bias) (2 classes)."""
+    d = len(t)
+    w1 = torch.zeros(2, d)
+    w1[0] = torch.from_numpy(t)
+    w1[1] = -torch.from_numpy(t)
+    sd = {"0.weight": w1, "0.bias": torch.zeros(2),
+          "2.weight": torch.eye(2), "2.bias": torch.zeros(2),
+          "4.weight": torch.tensor([[0.0, 0.0], [gain, -gain]]),
+          "4.bias": torch.tensor([0.0, -bias])}
+    return {"state_dict": sd, "mean": torch.zeros(d), "std": torch.ones(d), "in_dim": d,
+            "hidden_sizes": [2, 2], "n_classes": 2, "rp_index": [0],
+            "backbone": "efficientnet-lite0"}
+
+
+def test_visible_half_scores_half_hidden_lattice_windows_only():
+    """A lattice window showing one half of the RP's template (the other half noise) is
+    scored on that half when it lies inside the RP's span; windows that already pass,
+    windows past the row's end and windows that match nothing keep their own feature."""
+    rng = np.random.default_rng(0)
+    c = 16
+    t = rng.standard_normal(c * 4).astype(np.float32)
+    t /= np.linalg.norm(t)
+    inst_f = np.stack([t + 0.01 * rng.standard_normal(c * 4).astype(np.float32)
+                       for _ in range(4)])
+    half = t.reshape(c, 2, 2).copy()
+    half[:, :, 1] = rng.standard_normal((c, 2)).astype(np.float32) * 0.1  # right half hidden
+    half = half.reshape(-1) / np.linalg.norm(half)
+    noise = rng.standard_normal(c * 4).astype(np.float32)
+    noise /= np.linalg.norm(noise)
+    inst_boxes = np.array([[0, 0, 10, 10], [20, 0, 10, 10], [60, 0, 10, 10],
+                           [80, 0, 10, 10]], np.float32)
+    props = np.array([[40, 0, 10, 10],     # the gap in the row, half hidden -> replaced
+                      [40, 0, 10, 10],     # the gap, matching nothing -> kept
+                      [120, 0, 10, 10],    # past the row's end, half hidden -> kept
+                      [40, 0, 10, 10],     # the gap, already passing -> kept
+                      [40, 0, 10, 10]],    # the gap, half hidden, not a lattice window
+                     np.float32)
+    feats = {"proposal_features": np.stack([half, noise, half, t, half]),
+             "proposal_lattice": np.array([1, 1, 1, 1, 0], np.int8),
+             "proposals": props, "rp_index": np.array([0]),
+             "instance_features": inst_f, "instance_rp": np.zeros(4, np.int64),
+             "instance_boxes": inst_boxes}
+    ckpt = _template_head(t, gain=20.0, bias=12.0)
+    p = Stage2Params(visible_half=True)
+    own = score_features(feats["proposal_features"], ckpt)[:, 1]
+    assert 0.2 <= own[0] < 0.95 and own[1] < 0.2 and own[3] >= 0.95   # the setting holds
+    pf, replaced = visible_half_features(feats, ckpt, p)
+    assert replaced.tolist() == [True, False, False, False, False]
+    assert score_features(pf[:1], ckpt)[0, 1] >= 0.99
+    assert np.array_equal(pf[1:], feats["proposal_features"][1:])
+    # the kept (left) half is the window's own, up to the norm
+    g, h = pf[0].reshape(c, 2, 2), half.reshape(c, 2, 2)
+    assert np.allclose(g[:, :, 0] / np.linalg.norm(g[:, :, 0]),
+                       h[:, :, 0] / np.linalg.norm(h[:, :, 0]), atol=1e-5)
+    # margin 0: the gap still lies inside the span; a stricter threshold replaces nothing
+    assert visible_half_features(feats, ckpt, Stage2Params(visible_half=True,
+                                                            visible_half_margin=0.0))[1][0]
+    assert not visible_half_features(feats, ckpt, Stage2Params(
+        visible_half=True, visible_half_threshold=1.0))[1].any()
+
+
+def test_visible_half_in_prediction(six):
+    img, boxes, s1, p, feats, ckpt, info, out = six
+    pv = Stage2Params(**FAST, visible_half=True)
+    out_v = predict_stage2(feats, ckpt, s1, pv)
+    n = out_v.extra["stage2"]["added_by_visible_half"]
+    assert 0 <= n <= out_v.extra["stage2"]["added"]
+    assert "added_by_visible_half" not in out.extra["stage2"]
+    assert out_v.patterns[0].count >= 4

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 from rescu.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
+from rescu.stage2 import is_predict_only
 from rescu.synth import synthetic_image_names
 
 RESULTS = config["results_dir"]
@@ -27,18 +28,27 @@ def code(*modules):
     return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
 
 
-# stage2 keys read only by rescu.stage2.predict_stage2 (its gates and the merge step)
-STAGE2_PREDICT_ONLY = ("score_threshold", "max_distance_ratio", "lattice_score_threshold",
-                       "lattice_distance_ratio", "lattice_only", "nms_iou",
-                       "min_spacing_fraction", "max_new_fraction")
-
-
 def stage2_upstream():
     """The ``stage2`` keys of the features and training steps: all but those that act
-    only in prediction (``STAGE2_PREDICT_ONLY`` and the ``merge*`` keys), so that a
-    change of a prediction gate reruns prediction only."""
-    return {k: v for k, v in config["stage2"].items()
-            if not k.startswith("merge") and k not in STAGE2_PREDICT_ONLY}
+    only in prediction (:func:`rescu.stage2.is_predict_only`), so that a change of a
+    prediction gate reruns prediction only."""
+    return {k: v for k, v in config["stage2"].items() if not is_predict_only(k)}
+
+
+def stage2_predict_variants():
+    """``stage2_ablation.predict_variants``, checked: prediction keys only, and names
+    other than those of ``stage2_ablation.variants`` (both write to stage2-ablation/)."""
+    pv = config["stage2_ablation"].get("predict_variants") or {}
+    for name, over in pv.items():
+        bad = [k for k in over if not is_predict_only(k)]
+        if bad:
+            raise ValueError(f"stage2_ablation.predict_variants.{name}: {bad} are not "
+                             f"prediction keys (put such a variant under "
+                             f"stage2_ablation.variants)")
+        if name in config["stage2_ablation"]["variants"]:
+            raise ValueError(f"stage2_ablation: {name!r} is both a variant and a "
+                             f"predict variant")
+    return pv
 
 
 def images(dataset):

@@ -71,7 +71,8 @@ rule stage2_ablation_tables:
         ablation=per_image(
             f"{RESULTS}/{{dataset}}/stage2-ablation/{{variant}}/{{image}}.json",
             stage2_ablation_datasets(),
-            variant=list(config["stage2_ablation"]["variants"]),
+            variant=list(config["stage2_ablation"]["variants"])
+            + list(stage2_predict_variants()),
         ),
         gt=gt_files(stage2_ablation_datasets(), "annotations.json"),
         code=EVAL_CODE,
@@ -82,7 +83,8 @@ rule stage2_ablation_tables:
         results=RESULTS,
         datasets=dataset_params(stage2_ablation_datasets()),
         evaluation=config["evaluation"],
-        variants=list(config["stage2_ablation"]["variants"]),
+        variants=list(config["stage2_ablation"]["variants"])
+        + list(stage2_predict_variants()),
     log:
         LOGS + "/tables/stage2_ablation_tables.log",
     script:

@@ -58,6 +58,32 @@ rule stage2_predict:
         "../scripts/stage2_predict.py"
 
 
+# prediction-only variants (stage2_ablation.predict_variants): no rule when there are none
+if stage2_predict_variants():
+
+    rule stage2_predict_ablation:
+        input:
+            feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
+            ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+            stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+            meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+            code=code("stage2", "merge", "metrics"),
+        output:
+            expand(
+                f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
+                variant=stage2_predict_variants(),
+            ),
+        params:
+            stage2=config["stage2"],
+            variants=stage2_predict_variants(),
+        log:
+            LOGS + "/{dataset}/stage2_predict_ablation/{image}.log",
+        benchmark:
+            f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict_ablation/{{image}}.tsv"
+        script:
+            "../scripts/stage2_predict_ablation.py"
+
+
 rule stage2_ablation:
     input:
         **prepared(),
