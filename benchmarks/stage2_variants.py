@@ -16,6 +16,11 @@ synthetic data also per subset and hard / not hard), and the paired Wilcoxon p-v
 the variant against the run's RESCU-II (:func:`rescu.evaluation.significance_table`).
 Asserts nothing.
 
+When every ``--set`` key acts only in prediction (:data:`rescu.stage2.PREDICT_ONLY_KEYS`:
+the gates, ``visible_half*``, ``merge*``), the run's own features and head
+(``<results>/<dataset>/stage2/``) are reused and only prediction is re-run (seconds per
+image); otherwise all three steps are.
+
 What comes after stage II (scene, completion) is not re-run: compare with the run's
 ``rescu-ii/`` (as the RP discovery table does), not with ``final/``.
 
@@ -23,6 +28,7 @@ Usage (after a run, from the repository root)::
 
     python benchmarks/stage2_variants.py results --set occlude_prob=0.5
     python benchmarks/stage2_variants.py results/holdout-11 --set occlude_prob=0.5
+    python benchmarks/stage2_variants.py results --set visible_half=true   # prediction only
     python benchmarks/stage2_variants.py results --name ft --set finetune=true \\
         --set device=cuda --workers 6          # end-to-end fine-tuning, on a GPU
 """
@@ -54,17 +60,22 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _one(job: tuple[str, str, str, str, dict[str, Any], int]
+def _one(job: tuple[str, str, str, str, dict[str, Any], int, tuple[str, str] | None]
          ) -> tuple[str, str, float, int | None]:
     """Stage II of one image through the pipeline's own three steps (features and head in
-    a temporary folder); returns (stem, status, seconds, fine-tuning epochs or None).
-    Runs in a worker; a failing image gets the pipeline's empty result."""
-    png, meta, s1_json, out_json, params, threads = job
+    a temporary folder), or only its prediction step from ``reuse`` = (the run's
+    features HDF5, head checkpoint); returns (stem, status, seconds, fine-tuning epochs
+    or None). Runs in a worker; a failing image gets the pipeline's empty result."""
+    png, meta, s1_json, out_json, params, threads, reuse = job
     t = time.time()
     stem = Path(out_json).stem
     from rescu import io, pipeline
 
     pipeline.limit_threads(threads)
+    if reuse is not None:
+        fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params)
+        status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
+        return stem, status, time.time() - t, None
     with tempfile.TemporaryDirectory() as tmp:
         h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
@@ -86,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.evaluation import (evaluate_rp_dataset, frame_markdown, significance_table,
                                   summary_markdown, summary_table)
     from rescu.io import write_json
-    from rescu.stage2 import Stage2Params
+    from rescu.stage2 import Stage2Params, is_predict_only
 
     ap = run_parser(__doc__)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
@@ -122,9 +133,21 @@ def main(argv: list[str] | None = None) -> int:
     write_json(pfile, record)
     stems = sorted(p.stem for p in (run / "rescu-i").glob("*.json")
                    if (run / "prepared" / f"{p.stem}.png").exists())
+    # prediction-only overrides: the run's own features and head, where it has them
+    predict_only = bool(over) and all(is_predict_only(k) for k in over)
+
+    def reuse(s: str) -> tuple[str, str] | None:
+        h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.pt"
+        return (str(h5), str(pt)) if predict_only and h5.exists() and pt.exists() else None
+
     jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
-             str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, a.threads)
+             str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, a.threads,
+             reuse(s))
             for s in stems if not (out / f"{s}.json").exists()]
+    if jobs and predict_only:
+        n = sum(j[-1] is not None for j in jobs)
+        print(f"prediction-only keys: {n} of {len(jobs)} images from the run's own features "
+              f"and head")
     t0 = time.time()
     if a.workers > 1 and len(jobs) > 1:
         import multiprocessing as mp

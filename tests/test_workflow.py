@@ -229,3 +229,35 @@ def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
     assert len(df) == expected
     assert set(df["cause"]) <= set(SM.CAUSES)
     assert df["occluded_fraction"].notna().all()  # the synthetic truth knows every one
+
+
+def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, capsys):
+    """A prediction-only stage-II variant gives the same instances whether the pipeline's
+    stage2_predict_ablation rule or benchmarks/stage2_variants.py computes it, and the
+    script then reuses the run's features and head instead of recomputing them."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import stage2_variants as SV
+
+    work, _ = finished_run
+    res = work / "results"
+    pv = yaml.safe_load((REPO / "config" / "config.yaml").read_text())[
+        "stage2_ablation"]["predict_variants"]
+    assert pv["visible-half"] == {"visible_half": True}
+    sets = [f"{k}={str(v).lower()}" for k, v in pv["visible-half"].items()]
+    out = work / "sv-visible-half"
+    argv = [str(res), "--out", str(out), "--name", "vh"]
+    for s in sets:
+        argv += ["--set", s]
+    assert SV.main(argv) == 0
+    assert "3 of 3 images from the run's own features and head" in capsys.readouterr().out
+    for f in sorted((res / "synthetic" / "stage2-ablation" / "visible-half").glob("*.json")):
+        a, b = json.loads(f.read_text()), json.loads((out / f.name).read_text())
+        assert a["method"] == "rescu-ii[visible-half]"
+        assert a["patterns"] == b["patterns"], f.name
+        assert "added_by_visible_half" in a["stage2"]["prediction"]
+
+
+def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
+    cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {"x": {"top_p": 5}}})
+    with pytest.raises(AssertionError, match=r"predict_variants\.x: \['top_p'\]"):
+        snakemake(tmp_path, cfg, "-n")
