@@ -69,13 +69,24 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], int, tuple[str, str] | N
     png, meta, s1_json, out_json, params, threads, reuse = job
     t = time.time()
     stem = Path(out_json).stem
-    from rescu import io, pipeline
+    from rescu import pipeline
 
     pipeline.limit_threads(threads)
+    epochs = None
     if reuse is not None:
         fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params)
-        status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
-        return stem, status, time.time() - t, None
+    else:
+        fail, epochs = _all_steps(png, meta, s1_json, out_json, params)
+    status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
+    return stem, status, time.time() - t, epochs
+
+
+def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[str, Any]
+               ) -> tuple[dict[str, Any] | None, int | None]:
+    """The pipeline's three stage-II steps, features and head in a temporary folder;
+    returns (the failure record or None, fine-tuning epochs or None)."""
+    from rescu import io, pipeline
+
     with tempfile.TemporaryDirectory() as tmp:
         h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
@@ -87,8 +98,7 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], int, tuple[str, str] | N
 
             feats, _ = io.read_h5(h5)
             epochs = (finetune_record(feats) or {}).get("epochs")
-    status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
-    return stem, status, time.time() - t, epochs
+    return fail, epochs
 
 
 def main(argv: list[str] | None = None) -> int:
