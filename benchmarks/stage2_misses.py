@@ -44,23 +44,20 @@ CAUSES = ("rp not found", "no lattice window", "window p < 0.8", "window p 0.8 -
 def _occluded(truth: dict[str, Any], box: Any) -> float | None:
     """Occluded fraction of the synthetic truth instance centred in ``box`` (None: no
     truth record there)."""
-    import numpy as np
+    from rescu.evaluation import truth_instance_at
 
-    b = np.asarray(box, float)
-    c = b[:2] + b[2:] / 2
     for p in truth.get("patterns") or []:
-        for t in p.get("instances") or []:
-            tc = np.asarray(t.get("center", [np.nan, np.nan]), float)
-            if np.linalg.norm(tc - c) <= 0.5 * max(b[2], b[3]):
-                return float(t.get("occluded_fraction") or 0.0)
+        t = truth_instance_at(p.get("instances") or [], box)
+        if t is not None:
+            return float(t.get("occluded_fraction") or 0.0)
     return None
 
 
 def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, Any],
                     iod: float = 0.5) -> Any:
     """One row per GT instance RESCU-II misses: ``image, gt_rp, x, y, w, h, cause,
-    best_p, occluded_fraction`` (module docstring); an image without stage-II artefacts
-    is skipped with a message on stderr."""
+    best_p, occluded_fraction`` (module docstring; ``attrs["gate"]``: the lattice gate
+    used); an image without stage-II artefacts is skipped with a message on stderr."""
     import numpy as np
     import pandas as pd
 
@@ -114,7 +111,9 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
                              "h": b[3], "cause": cause, "best_p": best,
                              "occluded_fraction": _occluded(truth.get(f, {}), b)})
     cols = ["image", "gt_rp", "x", "y", "w", "h", "cause", "best_p", "occluded_fraction"]
-    return pd.DataFrame(rows, columns=cols)
+    df = pd.DataFrame(rows, columns=cols)
+    df.attrs["gate"] = gate
+    return df
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,9 +132,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
             return 2
     df = classify_misses(data, a.results, a.dataset, cfg["stage2"], a.iod)
-    gate = cfg["stage2"]["lattice_score_threshold"]
     print(f"{a.dataset}: {len(df)} GT instances missed by RESCU-II (IOD {a.iod}; "
-          f"lattice gate {gate})")
+          f"lattice gate {df.attrs['gate']})")
     if df.empty:
         return 0
     occ = df["occluded_fraction"].fillna(0) > 0

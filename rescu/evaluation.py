@@ -618,6 +618,35 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                                        "abs_error", "exact", "dominant", "counted"])
 
 
+def truth_instance_at(instances: Iterable[Mapping[str, Any]], box: Sequence[float]
+                      ) -> Mapping[str, Any] | None:
+    """The synthetic truth record (``truth.json``: ``center``, ``row``, ``col``,
+    ``occluded_fraction``, ...) of the instance in ``box``.
+
+    Parameters
+    ----------
+    instances : iterable of dict
+        Truth instance records; ``center`` is ``[x, y]`` in pixels.
+    box : sequence of 4 float
+        ``(x, y, w, h)`` in pixels.
+
+    Returns
+    -------
+    dict or None
+        The first record whose centre lies within half the box's larger side of the box
+        centre; None when none does (or ``box`` / a record has no finite centre).
+    """
+    b = np.asarray(box, float).reshape(4)
+    c = b[:2] + b[2:] / 2
+    for t in instances:
+        if not isinstance(t, Mapping):
+            continue
+        tc = np.asarray(t.get("center", [np.nan, np.nan]), float).reshape(-1)[:2]
+        if np.linalg.norm(tc - c) <= 0.5 * max(b[2], b[3]):
+            return t
+    return None
+
+
 def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
                  min_rp_precision: float = 0.5,
                  images: Iterable[str] | None = None) -> pd.DataFrame:
@@ -658,15 +687,13 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
             # the truth record of this GT RP: same category name (synthetic: unique)
             tp = [q for q in tpat if isinstance(q, dict) and q.get("category") == gts[g].category]
             tp0 = tp[0] if len(tp) == 1 else {}
-            tinst = tp0.get("instances") or []
             base = {"image": f, "gt_rp": int(g), "pattern": int(i),
                     "det_count": int(pat.count), "gt_count": int(len(gt_boxes))}
             for j, b in enumerate(gt_boxes):
                 r = dict(base, kind="matched" if j in hit_g else "missed",
                          x=b[0], y=b[1], w=b[2], h=b[3], source=None)
-                t = tinst[j] if len(tinst) == len(gt_boxes) else {}
-                tc = np.asarray(t.get("center", [np.nan, np.nan]), float)
-                if np.linalg.norm(tc - (b[:2] + b[2:] / 2)) <= 0.5 * max(b[2], b[3]):
+                t = truth_instance_at(tp0.get("instances") or [], b)
+                if t is not None:
                     r.update(row=t.get("row"), col=t.get("col"),
                              occluded_fraction=t.get("occluded_fraction"))
                 if truth:

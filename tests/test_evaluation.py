@@ -306,6 +306,16 @@ def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
             == more.groupby(["image", "gt_rp"])["gt_count"].first()).all()
 
 
+def test_truth_instance_at_finds_the_record_centred_in_the_box() -> None:
+    recs = [{"center": [10.0, 10.0], "row": 0}, {"center": [40.0, 10.0], "row": 1},
+            {"row": 2}, "not a record"]
+    assert E.truth_instance_at(recs, (32.0, 2.0, 16.0, 16.0))["row"] == 1
+    assert E.truth_instance_at(recs, (0.0, 0.0, 20.0, 20.0))["row"] == 0
+    # centre (19, 19), 12.7 px from (10, 10): beyond half the larger side (8 px)
+    assert E.truth_instance_at(recs, (11.0, 11.0, 16.0, 16.0)) is None
+    assert E.truth_instance_at([], (0.0, 0.0, 5.0, 5.0)) is None
+
+
 def test_vp_tables(tiny) -> None:
     ds, preds, tmp = tiny
     shifted = write_preds(tmp / "p_vps", "shift", vp_shift=7.0)
