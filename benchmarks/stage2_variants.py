@@ -60,38 +60,46 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _one(job: tuple[str, str, str, str, dict[str, Any], int, tuple[str, str] | None]
+def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
+                    tuple[str, str] | None]
          ) -> tuple[str, str, float, int | None]:
     """Stage II of one image through the pipeline's own three steps (features and head in
     a temporary folder), or only its prediction step from ``reuse`` = (the run's
-    features HDF5, head checkpoint); returns (stem, status, seconds, fine-tuning epochs
-    or None). Runs in a worker; a failing image gets the pipeline's empty result."""
+    features HDF5, head checkpoint); ``threads`` is the config's ``threads`` section
+    (each step with its rule's thread count); returns (stem, status, seconds, fine-tuning
+    epochs or None). Runs in a worker; a failing image gets the pipeline's empty result."""
     png, meta, s1_json, out_json, params, threads, reuse = job
     t = time.time()
     stem = Path(out_json).stem
     from rescu import pipeline
 
-    pipeline.limit_threads(threads)
     epochs = None
     if reuse is not None:
+        pipeline.limit_threads(threads["stage2_head"])
         fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params)
     else:
-        fail, epochs = _all_steps(png, meta, s1_json, out_json, params)
+        fail, epochs = _all_steps(png, meta, s1_json, out_json, params, threads)
     status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
     return stem, status, time.time() - t, epochs
 
 
-def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[str, Any]
-               ) -> tuple[dict[str, Any] | None, int | None]:
-    """The pipeline's three stage-II steps, features and head in a temporary folder;
-    returns (the failure record or None, fine-tuning epochs or None)."""
+def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[str, Any],
+               threads: dict[str, int]) -> tuple[dict[str, Any] | None, int | None]:
+    """The pipeline's three stage-II steps, features and head in a temporary folder, each
+    with its rule's thread count (``threads``: the config's ``threads`` section); returns
+    (the failure record or None, fine-tuning epochs or None)."""
     from rescu import io, pipeline
+
+    def head(step: Any, *args: Any) -> dict[str, Any] | None:
+        pipeline.limit_threads(threads["stage2_head"])
+        return step(*args)
 
     with tempfile.TemporaryDirectory() as tmp:
         h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
+        pipeline.limit_threads(threads["stage2_features"])
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
-                or pipeline.stage2_train(h5, s1_json, ckpt, params)
-                or pipeline.stage2_predict(h5, ckpt, s1_json, out_json, meta, params))
+                or head(pipeline.stage2_train, h5, s1_json, ckpt, params)
+                or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
             from rescu.stage2 import finetune_record
@@ -115,8 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default=None, help="variant name (default: from the --set items)")
     ap.add_argument("--out", type=Path, default=None, help="folder of the variant's JSONs")
     ap.add_argument("--workers", type=int, default=1, help="images computed in parallel")
-    ap.add_argument("--threads", type=int, default=2,
-                    help="CPU threads per image (default 2, as the pipeline's stage-II rules: "
+    ap.add_argument("--threads", type=int, default=None,
+                    help="CPU threads of every step (default: the config's `threads`, as the "
+                         "pipeline's stage-II rules: "
                          "float sums depend on it)")
     a = ap.parse_args(argv)
     cfg, data = run_dataset(ap, a)
@@ -150,8 +159,9 @@ def main(argv: list[str] | None = None) -> int:
         h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.pt"
         return (str(h5), str(pt)) if predict_only and h5.exists() and pt.exists() else None
 
+    threads = {k: a.threads or cfg["threads"][k] for k in ("stage2_features", "stage2_head")}
     jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
-             str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, a.threads,
+             str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, threads,
              reuse(s))
             for s in stems if not (out / f"{s}.json").exists()]
     if jobs and predict_only:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -148,6 +149,24 @@ def test_stage2_gate_change_reruns_prediction_only(finished_run):
     assert jobs.get("stage2_predict") == 3, jobs
     for upstream in ("features", "rescu_i", "stage2_features", "stage2_train"):
         assert upstream not in jobs, f"{upstream} must not rerun after a gate change: {jobs}"
+
+
+def test_stage2_features_do_not_depend_on_cores(finished_run, tmp_path):
+    """The stage-II torch threads come from the config's ``threads``, not the job's share
+    of ``--cores``: features made again under ``--cores 1`` equal the ``--cores 2`` run's
+    (float sums depend on the thread count, e.g. ~3e-7 on a chess photo's features)."""
+    import h5py
+
+    work, cfg = finished_run
+    copy = tmp_path / "wf"
+    shutil.copytree(work, copy, symlinks=True)
+    h5 = sorted((work / "results" / "synthetic" / "stage2").glob("*.feats.h5"))[0]
+    target = h5.relative_to(work)
+    snakemake(copy, cfg, "--cores", "1", "--force", str(target))
+    with h5py.File(h5, "r") as a, h5py.File(copy / target, "r") as b:
+        assert sorted(a) == sorted(b)
+        for k in a:
+            assert np.array_equal(a[k][()], b[k][()]), k
 
 
 @pytest.mark.parametrize("seed", [None, 11])

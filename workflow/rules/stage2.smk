@@ -11,7 +11,8 @@ rule stage2_features:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
         stage2=stage2_upstream(),
-    threads: 2
+        threads=config["threads"]["stage2_features"],
+    threads: config["threads"]["stage2_features"]
     resources:
         mem_mb=4000,
     log:
@@ -31,6 +32,8 @@ rule stage2_train:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
         stage2=stage2_upstream(),
+        threads=config["threads"]["stage2_head"],
+    threads: config["threads"]["stage2_head"]
     log:
         LOGS + "/{dataset}/stage2_train/{image}.log",
     benchmark:
@@ -50,6 +53,8 @@ rule stage2_predict:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
         stage2=config["stage2"],
+        threads=config["threads"]["stage2_head"],
+    threads: config["threads"]["stage2_head"]
     log:
         LOGS + "/{dataset}/stage2_predict/{image}.log",
     benchmark:
@@ -76,6 +81,8 @@ if stage2_predict_variants():
         params:
             stage2=config["stage2"],
             variants=stage2_predict_variants(),
+            threads=config["threads"]["stage2_head"],
+        threads: config["threads"]["stage2_head"]
         log:
             LOGS + "/{dataset}/stage2_predict_ablation/{image}.log",
         benchmark:
@@ -97,7 +104,8 @@ rule stage2_ablation:
     params:
         stage2=config["stage2"],
         variants=config["stage2_ablation"]["variants"],
-    threads: 2
+        threads=config["threads"]["stage2_features"],
+    threads: config["threads"]["stage2_features"]
     resources:
         mem_mb=4000,
     log:
