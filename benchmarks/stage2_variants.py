@@ -128,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
                          "pipeline's stage-II rules: "
                          "float sums depend on it)")
     a = ap.parse_args(argv)
+    if a.threads is not None and a.threads < 1:
+        ap.error(f"--threads must be at least 1, got {a.threads}")
     cfg, data = run_dataset(ap, a)
     try:
         over = parse_sets(a.sets)
@@ -159,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.pt"
         return (str(h5), str(pt)) if predict_only and h5.exists() and pt.exists() else None
 
-    threads = {k: a.threads or cfg["threads"][k] for k in ("stage2_features", "stage2_head")}
+    threads = {k: cfg["threads"][k] if a.threads is None else a.threads
+               for k in ("stage2_features", "stage2_head")}
     jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
              str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, threads,
              reuse(s))

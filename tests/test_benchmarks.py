@@ -31,6 +31,9 @@ def test_stage2_variants_sets_and_refusals(tmp_path, capsys):
     with pytest.raises(SystemExit):
         sv.main([str(tmp_path), "--set", "occlude_prob=3"])
     assert "occlude_prob" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sv.main([str(tmp_path), "--set", "occlude_prob=0.5", "--threads", "0"])
+    assert "--threads must be at least 1" in capsys.readouterr().err
     # a results folder without a run: a clear message, exit 2, nothing written
     assert sv.main([str(tmp_path), "--set", "occlude_prob=0.5"]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
