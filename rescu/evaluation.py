@@ -848,7 +848,8 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
     DataFrame
         ``dataset, image, method, vp_missing, point_error_px, angle_error_deg,
         focal_px, focal_source`` ("true" or "assumed": f = (w + h) / 4 and the image
-        centre); errors to the closest GT VP (module docstring), inf when missing.
+        centre), ``n_gt_vps`` (GT VPs of the image); errors to the closest GT VP (module
+        docstring), inf when missing.
         Images without a GT VP are left out.
     """
     from .vp import closest_gt_error  # point_error / vector_error of rescu.vp
@@ -882,7 +883,8 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
             rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
                          "vp_missing": vp is None, "point_error_px": pe,
                          "angle_error_deg": ae, "focal_px": focal,
-                         "focal_source": "true" if true_f else "assumed"})
+                         "focal_source": "true" if true_f else "assumed",
+                         "n_gt_vps": len(g["vanishing_points"])})
     return pd.DataFrame(rows)
 
 
@@ -932,14 +934,27 @@ def vp_significance(frame: pd.DataFrame) -> pd.DataFrame:
                                        "n_pairs", "median_a", "median_b", "p_value"])
 
 
-def vp_markdown(success: pd.DataFrame, decimals: int = 2) -> str:
-    """Markdown: per dataset and error kind, methods x thresholds of success rate."""
+def vp_markdown(success: pd.DataFrame, decimals: int = 2,
+                errors: pd.DataFrame | None = None) -> str:
+    """Markdown: per dataset and error kind, methods x thresholds of success rate.
+
+    With ``errors`` (:func:`vp_frame`), each dataset's first section opens with what its
+    errors mean: how many images, how many GT VPs each (errors are to the closest one),
+    which focal length the angle error used, and per method the median angle error and
+    the number of images without a VP.
+    """
     lines = []
+    noted: set[str] = set()
     for (dsn, kind), g in success.groupby(["dataset", "kind"], sort=False):
         unit = "px" if kind == "point_px" else "°"
         p = g.pivot(index="method", columns="threshold", values="success_rate")
         p = p.reindex(list(dict.fromkeys(g["method"])))
         lines += [f"## {dsn} — {'point error' if kind == 'point_px' else 'angle error'}", ""]
+        if errors is not None and dsn not in noted and len(errors):
+            e = errors[errors["dataset"] == dsn]
+            if len(e):
+                noted.add(dsn)
+                lines += [_vp_note(e), ""]
         head = ["method"] + [f"≤ {t:g} {unit}" for t in p.columns]
         lines.append("| " + " | ".join(head) + " |")
         lines.append("|" + "|".join(["---"] + ["---:"] * len(p.columns)) + "|")
@@ -947,6 +962,29 @@ def vp_markdown(success: pd.DataFrame, decimals: int = 2) -> str:
             lines.append("| " + " | ".join([str(m)] + [f"{v:.{decimals}f}" for v in r]) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _vp_note(e: pd.DataFrame) -> str:
+    """One dataset's sentence for :func:`vp_markdown` (``e``: its rows of :func:`vp_frame`)."""
+    per_image = e.drop_duplicates("image")
+    n_img = len(per_image)
+    k = per_image["n_gt_vps"] if "n_gt_vps" in per_image else pd.Series([1] * n_img)
+    if k.min() == k.max():
+        gts = f"{int(k.min())} GT VP{'s' if k.min() > 1 else ''} per image"
+    else:
+        gts = f"{int(k.min())}-{int(k.max())} GT VPs per image"
+    closest = "; errors are to the closest GT VP" if k.max() > 1 else ""
+    src = set(per_image["focal_source"])
+    focal = ("the true focal length and principal point" if src == {"true"} else
+             "f = (w + h) / 4 and the image centre (no focal length given)"
+             if src == {"assumed"} else "the true focal length where given, else "
+             "f = (w + h) / 4 and the image centre")
+    per_m = []
+    for m, gm in e.groupby("method", sort=False):
+        med = float(np.median(gm["angle_error_deg"]))
+        per_m.append(f"{m} {med:.2f}° ({int(gm['vp_missing'].sum())} without a VP)")
+    return (f"{n_img} images, {gts}{closest}. Angle errors with {focal}; a missing VP "
+            f"fails every threshold. Median angle error: {', '.join(per_m)}.")
 
 
 def plot_vp_curves(success: pd.DataFrame, path: str | Path,

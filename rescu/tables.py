@@ -165,7 +165,7 @@ def vp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
             if len(s):
                 E.plot_vp_curves(s, Path(figures_dir) / f"vpd_{name}.png",
                                  title=f"{name}: VP success rate")
-        md = E.vp_markdown(success, params.decimals)
+        md = E.vp_markdown(success, params.decimals, errors)
         if len(tests):
             md += "\n\nPaired Wilcoxon tests of per-image errors:\n\n" + \
                 E.frame_markdown(tests, 4)

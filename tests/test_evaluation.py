@@ -338,6 +338,15 @@ def test_vp_tables(tiny) -> None:
     assert len(sig) == 2 * 3 and sig["p_value"].between(0, 1).all()
     md = E.vp_markdown(s)
     assert "≤ 5 px" in md and "| shift | 0.00 | 1.00 |" in md
+    # with the errors: what they mean, once per dataset
+    assert f.set_index("image")["n_gt_vps"].to_dict() == {
+        "images/a.png": 2, "images/b.png": 1, "images/c.png": 1}
+    md = E.vp_markdown(s, errors=f)
+    assert md.count("3 images, 1-2 GT VPs per image; errors are to the closest GT VP. "
+                    "Angle errors with f = (w + h) / 4") == 1
+    assert "jitter" in md and "(1 without a VP)" in md
+    one = E.vp_markdown(s, errors=f.assign(n_gt_vps=1))
+    assert "1 GT VP per image. " in one and "closest" not in one
     E.plot_vp_curves(s, tmp / "vp.png")
     assert (tmp / "vp.png").stat().st_size > 1000
 
