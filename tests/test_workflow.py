@@ -276,6 +276,46 @@ def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, ca
         assert "added_by_visible_half" in a["stage2"]["prediction"]
 
 
+def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_run, capsys):
+    """benchmarks/vp_ac_sweep.py recomputes the image VP from the scene step's input: at
+    the config's budget and seed with the AC on, its errors are the pipeline's own
+    (scene/), and without the AC those of scene-noac/; every variant has one row per
+    image with a GT VP."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import vp_ac_sweep as AS
+
+    from rescu.config import load_config
+    from rescu.evaluation import vp_frame
+
+    work, cfg_path = finished_run
+    res = work / "results"
+    cfg = load_config(cfg_path)
+    vp_cfg = cfg["scene"]["vp"]
+    df = AS.sweep(res, cfg, ["synthetic"], [2, vp_cfg["ransac_iterations"]], 2)
+    data = res / "data" / "synthetic"
+    frame = vp_frame(data, {"on": res / "synthetic" / "scene",
+                            "off": res / "synthetic" / "scene-noac"})
+    assert len(frame) > 0
+    n = len(frame) // 2
+    assert len(df) == n * 2 * 2 * 2  # budgets x seeds x AC
+    own = df[(df["budget"] == vp_cfg["ransac_iterations"]) & (df["seed"] == vp_cfg["seed"])]
+    for ac, name in ((True, "on"), (False, "off")):
+        mine = own[own["ac"] == ac].set_index("image")["err"].sort_index()
+        theirs = frame[frame["method"] == name].set_index("image")["angle_error_deg"]
+        # the JSONs keep 9 decimals of the unit homogeneous VP: ~1e-6 degrees
+        np.testing.assert_allclose(mine.to_numpy(), theirs.sort_index().to_numpy(),
+                                   rtol=0, atol=1e-4)
+    table = AS.summarise(df, [5.0])
+    assert set(table["AC"]) == {"on", "off"} and len(table) == 4
+    assert table["success@5deg"].between(0, 1).all()
+    # usage errors and a folder without a run
+    with pytest.raises(SystemExit):
+        AS.main([str(res), "--budgets", "0"])
+    assert "at least 1" in capsys.readouterr().err
+    assert AS.main([str(work / "nothing"), "--datasets", "synthetic"]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+
+
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {"x": {"top_p": 5}}})
     with pytest.raises(AssertionError, match=r"predict_variants\.x: \['top_p'\]"):
