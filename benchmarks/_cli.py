@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 
 def run_parser(doc: str) -> argparse.ArgumentParser:
@@ -37,3 +37,47 @@ def print_rows(df: Any) -> None:
 
     with pd.option_context("display.width", 250, "display.max_rows", None):
         print(df.round(2).to_string(index=False))
+
+
+def claim_variant_folder(out: Path, record: dict[str, Any]) -> bool:
+    """Create ``out`` for a variant made with the settings ``record`` (saved as
+    ``out/params.json``); False, with a message, when ``out`` was made with other settings
+    (its results must not be mixed with these)."""
+    import json
+    import sys
+
+    from rescu.io import write_json
+
+    out.mkdir(parents=True, exist_ok=True)
+    pfile = out / "params.json"
+    if pfile.exists() and json.loads(pfile.read_text()) != json.loads(json.dumps(record)):
+        print(f"{out}: made with other settings ({pfile}); choose another --name or --out",
+              file=sys.stderr)
+        return False
+    write_json(pfile, record)
+    return True
+
+
+def run_jobs(fn: Callable[[Any], Any], jobs: list[Any], workers: int) -> list[Any]:
+    """``fn`` over ``jobs``: in ``workers`` spawned processes when more than one (results
+    in completion order), else in this process in order."""
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(workers) as pool:
+            return list(pool.imap_unordered(fn, jobs))
+    return [fn(j) for j in jobs]
+
+
+def images_with(data: Path, *folders: Path) -> list[str]:
+    """File names of ``data/annotations.json`` with a ``<stem>.json`` in every folder, in
+    the annotations' order."""
+    import json
+
+    have = None
+    for d in folders:
+        stems = {p.stem for p in d.glob("*.json") if p.name != "params.json"}
+        have = stems if have is None else have & stems
+    ann = json.loads((data / "annotations.json").read_text())
+    return [im["file_name"] for im in ann["images"]
+            if Path(im["file_name"]).stem in (have or set())]

@@ -35,7 +35,6 @@ Usage (after a run, from the repository root)::
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 import time
@@ -110,11 +109,10 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _cli import run_dataset, run_parser
+    from _cli import claim_variant_folder, images_with, run_dataset, run_jobs, run_parser
 
     from rescu.evaluation import (evaluate_rp_dataset, frame_markdown, significance_table,
                                   summary_markdown, summary_table)
-    from rescu.io import write_json
     from rescu.stage2 import Stage2Params, is_predict_only
 
     ap = run_parser(__doc__)
@@ -144,14 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         if not d.exists():
             print(f"{d}: not found (run the pipeline first)", file=sys.stderr)
             return 2
-    out.mkdir(parents=True, exist_ok=True)
-    pfile = out / "params.json"
-    record = {"dataset": a.dataset, "stage2": params}
-    if pfile.exists() and json.loads(pfile.read_text()) != json.loads(json.dumps(record)):
-        print(f"{out}: made with other settings ({pfile}); choose another --name or --out",
-              file=sys.stderr)
+    if not claim_variant_folder(out, {"dataset": a.dataset, "stage2": params}):
         return 2
-    write_json(pfile, record)
     stems = sorted(p.stem for p in (run / "rescu-i").glob("*.json")
                    if (run / "prepared" / f"{p.stem}.png").exists())
     # prediction-only overrides: the run's own features and head, where it has them
@@ -172,13 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"prediction-only keys: {n} of {len(jobs)} images from the run's own features "
               f"and head")
     t0 = time.time()
-    if a.workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(a.workers) as pool:
-            done = list(pool.imap_unordered(_one, jobs))
-    else:
-        done = [_one(j) for j in jobs]
+    done = run_jobs(_one, jobs, a.workers)
     for stem, status, _, _ in sorted(done):
         if status != "ok":
             print(f"{stem}: {status}", file=sys.stderr)
@@ -192,10 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fine-tuned backbone on {len(ep)} images: epochs median {np.median(ep):.0f}, "
                   f"{sum(e >= int(params['max_epochs']) for e in ep)} stopped at max_epochs "
                   f"({params['max_epochs']})")
-    have = {p.stem for p in out.glob("*.json") if p.name != "params.json"}
-    have &= {p.stem for p in (run / "rescu-ii").glob("*.json")}
-    ann = json.loads((data / "annotations.json").read_text())
-    images = [im["file_name"] for im in ann["images"] if Path(im["file_name"]).stem in have]
+    images = images_with(data, out, run / "rescu-ii")
     if not images:
         print("no image with results of all three methods")
         return 0

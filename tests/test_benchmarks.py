@@ -66,3 +66,19 @@ def test_stage2_misses_without_a_run(tmp_path, capsys):
         '{"images": [], "annotations": [], "categories": []}')
     assert sm.main([str(tmp_path)]) == 0
     assert "0 GT instances missed" in capsys.readouterr().out
+
+
+def test_completion_variants_refusals(tmp_path, capsys):
+    cv = load("completion_variants")
+    with pytest.raises(SystemExit):
+        cv.main([str(tmp_path), "--set", "no_such_key=1"])
+    assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cv.main([str(tmp_path), "--set", "max_step_ratio=0.5"])
+    assert "max_step_ratio" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cv.main([str(tmp_path), "--workers", "0"])
+    assert "--workers must be at least 1" in capsys.readouterr().err
+    assert cv.main([str(tmp_path), "--set", "end_instances=2"]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    assert not (tmp_path / "benchmarks").exists()

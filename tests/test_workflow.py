@@ -316,6 +316,26 @@ def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_ru
     assert "run the pipeline first" in capsys.readouterr().err
 
 
+def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_run, capsys):
+    """benchmarks/completion_variants.py with no override recomputes exactly the run's
+    scene/ JSONs, prints both rows, and refuses its folder for other settings."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import completion_variants as CV
+
+    work, cfg_path = finished_run
+    res = work / "results"
+    out = work / "cv-config"
+    base = [str(res), "--config", str(cfg_path), "--out", str(out)]
+    assert CV.main(base + ["--workers", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "3 images in" in text and "run " in text and "exact_rate" in text
+    for f in sorted((res / "synthetic" / "scene").glob("*.json")):
+        a, b = json.loads(f.read_text()), json.loads((out / f.name).read_text())
+        assert a == b, f.name
+    assert CV.main(base + ["--set", "end_instances=2"]) == 2
+    assert "other settings" in capsys.readouterr().err
+
+
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {"x": {"top_p": 5}}})
     with pytest.raises(AssertionError, match=r"predict_variants\.x: \['top_p'\]"):
