@@ -968,7 +968,7 @@ def _vp_note(e: pd.DataFrame) -> str:
     """One dataset's sentence for :func:`vp_markdown` (``e``: its rows of :func:`vp_frame`)."""
     per_image = e.drop_duplicates("image")
     n_img = len(per_image)
-    k = per_image["n_gt_vps"] if "n_gt_vps" in per_image else pd.Series([1] * n_img)
+    k = per_image["n_gt_vps"]
     if k.min() == k.max():
         gts = f"{int(k.min())} GT VP{'s' if k.min() > 1 else ''} per image"
     else:
