@@ -81,3 +81,16 @@ def images_with(data: Path, *folders: Path) -> list[str]:
     ann = json.loads((data / "annotations.json").read_text())
     return [im["file_name"] for im in ann["images"]
             if Path(im["file_name"]).stem in (have or set())]
+
+
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """``["KEY=VALUE", ...]`` -> ``{KEY: YAML value}``; ValueError on an item without '='."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for it in items:
+        key, sep, val = it.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
+        out[key.strip()] = yaml.safe_load(val)
+    return out

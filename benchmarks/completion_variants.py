@@ -79,8 +79,8 @@ def scores(data: Path, preds: dict[str, Path], images: list[str], ts_t: float
 
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
-    from _cli import claim_variant_folder, images_with, run_dataset, run_jobs, run_parser
-    from stage2_variants import parse_sets
+    from _cli import (claim_variant_folder, images_with, parse_sets, run_dataset, run_jobs,
+                      run_parser)
 
     from rescu.completion import CompletionParams
 

@@ -45,18 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def parse_sets(items: list[str]) -> dict[str, Any]:
-    """``["KEY=VALUE", ...]`` -> ``{KEY: YAML value}``; ValueError on an item without '='."""
-    import yaml
-
-    out: dict[str, Any] = {}
-    for it in items:
-        key, sep, val = it.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
-        out[key.strip()] = yaml.safe_load(val)
-    return out
+from _cli import parse_sets  # noqa: E402  (re-exported: the tests call it from here)
 
 
 def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
