@@ -33,6 +33,11 @@ package is used):
    a few common verbs agreeing): "A bottle is on a shelf" -> "Eight similar bottles are
    on a shelf".
 
+The head noun of a noun phrase is its last noun: adjectives, colour and nationality words
+and -ing/-ed participles in front of it are modifiers, never pluralised ("A row of red
+sleeping bags" -> "Four similar red sleeping bags"); an -ing/-ed word after a noun starts
+a participle clause ("A dog eating food" -> "Two similar dogs eating food").
+
 Count words are "two" ... "twenty", then digits; a count of one or no RP leaves the
 caption unchanged. Several RPs: with a grounding function ``ground(rgb, noun) -> bbox``
 each noun phrase head is grounded to a box and gets the RP whose total instance area
@@ -185,6 +190,33 @@ spring swing something nothing evening morning ping wedding railing housing dwel
 sibling pudding awning""".split())
 _ED_NOUNS = frozenset("bed shed sled red seed weed reed need feed bread thread".split())
 
+# Modifiers that go in front of a head noun. An -ing / -ed word after modifiers only is
+# part of the noun phrase ("red sleeping bags", "Italian racing cars"), after a noun it
+# starts a participle clause ("a cat sleeping on a bed", "a dog eating food").
+# Adjectives that are (practically) never the head noun of a caption's noun phrase:
+_ADJECTIVES = frozenset("""
+red blue green yellow purple pink brown black white gray grey beige teal turquoise
+maroon violet magenta crimson scarlet colorful colourful
+big small large little tiny huge enormous tall short long wide narrow thin thick
+old new young ancient modern vintage empty full open bright pale dark shiny dirty
+clean wet dry heavy pretty beautiful cute fancy wild electric wooden golden similar
+identical same different various other
+""".split())
+# Modifiers that are also nouns ("an Italian", "an orange", "a metal"): a modifier in
+# front of an -ing word followed by a noun, the head otherwise.
+_NATIONALITIES = frozenset("""
+italian french german spanish english british american canadian mexican chinese
+japanese korean indian thai vietnamese russian polish dutch swedish norwegian danish
+finnish irish scottish welsh greek turkish egyptian african european asian australian
+brazilian argentinian portuguese swiss austrian belgian cuban persian moroccan
+hungarian czech ukrainian arabian
+""".split())
+_NOUN_MODIFIERS = _NATIONALITIES | frozenset("""
+orange gold silver cream olive lime tan navy ivory coral peach rose plum bronze lavender
+metal plastic steel stone brick leather cardboard marble concrete iron rubber ceramic
+porcelain wicker bamboo copper brass aluminum aluminium wood
+""".split())
+
 _IRREGULAR_PLURALS = {
     "person": "people", "child": "children", "man": "men", "woman": "women",
     "foot": "feet", "tooth": "teeth", "mouse": "mice", "goose": "geese", "ox": "oxen",
@@ -289,7 +321,12 @@ def _scan_np(toks: list[_Tok], widx: list[int], k: int) -> tuple[int, int, int] 
     """Noun phrase starting at word position ``k`` of ``widx``: (start, body, head).
 
     Determiners / quantifiers, then content words; the head is the last content word
-    before a function word, punctuation or a verb form.
+    before a function word, punctuation or a participle clause. An -ing / -ed word
+    after a noun starts a participle clause ("babies sitting on", "cars parked along",
+    "a dog eating food"); after modifiers only (adjectives, colour and nationality
+    words, participles: :data:`_ADJECTIVES`, :data:`_NOUN_MODIFIERS`) it is a modifier
+    too when a noun follows ("red sleeping bags", "Italian racing cars", "old parked
+    cars"), and after adjectives only it is always in the phrase ("a large gathering").
     """
     n = len(widx)
     if k >= n:
@@ -301,24 +338,35 @@ def _scan_np(toks: list[_Tok], widx: list[int], k: int) -> tuple[int, int, int] 
     if j >= n:
         return None
     body = widx[j]
+
+    def joined(a: int, b: int) -> bool:
+        # no punctuation (other than inside a hyphenated word) between tokens a and b
+        return not any(not t.is_word and not t.is_space for t in toks[a + 1:b])
+
     head = -1
+    mods_only = True  # every word taken so far is a modifier (adjective, participle ...)
+    adjs_only = True  # every word taken so far is an adjective that is no noun
     while j < n:
         ti = widx[j]
         w = toks[ti].low
-        # punctuation (other than a hyphenated word) between words ends the phrase
-        if head >= 0 and any(not t.is_word and not t.is_space
-                             for t in toks[widx[j - 1] + 1:ti]):
+        if head >= 0 and not joined(widx[j - 1], ti):
             break
         if w in COLLECTIVE_NOUNS and j + 1 < n and toks[widx[j + 1]].low == "of":
             head = ti  # "a large group of": the adjectives belong to the collective
             break
         if _is_function_word(w):
             break
-        if _is_verb_form(w) and head >= 0:
-            nxt = toks[widx[j + 1]].low if j + 1 < n else ""
-            if w.endswith("ing") or not nxt or _is_function_word(nxt):
-                break
+        verb_form = _is_verb_form(w)
+        if verb_form and head >= 0 and not adjs_only:
+            # a noun phrase word must follow for the participle to be a modifier
+            nxt = toks[widx[j + 1]].low if j + 1 < n and joined(ti, widx[j + 1]) else ""
+            if not nxt or _is_function_word(nxt):
+                break  # "cars parked along", "a cat sleeping."
+            if w.endswith("ing") and not mods_only:
+                break  # "a dog eating food"; "old parked cars", "red sleeping bags" go on
         head = ti
+        mods_only = mods_only and (verb_form or w in _ADJECTIVES or w in _NOUN_MODIFIERS)
+        adjs_only = adjs_only and w in _ADJECTIVES
         j += 1
     if head < 0:
         return None
@@ -395,7 +443,9 @@ def _rewrite(toks: list[_Tok], np_: _NounPhrase, count: int) -> tuple[list[_Tok]
     if at_start and cut_from == np_.start == body and rest and rest[0].is_word:
         first = rest[0].text
         # lower-case a capitalised common word that no longer starts the sentence
-        if first[:1].isupper() and not first.isupper():
+        # (a nationality adjective keeps its capital: "four similar Italian cars")
+        if (first[:1].isupper() and not first.isupper()
+                and first.lower() not in _NATIONALITIES):
             rest = [_Tok(first[0].lower() + first[1:])] + rest[1:]
     before = toks[:cut_from]
     if head_was_singular:

@@ -107,6 +107,58 @@ def test_subject_noun_and_plural(base: str, n: int, expected: str) -> None:
     assert enh(base, n) == expected
 
 
+@pytest.mark.parametrize("base,n,expected", [
+    # bug report: the modifier in front of an -ing compound was taken as the head
+    ("A row of red sleeping bags on the floor.", 4,
+     "Four similar red sleeping bags on the floor."),
+    ("A group of Italian racing cars on a track.", 4,
+     "Four similar Italian racing cars on a track."),
+    # same cause: colour / material / adjective / participle before an -ing or -ed word
+    ("A line of blue shopping carts", 4, "Four similar blue shopping carts"),
+    ("Several white folding chairs.", 4, "Four similar white folding chairs."),
+    ("A stack of green drinking glasses", 4, "Four similar green drinking glasses"),
+    ("A row of metal folding chairs", 4, "Four similar metal folding chairs"),
+    ("A wood burning stove", 3, "Three similar wood burning stoves"),
+    ("A group of similar racing cars", 4, "Four similar racing cars"),
+    ("Two red sleeping bags", 3, "Three similar red sleeping bags"),
+    ("A red sleeping bag on the floor.", 3, "Three similar red sleeping bags on the floor."),
+    ("A row of old parked cars", 4, "Four similar old parked cars"),
+    ("An old parked car near a house", 2, "Two similar old parked cars near a house"),
+    ("A row of polished racing cars", 4, "Four similar polished racing cars"),
+    # an -ing/-ed word after adjectives only is the head when nothing follows it
+    ("A large gathering on the lawn", 3, "Three similar large gatherings on the lawn"),
+    ("A small flowerbed in a garden", 3, "Three similar small flowerbeds in a garden"),
+    # -ing compounds without a modifier (already right) and -ing nouns as heads
+    ("Washing machines.", 4, "Four similar washing machines."),
+    ("A row of folding chairs", 4, "Four similar folding chairs"),
+    ("A row of tall buildings", 4, "Four similar tall buildings"),
+    ("A tall building", 3, "Three similar tall buildings"),
+    ("A painting", 3, "Three similar paintings"),
+    ("A painting on a wall", 3, "Three similar paintings on a wall"),
+    ("A ceiling fan", 3, "Three similar ceiling fans"),
+    ("A ceiling", 2, "Two similar ceilings"),
+    ("A row of paintings hanging on a wall", 5, "Five similar paintings hanging on a wall"),
+    # after a noun an -ing/-ed word still starts a participle clause
+    ("A dog eating food", 2, "Two similar dogs eating food"),
+    ("A black cat sleeping on a bed", 2, "Two similar black cats sleeping on a bed"),
+    ("An orange sitting on a table", 3, "Three similar oranges sitting on a table"),
+    ("An Italian sitting on a bench", 2, "Two similar Italians sitting on a bench"),
+    ("A snow covered mountain", 3, "Three similar snow covered mountains"),
+    # a participle before punctuation ends the phrase at the noun before it
+    ("Cars parked, waiting.", 3, "Three similar cars parked, waiting."),
+    # a nationality adjective keeps its capital when the count goes in front of it
+    ("Italian racing cars on a track.", 4, "Four similar Italian racing cars on a track."),
+])
+def test_modifiers_before_head_not_pluralised(base: str, n: int, expected: str) -> None:
+    assert enh(base, n) == expected
+
+
+def test_ing_compound_scene_sentence_uses_head_noun() -> None:
+    assert enh("A row of red sleeping bags on the floor.", 4, ts=True) == (
+        "Four similar red sleeping bags on the floor. The bags have a potential "
+        "translation symmetry in 3D.")
+
+
 @pytest.mark.parametrize("n,word", [(2, "Two"), (3, "Three"), (11, "Eleven"),
                                     (15, "Fifteen"), (19, "Nineteen"), (20, "Twenty"),
                                     (21, "21"), (30, "30")])
