@@ -1,8 +1,11 @@
 # RESCU: recurrence-based 3D scene understanding from a single image.
 # Table of contents: config + validation, one rule file per stage, the final targets.
+import sys
+
 from snakemake.utils import min_version, update_config, validate
 
-from rescu.config import typed_cli_overrides
+from rescu.config import typed_cli_overrides, validate_config
+from rescu.io import InputError
 
 min_version("9.0")
 
@@ -14,6 +17,14 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 update_config(config, typed_cli_overrides(workflow.config_settings.config))
 
 
+# every key of every section checked once, before any job (schema + parameter classes):
+# one line naming the key, its value and what is allowed, exit 2
+try:
+    validate_config(config, ", ".join(map(str, workflow.configfiles)) or "config",
+                    [("--config", workflow.config_settings.config)])
+except InputError as e:
+    print(f"rescu: error: {e}", file=sys.stderr)
+    sys.exit(2)
 validate(config, os.path.join(workflow.basedir, "config", "config.schema.yaml"))
 
 

@@ -16,13 +16,15 @@ from typing import Any
 
 from . import io, pipeline
 from .config import load_config
+from .io import InputError
 from .types import ImageResult
 
 METHODS = ("rescu-ii", "rescu-i", "grasp")
 
 
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
-             config: dict[str, Any] | None = None, keep_work: bool = False) -> ImageResult:
+             config: dict[str, Any] | None = None, keep_work: bool = False,
+             name: str | None = None, validated: bool = False) -> ImageResult:
     """Discover the recurring patterns of one photo and describe the scene.
 
     Parameters
@@ -40,18 +42,48 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     keep_work : bool
         Keep the intermediate files (features, RP matrices, checkpoints) in
         ``out_dir/.work/<stem>``.
+    name : str, optional
+        The name of the output files instead of the photo's stem (``<name>.json``, ...).
+    validated : bool
+        ``config`` was already checked by :func:`rescu.config.validate_config` (the CLI
+        checks it once for all photos); otherwise it is checked here.
 
     Returns
     -------
     ImageResult
         With ``extra["failure"]`` set (and no pattern) when the image could not be
-        processed: this function does not raise for a bad image.
+        processed (unreadable, too small, a step failed): this function does not raise
+        for a bad image.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``image`` does not exist (or is a folder).
+    rescu.io.InputError
+        ``method`` or ``config`` is invalid (the message names the key and its value),
+        or ``out_dir`` is a file, or would overwrite ``image``.
     """
+    from .config import validate_config
+
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    cfg = config if config is not None else load_config()
+        raise InputError(f"method must be one of {METHODS}, got {method!r}")
     image = Path(image)
-    stem = image.stem
+    if not image.is_file():
+        raise FileNotFoundError(f"{image}: " + ("is a folder, not an image file"
+                                                if image.is_dir() else "file not found"))
+    if config is None:
+        cfg = load_config(stage2=method == "rescu-ii")
+    else:
+        cfg = config if validated else validate_config(config, "config",
+                                                       stage2=method == "rescu-ii")
+    stem = name or image.stem
+    if out_dir is not None:
+        if Path(out_dir).exists() and not Path(out_dir).is_dir():
+            raise InputError(f"out_dir {out_dir}: exists and is not a folder")
+        targets = [Path(out_dir) / f"{stem}.json", Path(out_dir) / f"{stem}.png"]
+        if any(t.resolve() == image.resolve() for t in targets):
+            raise InputError(f"out_dir {out_dir}: the results of {image} would overwrite it; "
+                             f"choose another out_dir")
     tmp = None
     if out_dir is not None and keep_work:
         work = Path(out_dir) / ".work" / stem

@@ -16,19 +16,35 @@ EXIT_OK, EXIT_IMAGE_FAILED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
-    """``["stage1.max_patterns=3", ...]`` -> nested dict (values parsed as YAML)."""
+    """``["stage1.max_patterns=3", ...]`` -> nested dict (values parsed as YAML).
+
+    Raises :class:`~rescu.io.InputError` naming ``--set`` and the item when an item is
+    not ``KEY=VALUE`` or its value is not YAML.
+    """
     import yaml
+
+    from .io import InputError
 
     out: dict[str, Any] = {}
     for item in items:
-        if "=" not in item:
-            raise ValueError(f"--set expects KEY=VALUE (e.g. stage1.max_patterns=3), got {item!r}")
-        key, value = item.split("=", 1)
+        key, sep, value = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise InputError(f"--set expects KEY=VALUE (e.g. stage1.max_patterns=3), "
+                             f"got {item!r}")
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            problem = getattr(e, "problem", None) or str(e).split("\n")[0]
+            raise InputError(f"--set {item!r}: the value is not valid YAML ({problem}); "
+                             f"quote strings, write lists as [1, 2]") from None
         node = out
-        parts = key.split(".")
         for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(value)
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise InputError(f"--set {item!r}: {p!r} is set to a value by an earlier --set")
+            node = nxt
+        node[parts[-1]] = parsed
     return out
 
 
@@ -46,7 +62,55 @@ def _collect_photos(paths: Sequence[str]) -> list[Path]:
             photos.append(p)
         else:
             raise InputError(f"{p}: file not found")
-    return photos
+    unique: dict[Path, Path] = {}
+    for p in photos:  # one photo named twice (a file and its folder) runs once
+        unique.setdefault(p.resolve(), p)
+    return list(unique.values())
+
+
+def result_names(photos: Sequence[Path]) -> list[str]:
+    """The name each photo's outputs get (``<name>.json``, ``<name>.png``, ...).
+
+    The file's stem, or its whole file name (``x.jpg`` -> ``x.jpg``) when two photos
+    share a stem (``x.jpg`` and ``x.png``). Raises :class:`~rescu.io.InputError` before
+    any work when names still collide (``a/x.jpg`` and ``b/x.jpg``).
+    """
+    from collections import Counter
+
+    from .io import InputError
+
+    stems = Counter(p.stem for p in photos)
+    names = [p.stem if stems[p.stem] == 1 else p.name for p in photos]
+    seen: dict[str, Path] = {}
+    for p, n in zip(photos, names):
+        if n in seen:
+            raise InputError(f"{seen[n]} and {p} would write the same result files "
+                             f"({n}.json); run them into different --out folders")
+        seen[n] = p
+    return names
+
+
+def _check_out_dir(out: Path, photos: Sequence[Path]) -> None:
+    """Refuse an output folder that is a file, cannot be written, or holds an input photo
+    (its overlay ``<stem>.png`` or JSON could overwrite a user's file)."""
+    import os
+
+    from .io import InputError
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    root = out.resolve()
+    for p in photos:
+        if p.resolve().is_relative_to(root):
+            raise InputError(f"--out {out}: holds the input photo {p}; results are written "
+                             f"as <name>.json / <name>.png and could overwrite your files: "
+                             f"choose a folder without photos in it")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"--out {out}: cannot be created ({e.strerror or e})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"--out {out}: not writable")
 
 
 def _summary_line(name: str, res: Any) -> str:
@@ -71,20 +135,26 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
     from .api import discover
     from .config import load_config
+    from .io import InputError
     from .pipeline import setup_logging
 
-    cfg = load_config(args.config, _parse_set(args.set))
+    cfg = load_config(args.config, _parse_set(args.set), stage2=args.method == "rescu-ii")
     photos = _collect_photos(args.photos)
+    names = result_names(photos)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    setup_logging(str(out / "rescu.log"), logging.DEBUG if args.verbose else logging.INFO)
+    _check_out_dir(out, photos)
+    try:
+        setup_logging(str(out / "rescu.log"), logging.DEBUG if args.verbose else logging.INFO)
+    except OSError as e:
+        raise InputError(f"--out {out}: cannot write {out / 'rescu.log'} "
+                         f"({e.strerror or e})") from None
     failed = 0
-    bar = tqdm(photos, desc="rescu discover", unit="image", disable=args.quiet or None,
-               file=sys.stderr)
-    for photo in bar:
+    bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
+               disable=args.quiet or None, file=sys.stderr)
+    for photo, name in bar:
         bar.set_postfix_str(photo.name)
         res = discover(photo, out_dir=out, method=args.method, config=cfg,
-                       keep_work=args.keep_work)
+                       keep_work=args.keep_work, name=name, validated=True)
         failed += bool(res.extra.get("failure"))
         tqdm.write(_summary_line(photo.name, res), file=sys.stdout)
     print(f"{len(photos) - failed} of {len(photos)} image(s) done; results in {out}/ "
@@ -99,6 +169,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                     out_dir=Path(args.out) if args.out else None)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rescu")
+    except PackageNotFoundError:  # a source checkout that was not installed
+        from . import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="rescu",
@@ -108,6 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 ok; 1 some images failed (see their JSON); 2 bad usage, "
                "configuration or input; 3 internal error. The full benchmark pipeline is "
                "`snakemake --cores 2` in the source checkout.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser(
         "discover", help="find recurring patterns in photos",
@@ -115,7 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "(the per-image result format of the benchmark), <stem>.png (overlay: each "
                     "pattern's instances in its own colour, lines to its vanishing point, the "
                     "caption) and <stem>_rectified/rp<k>.png (rectified views), and prints a "
-                    "one-line summary per photo.")
+                    "one-line summary per photo. Photos that share a stem (x.jpg, x.png) keep "
+                    "their extension in these names (x.jpg.json). The output folder must not "
+                    "hold any of the photos. The whole configuration is checked before the "
+                    "first photo.")
     d.add_argument("photos", nargs="+", metavar="PHOTO",
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")

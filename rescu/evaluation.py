@@ -797,8 +797,8 @@ def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
     for (dsn, method), g in sf.groupby(["dataset", "method"], sort=False):
         c = cf[(cf["dataset"] == dsn) & (cf["method"] == method)]
         matched_all = c[c["gt_rp"] >= 0]
-        matched = matched_all[matched_all["counted"]]
-        dom = c[c["dominant"]]
+        matched = matched_all[matched_all["counted"].astype(bool)]
+        dom = c[c["dominant"].astype(bool)]
         dom_m = dom[dom["gt_rp"] >= 0]
         r: dict[str, Any] = {"dataset": dsn, "method": method,
                              "n_images": int(g["image"].nunique()),
@@ -1167,6 +1167,19 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float = 0.5,
     has_vp = (dataset_dir / "vanishing_points.json").is_file()
     if not (has_rp or has_vp):
         raise InputError(f"{dataset_dir}: no annotations.json or vanishing_points.json")
+    stems = {p.stem for p in pred_dir.glob("*.json")}
+    if not stems:
+        raise InputError(f"{pred_dir}: no prediction files (<image stem>.json) in folder")
+    images = set()
+    for name in ("annotations.json", "vanishing_points.json"):
+        if (dataset_dir / name).is_file():
+            d = read_json(dataset_dir / name)
+            images |= {Path(str(im.get("file_name", ""))).stem
+                       for im in (d.get("images") or []) if isinstance(im, dict)}
+    if images and not stems & images:
+        example = sorted(images)[0]
+        raise InputError(f"{pred_dir}: none of its {len(stems)} JSON file(s) is named after an "
+                         f"image of {dataset_dir} (expected e.g. {example}.json)")
     method = pred_dir.name or "predictions"
     if has_rp:
         scores = evaluate_rp_dataset(dataset_dir, {method: pred_dir}, h)

@@ -19,6 +19,7 @@ see :class:`ImageResult`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -126,8 +127,16 @@ class Instance:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "Instance":
+        """Read ``{"bbox": [x, y, w, h], "score"?, "source"?}``; ValueError for a box that
+        is not four finite numbers with ``w, h >= 0``."""
         b = d["bbox"]
-        return cls(bbox=(float(b[0]), float(b[1]), float(b[2]), float(b[3])),
+        if not isinstance(b, (list, tuple)) or len(b) != 4:
+            raise ValueError(f"bbox must be [x, y, width, height], got {b!r}")
+        x, y, w, h = (float(v) for v in b)
+        if not all(math.isfinite(v) for v in (x, y, w, h)) or w < 0 or h < 0:
+            raise ValueError(f"bbox [x, y, width, height] must be finite with width, "
+                             f"height >= 0, got {b!r}")
+        return cls(bbox=(x, y, w, h),
                    score=float(d.get("score", 1.0)), source=str(d.get("source", "stage1")))
 
 

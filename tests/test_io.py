@@ -159,7 +159,7 @@ def test_malformed_vanishing_points_name_field(tmp_path):
 def test_malformed_config_names_file_and_field(tmp_path):
     p = tmp_path / "my.yaml"
     p.write_text("image:\n  max_side: big\n")
-    with pytest.raises(InputError, match=r"my\.yaml: field 'image\.max_side'"):
+    with pytest.raises(InputError, match=r"my\.yaml: image\.max_side = 'big': 'big' is not of type 'integer'"):
         load_config(p)
     p.write_text("image: [unclosed\n")
     with pytest.raises(InputError, match=r"my\.yaml: malformed YAML"):
