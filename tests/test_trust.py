@@ -201,7 +201,11 @@ def test_api_raises_clear_exceptions(tmp_path, capfd):
         discover(photo, config=cfg, method="rescu-i")
     with pytest.raises(InputError, match="would overwrite"):
         discover(photo, out_dir=tmp_path, method="rescu-i")
-    assert "Traceback" not in capfd.readouterr().err
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"garbage")
+    res = discover(bad, method="rescu-i")  # a bad image is a documented empty result
+    assert res.extra["failure"]["stage"] == "prepare" and not res.patterns
+    assert capfd.readouterr().err == ""
 
 
 # ----------------------------------------------------------------------- installed
