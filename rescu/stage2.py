@@ -1092,15 +1092,18 @@ def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- step 3
 def score_features(x: np.ndarray, ckpt: dict[str, Any]) -> np.ndarray:
     """Class probabilities of box features ``x`` (N, D), (N, R + 1) float32 (column 0
-    background; an untrained head gives background 1)."""
+    background; an untrained head gives background 1). No box (N = 0, e.g. an image
+    whose proposal set is empty) gives a (0, R + 1) array."""
     import torch
 
-    x = np.asarray(x, np.float32).reshape(len(x), -1)
+    x = np.asarray(x, np.float32)
     n_cls = int(ckpt["n_classes"])
     if not ckpt["state_dict"] or len(x) == 0:
+        # checked before the reshape: (0, D) cannot be reshaped to (0, -1)
         out = np.zeros((len(x), n_cls), np.float32)
         out[:, 0] = 1.0
         return out
+    x = x.reshape(len(x), -1)
     head = _make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
     head.load_state_dict(ckpt["state_dict"])
     head.eval()
@@ -1236,6 +1239,11 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         "stage2", score = class probability) appended, sorted by (y, x);
         ``extra["stage2"]`` records the backbone and counts, and each extended pattern's
         ``extra["stage2_added"]`` the number added.
+
+    An image with RPs but no proposal at all (every RP's instances too small or too
+    large for instance-scale and lattice windows: ``feats["proposals"]`` is (0, 4)) is
+    a documented empty case, not an error: no RP gets a new instance (``stage2_added``
+    0) and ``extra["stage2"]["status"]`` is ``"no_proposals"``.
     """
     out = copy.deepcopy(stage1)
     out.method = METHOD
@@ -1261,6 +1269,8 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     prob = score_proposals(feats, ckpt)
     sel = select_examples(feats, params)      # distances to the DBSCAN centres
     boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
+    if not len(boxes):
+        summary["status"] = "no_proposals"     # every RP below: no candidate, none added
     all_inst = np.array([i.bbox for p in stage1.patterns for i in p.instances],
                         np.float64).reshape(-1, 4)
     arg = prob.argmax(1)

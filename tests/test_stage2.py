@@ -174,6 +174,35 @@ def test_no_rp_and_small_rp_unchanged(tmp_path):
         assert predict_stage2(back, ckpt, s1, p).to_json() == out.to_json()
 
 
+def test_rp_without_proposals_gets_no_new_instance(tmp_path):
+    """The empty case of real photos (York Urban): an RP whose instances are smaller than
+    ``min_box_side`` (8 px) gets neither instance-scale nor lattice windows, so the image
+    has RPs, a trained head and no proposal at all. Prediction used to fail with "cannot
+    reshape array of size 0 into shape (0,newaxis)" (score_features on (0, D))."""
+    rng = np.random.default_rng(0)
+    img = np.full((64, 96, 3), 128, np.uint8)
+    boxes = [(10.0, 20.0, 5.0, 5.0), (30.0, 20.0, 5.0, 5.0), (50.0, 20.0, 5.0, 5.0)]
+    tex = rng.integers(0, 255, (5, 5, 3), dtype=np.uint8)
+    for x, y, w, h in boxes:
+        img[int(y):int(y + h), int(x):int(x + w)] = tex
+    s1 = result(img, [boxes])
+    p = Stage2Params(max_epochs=3, n_augment=1)
+    feats = compute_stage2_features(img, 1.0, s1, p)
+    D = feats["instance_features"].shape[1]
+    assert len(feats["rp_index"]) == 1 and feats["proposal_features"].shape == (0, D)
+    ckpt, info = train_heads(feats, s1, p)
+    assert info["status"] == "trained" and info["n_proposals"] == 0
+    assert score_features(feats["proposal_features"], ckpt).shape == (0, 2)
+    io.write_h5(tmp_path / "e.h5", feats)                # as the pipeline reads it back
+    back, _ = io.read_h5(tmp_path / "e.h5")
+    for q in (p, Stage2Params(max_epochs=3, n_augment=1, visible_half=True)):
+        out = predict_stage2(back, ckpt, s1, q)
+        assert out.extra["stage2"]["status"] == "no_proposals"
+        assert out.extra["stage2"]["added"] == 0 and out.patterns[0].extra["stage2_added"] == 0
+        assert [i.bbox for i in out.patterns[0].instances] == boxes
+        assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 3
+
+
 def test_two_instance_rp_extended_along_its_row():
     # min_instances 2: two found squares of a row of three give the third (lattice step)
     img, boxes = squares(n=3)
