@@ -11,6 +11,31 @@ attribute). Every later step sees the failure in its input and passes it on, so 
 final per-image JSON says where and why the image failed, the failures table collects
 it, and the other images are unaffected. Errors in the pipeline's own configuration
 are not caught: they stop the run with a message.
+
+Degradation (a failed step keeps the previous step's result): when a step that refines
+a result fails on an image whose input result is good, its output is that input result
+instead of an empty one, with the failure record extended by ``"degraded_to"``, the
+method whose patterns were kept (:func:`degraded_result`):
+
+* stage II (``stage2-features``, ``stage2-train``, ``stage2-predict`` and the
+  ``stage2-predict-variants`` / ``stage2-ablation`` variants): the RESCU-II JSON is the
+  stage-I JSON (patterns, scene-free) with ``method`` ``"rescu-ii"`` (or
+  ``"rescu-ii[<variant>]"``) and ``failure = {"stage": "stage2-...", "type", "message",
+  "degraded_to": "rescu-i"}``; a failure in stage2-features or stage2-train reaches
+  stage2-predict through the HDF5 / checkpoint record as before;
+* ``scene``: the input result (no VP, symmetry or completion) with
+  ``"degraded_to": <its method>``;
+* ``caption``: the scene result without caption (as before), marked the same way.
+
+A degraded record does not make later steps skip: scene and caption run on the kept
+patterns and pass the record on, so the final JSON has patterns, scene fields and a
+caption, and its ``failure`` (still counted by the failures table) says which step
+failed and which result was kept. When a degraded result fails again later, the new
+record keeps the first ``degraded_to`` and the earlier record under ``"upstream"``.
+A genuine upstream failure (bad image, no features, a stage-I exception: stage I has
+no result to keep) still gives empty outputs everywhere. Test for a degraded record
+with :func:`is_degraded`; a record without ``degraded_to`` means the image has no
+result.
 """
 
 from __future__ import annotations
@@ -29,7 +54,7 @@ from .types import ImageResult
 
 log = logging.getLogger("rescu")
 
-Failure = dict[str, str]
+Failure = dict[str, Any]
 
 
 # --------------------------------------------------------------------------- failures
@@ -49,9 +74,55 @@ def _h5_failure(path: str | os.PathLike[str]) -> Failure | None:
     return json.loads(f) if f else None
 
 
+def is_degraded(failure: Failure | None) -> bool:
+    """True when ``failure`` is the record of a degraded result (a failed step whose
+    output is the previous step's result, see the module docstring): the image keeps
+    patterns, and later steps run on it."""
+    return bool(failure) and bool(failure.get("degraded_to"))
+
+
+def _blocking(failure: Failure | None) -> Failure | None:
+    """The upstream failure that makes a step skip: ``failure`` unless it is degraded."""
+    return None if not failure or is_degraded(failure) else failure
+
+
+def degraded_result(kept: ImageResult, method: str, failure: Failure) -> ImageResult:
+    """``kept`` (the previous step's result) as the output of a step that failed.
+
+    A copy of ``kept`` with ``method`` set and ``extra["failure"]`` = ``failure`` plus
+    ``"degraded_to"``: the method whose patterns were kept (``kept.method``, or the
+    ``degraded_to`` of ``kept``'s own degraded record, which is then also kept under
+    ``"upstream"``).
+    """
+    res = ImageResult.from_json(kept.to_json())
+    prev = kept.extra.get("failure")
+    rec: Failure = {**failure, "degraded_to": (prev or {}).get("degraded_to") or kept.method}
+    if prev:
+        rec["upstream"] = prev
+    res.method = method
+    res.extra["failure"] = rec
+    return res
+
+
+def _kept_stage1(stage1_json: str) -> ImageResult | None:
+    """The stage-I result a failed stage-II step keeps, or None when stage I itself
+    failed (or its JSON cannot be read): then the outputs are empty."""
+    try:
+        s1 = io.read_result(stage1_json)
+    except Exception:  # noqa: BLE001 - degradation must not raise in the failure path
+        log.error("cannot read %s to keep stage I's patterns:\n%s", stage1_json,
+                  traceback.format_exc())
+        return None
+    return None if s1.extra.get("failure") else s1
+
+
 def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
            write_empty: Callable[[Failure], None]) -> Failure | None:
-    """Run a step; on an upstream failure or an exception write empty outputs instead."""
+    """Run a step; on an upstream failure or an exception write empty outputs instead.
+
+    ``write_empty`` gets the failure record; a step that degrades writes the previous
+    result there (:func:`degraded_result`) when the record is its own failure.
+    """
     if upstream is not None:
         log.warning("skipping %s: upstream failure in %s: %s", stage, upstream.get("stage"),
                     upstream.get("message"))
@@ -282,7 +353,10 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
         io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:
-        io.write_json(out_json, empty_result(meta, "rescu-ii", f))
+        # a failure in stage II (features, train or here): keep stage I's patterns
+        s1 = _kept_stage1(stage1_json)
+        io.write_json(out_json, empty_result(meta, "rescu-ii", f) if s1 is None
+                      else degraded_result(s1, "rescu-ii", f))
 
     return _guard("stage2-predict", ckpt.get("failure"), run, empty)
 
@@ -321,8 +395,11 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
             io.write_json(out_jsons[name], res)
 
     def empty(f: Failure) -> None:
+        s1 = _kept_stage1(stage1_json)
         for name in variants:
-            io.write_json(out_jsons[name], empty_result(meta, f"rescu-ii[{name}]", f))
+            m = f"rescu-ii[{name}]"
+            io.write_json(out_jsons[name], empty_result(meta, m, f) if s1 is None
+                          else degraded_result(s1, m, f))
 
     return _guard("stage2-predict-variants", ckpt.get("failure"), run, empty)
 
@@ -360,7 +437,9 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 
     def empty(f: Failure) -> None:
         for name in variants:
-            io.write_json(out_jsons[name], empty_result(meta, f"rescu-ii[{name}]", f))
+            m = f"rescu-ii[{name}]"
+            io.write_json(out_jsons[name], empty_result(meta, m, f) if s1.extra.get("failure")
+                          else degraded_result(s1, m, f))
 
     return _guard("stage2-ablation", s1.extra.get("failure"), run, empty)
 
@@ -409,10 +488,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
                 io.write_image(Path(out_rectified_dir) / f"rp{pat.id}.png", view)
         io.write_json(out_json, res)
 
-    def empty(f: Failure) -> None:
-        io.write_json(out_json, empty_result(meta, src.method, f))
+    upstream = _blocking(src.extra.get("failure"))
 
-    return _guard("scene", src.extra.get("failure"), run, empty)
+    def empty(f: Failure) -> None:
+        # an upstream failure: nothing to keep; the scene step's own: keep its input
+        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
+                      else degraded_result(src, src.method, f))
+
+    return _guard("scene", upstream, run, empty)
 
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
@@ -452,12 +535,17 @@ def caption(png: str, meta_path: str, in_json: str, out_json: str,
         res.caption = C.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
         io.write_json(out_json, res)
 
+    upstream = _blocking(src.extra.get("failure"))
+
     def empty(f: Failure) -> None:
-        res = ImageResult.from_json(src.to_json())
-        res.extra["failure"] = f
+        if upstream is not None:
+            res = ImageResult.from_json(src.to_json())
+            res.extra["failure"] = f
+        else:       # the caption step's own failure: the scene result, without caption
+            res = degraded_result(src, src.method, f)
         io.write_json(out_json, res)
 
-    return _guard("caption", src.extra.get("failure"), run, empty)
+    return _guard("caption", upstream, run, empty)
 
 
 def overlay(png: str, meta_path: str, result_json: str, out_png: str,

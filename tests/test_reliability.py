@@ -182,3 +182,141 @@ def test_no_recurrence_gives_empty_patterns_not_failure(tmp_path, kind):
     d = json.loads(Path(w("final.json")).read_text())
     assert d["patterns"] == [] and d["vanishing_point"] is None and "failure" not in d
     assert d["caption"]["base"]
+
+
+# ------------------------------------------------------------------ degradation (stage II)
+def _boom(*_a, **_k):
+    raise RuntimeError("injected failure")
+
+
+def _through_stage1(tmp_path, cfg, img=None):
+    """prepare, features, stage I on a textured image; returns the path helper."""
+    src = tmp_path / "row.png"
+    Image.fromarray(_textured(0) if img is None else img).save(src)
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    assert pipeline.prepare(str(src), w("p.png"), w("m.json"), image_name=src.name,
+                            max_side=800, min_side=16) is None
+    assert pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"]) is None
+    assert pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"), cfg["stage1"]) is None
+    return w
+
+
+def _stage2(w, cfg):
+    p = cfg["stage2"]
+    pipeline.stage2_features(w("p.png"), w("m.json"), w("s.json"), w("s2.h5"), p)
+    pipeline.stage2_train(w("s2.h5"), w("s.json"), w("head.pt"), p)
+    return pipeline.stage2_predict(w("s2.h5"), w("head.pt"), w("s.json"), w("ii.json"),
+                                   w("m.json"), p)
+
+
+@pytest.mark.parametrize("step, fn", [("stage2-features", "compute_stage2_features"),
+                                      ("stage2-train", "train_heads"),
+                                      ("stage2-predict", "predict_stage2")])
+def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, fn):
+    """A stage-II exception: the RESCU-II JSON is stage I's result (method rescu-ii) with a
+    degraded failure record, and scene and caption still run on it."""
+    from rescu import stage2
+    from rescu.config import load_config
+
+    cfg = load_config()
+    w = _through_stage1(tmp_path, cfg)
+    monkeypatch.setattr(stage2, fn, _boom)
+    f = _stage2(w, cfg)
+    assert f == {"stage": step, "type": "RuntimeError", "message": "injected failure"}
+    s1, ii = read_json(w("s.json")), read_json(w("ii.json"))
+    assert s1["patterns"] and ii["patterns"] == s1["patterns"]
+    assert ii["method"] == "rescu-ii"
+    assert ii["failure"] == {**f, "degraded_to": "rescu-i"}
+    assert pipeline.is_degraded(ii["failure"])
+    assert {k: v for k, v in ii.items() if k not in ("method", "failure")} == \
+        {k: v for k, v in s1.items() if k != "method"}
+    assert pipeline.scene(w("p.png"), w("m.json"), w("ii.json"), w("sc.json"), w("rect"),
+                          cfg["scene"]) is None
+    assert pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"),
+                            cfg["caption"]) is None
+    final = read_json(w("final.json"))
+    assert final["method"] == "rescu-ii" and final["failure"] == ii["failure"]
+    assert len(final["patterns"]) == len(s1["patterns"]) and final["caption"]["enhanced"]
+    # the failures table still counts the image, with the patterns it kept
+    from rescu.tables import result_rows
+
+    caps, fails = result_rows({"mine": [w("final.json")]})
+    assert list(fails["stage"]) == [step] and int(caps["n_patterns"][0]) == len(s1["patterns"])
+
+
+def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
+    from rescu import stage2
+    from rescu.config import load_config
+
+    cfg = load_config()
+    w = _through_stage1(tmp_path, cfg)
+    s1 = read_json(w("s.json"))
+    monkeypatch.setattr(stage2, "compute_stage2_features", _boom)
+    _stage2(w, cfg)
+    outs = {"vh": w("vh.json")}
+    f = pipeline.stage2_predict_variants(w("s2.h5"), w("head.pt"), w("s.json"), w("m.json"),
+                                         outs, cfg["stage2"], {"vh": {"visible_half": True}})
+    assert f["stage"] == "stage2-features"
+    d = read_json(outs["vh"])
+    assert d["method"] == "rescu-ii[vh]" and d["patterns"] == s1["patterns"]
+    assert d["failure"] == {**f, "degraded_to": "rescu-i"}
+    outs = {"eb": w("eb.json"), "is": w("is.json")}
+    f = pipeline.stage2_ablation(w("p.png"), w("m.json"), w("s.json"), outs, cfg["stage2"],
+                                 {"eb": {"proposal_method": "edgeboxes"},
+                                  "is": {"proposal_method": "instance_scale"}})
+    assert f["stage"] == "stage2-ablation"
+    for name, path in outs.items():
+        d = read_json(path)
+        assert d["method"] == f"rescu-ii[{name}]" and d["patterns"] == s1["patterns"]
+        assert d["failure"] == {**f, "degraded_to": "rescu-i"}
+
+
+def test_scene_failure_keeps_its_input_and_the_first_record(tmp_path, monkeypatch):
+    """scene fails on a result that stage II already degraded: the scene JSON keeps the
+    input's patterns; the record names scene, keeps degraded_to rescu-i and the stage-II
+    record under "upstream"; caption runs."""
+    from rescu import scene as SC
+    from rescu import stage2
+    from rescu.config import load_config
+
+    cfg = load_config()
+    w = _through_stage1(tmp_path, cfg)
+    monkeypatch.setattr(stage2, "predict_stage2", _boom)
+    f2 = _stage2(w, cfg)
+    monkeypatch.setattr(SC, "analyse_scene", _boom)
+    f = pipeline.scene(w("p.png"), w("m.json"), w("ii.json"), w("sc.json"), w("rect"),
+                       cfg["scene"])
+    assert f["stage"] == "scene"
+    ii, sc = read_json(w("ii.json")), read_json(w("sc.json"))
+    assert sc["patterns"] == ii["patterns"] and sc["method"] == "rescu-ii"
+    assert sc["failure"] == {**f, "degraded_to": "rescu-i",
+                             "upstream": {**f2, "degraded_to": "rescu-i"}}
+    assert pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"),
+                            cfg["caption"]) is None
+    final = read_json(w("final.json"))
+    assert final["failure"] == sc["failure"] and final["caption"]["enhanced"]
+
+
+def test_upstream_failure_stays_empty_through_stage2(tmp_path):
+    """A bad image: stage I has nothing to keep, so RESCU-II is empty with the prepare
+    record (not degraded), and scene and caption skip as before."""
+    from rescu.config import load_config
+
+    cfg = load_config()
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG broken")
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    pipeline.prepare(str(bad), w("p.png"), w("m.json"), image_name="bad.png",
+                     max_side=800, min_side=16)
+    pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"), cfg["stage1"])
+    assert _stage2(w, cfg)["stage"] == "prepare"
+    ii = read_json(w("ii.json"))
+    assert ii["patterns"] == [] and ii["failure"]["stage"] == "prepare"
+    assert not pipeline.is_degraded(ii["failure"])
+    assert pipeline.scene(w("p.png"), w("m.json"), w("ii.json"), w("sc.json"), w("rect"),
+                          cfg["scene"])["stage"] == "prepare"
+    pipeline.caption(w("p.png"), w("m.json"), w("sc.json"), w("final.json"), cfg["caption"])
+    final = read_json(w("final.json"))
+    assert final["patterns"] == [] and "degraded_to" not in final["failure"]
+    assert "caption" not in final or not final["caption"]
