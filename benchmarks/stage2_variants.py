@@ -63,7 +63,7 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
 
     epochs = None
     if reuse is not None:
-        pipeline.limit_threads(threads["stage2_head"])
+        pipeline.limit_threads(threads["stage2_head"], torch=True)
         fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params)
     else:
         fail, epochs = _all_steps(png, meta, s1_json, out_json, params, threads)
@@ -79,12 +79,12 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
     from rescu import io, pipeline
 
     def head(step: Any, *args: Any) -> dict[str, Any] | None:
-        pipeline.limit_threads(threads["stage2_head"])
+        pipeline.limit_threads(threads["stage2_head"], torch=True)
         return step(*args)
 
     with tempfile.TemporaryDirectory() as tmp:
         h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
-        pipeline.limit_threads(threads["stage2_features"])
+        pipeline.limit_threads(threads["stage2_features"], torch=True)
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
                 or head(pipeline.stage2_train, h5, s1_json, ckpt, params)
                 or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))

@@ -575,14 +575,19 @@ def setup_logging(log_path: str | None = None, level: int = logging.INFO) -> Non
     logging.captureWarnings(True)
 
 
-def limit_threads(n: int) -> None:
-    """Use at most ``n`` CPU threads in OpenCV and torch (one Snakemake job's share)."""
+def limit_threads(n: int, torch: bool = False) -> None:
+    """Use at most ``n`` CPU threads in OpenCV, and in torch when ``torch`` is true or
+    torch is already imported.
+
+    Importing torch costs about 2 s, so steps that do not use it (everything but
+    stage II) leave it alone instead of importing it to set its thread count.
+    """
+    import sys
+
     import cv2
 
     cv2.setNumThreads(max(1, int(n)))
-    try:
-        import torch
+    if torch or "torch" in sys.modules:
+        import torch as _torch
 
-        torch.set_num_threads(max(1, int(n)))
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
+        _torch.set_num_threads(max(1, int(n)))
