@@ -117,7 +117,14 @@ def schema_errors(config: dict[str, Any]) -> list[tuple[list[str], str]]:
     schema = _read_yaml(SCHEMA)
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: [str(p) for p in e.absolute_path])
-    return [([str(p) for p in e.absolute_path], _schema_error_text(e, config)) for e in errors]
+    out = []
+    for e in errors:
+        path = [str(p) for p in e.absolute_path]
+        if e.validator == "additionalProperties" and isinstance(e.instance, dict):
+            known = e.schema.get("properties") or {}
+            path += sorted(str(k) for k in e.instance if k not in known)[:1]  # the unknown key
+        out.append((path, _schema_error_text(e, config)))
+    return out
 
 
 def check_params(config: dict[str, Any], stage2: bool = True) -> None:
@@ -255,7 +262,7 @@ def validate_config(config: dict[str, Any], source: str = "config",
         path, text = errors[0]
         origin = source
         for name, layer in sources or []:
-            if _has_path(layer, path[:2]):
+            if _has_path(layer, path[:2] or path):
                 origin = name
         raise InputError(f"{origin}: {text}")
     try:

@@ -104,6 +104,7 @@ def build_run_report(out_html: str | Path, results: str | Path,
               ("Translation symmetry: SR_ts vs t", t / "ts.tsv"),
               ("Failures (image, stage, message)", t / "failures.tsv"),
               ("Captions", t / "captions.tsv")]
+    tables = [(h, p) for h, p in tables if p.exists()]  # ablations only in `paper` runs
     figures = sorted((results / "figures").glob("*.png"))
     items = []
     for ds, stems in samples.items():

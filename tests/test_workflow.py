@@ -27,6 +27,7 @@ def tiny_config(tmp: Path, **overrides) -> Path:
     datasets = {name: {"enabled": False} for name in default["datasets"]}
     datasets["synthetic"] = {"kind": "synthetic", "enabled": True}
     cfg = {
+        "paper": True,  # the ablations too: every rule of the pipeline runs
         "datasets": datasets,
         "synthetic": {"n_images": 3, "sizes": [[480, 360]]},
         "ablation": {"datasets": ["synthetic"]},
@@ -188,6 +189,28 @@ def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path, seed):
     assert jobs.get("generate_synthetic") == 1 and jobs.get("scene") == n, jobs
     assert "export_photos" not in jobs, jobs
     assert_outputs_under(proc, out_dir)
+
+
+def test_default_run_has_no_ablation_and_paper_run_has_every_table(tmp_path):
+    """``make run`` plans the main methods only; ``make paper`` (config/paper.yaml) adds
+    the ablations on every image of each dataset, into results/paper/."""
+    cfg = tiny_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("paper: true", "paper: false"))
+    jobs = planned_jobs(snakemake(tmp_path, cfg, "-n"))
+    for main in ("rescu_i", "grasp", "stage2_predict", "scene", "line_vp", "summary", "report"):
+        assert jobs.get(main), (main, jobs)
+    for absent in ("ablation", "stage2_ablation", "stage2_predict_ablation", "scene_no_ac",
+                   "ablation_tables", "stage2_ablation_tables"):
+        assert absent not in jobs, jobs
+    paper = yaml.safe_load((REPO / "config" / "paper.yaml").read_text())
+    assert paper["paper"] is True and paper["results_dir"] == "results/paper"
+    assert all(d["max_images"] is None for d in paper["datasets"].values())
+    proc = snakemake(tmp_path, REPO / "config" / "paper.yaml", "-n")
+    jobs = planned_jobs(proc)
+    for name in ("ablation", "stage2_ablation", "scene_no_ac", "ablation_tables",
+                 "stage2_ablation_tables", "summary"):
+        assert jobs.get(name), (name, jobs)
+    assert_outputs_under(proc, "results/paper/")
 
 
 def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):

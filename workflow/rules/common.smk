@@ -8,6 +8,7 @@ from rescu.stage2 import is_predict_only
 from rescu.synth import synthetic_image_names
 
 RESULTS = config["results_dir"]
+PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
 BASEDIR = Path(workflow.basedir)
 

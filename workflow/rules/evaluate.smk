@@ -8,6 +8,21 @@ def dataset_params(names):
     return {n: {"root": str(DATASETS[n]["root"]), "names": DATASETS[n]["names"]} for n in names}
 
 
+def vp_methods():
+    """VPD table rows: method name -> per-image folder (the no-AC variant with ``paper``)."""
+    from rescu.tables import VP_METHODS
+
+    return {k: v for k, v in VP_METHODS.items() if PAPER or v != "scene-noac"}
+
+
+def ablation_tables():
+    """The ablation tables (Markdown), which only ``paper`` runs make."""
+    if not PAPER:
+        return {}
+    return {"ablation": f"{TABLES}/ablation.md",
+            "stage2_ablation": f"{TABLES}/stage2_ablation.md"}
+
+
 def gt_files(names, filename):
     return [f"{DATASETS[n]['root']}/{filename}" for n in names]
 
@@ -118,7 +133,7 @@ rule vp_tables:
         preds=per_image(
             f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
             vp_datasets(),
-            method=["scene", "scene-noac", "vp-lsd"],
+            method=list(vp_methods().values()),
         ),
         gt=gt_files(vp_datasets(), "vanishing_points.json"),
         code=EVAL_CODE,
@@ -133,6 +148,7 @@ rule vp_tables:
         figures=FIGURES,
         datasets=dataset_params(vp_datasets()),
         evaluation=config["evaluation"],
+        methods=vp_methods(),
     log:
         LOGS + "/tables/vp_tables.log",
     script:
@@ -178,8 +194,7 @@ rule result_tables:
 rule summary:
     input:
         rp=f"{TABLES}/rp_discovery.md",
-        ablation=f"{TABLES}/ablation.md",
-        stage2_ablation=f"{TABLES}/stage2_ablation.md",
+        **ablation_tables(),
         counting=f"{TABLES}/counting.md",
         vpd=f"{TABLES}/vpd.md",
         ts=f"{TABLES}/ts.md",

@@ -14,8 +14,7 @@ def sample_files(pattern):
 rule report:
     input:
         tables=rules.rp_tables.output
-        + rules.ablation_tables.output
-        + rules.stage2_ablation_tables.output
+        + (rules.ablation_tables.output + rules.stage2_ablation_tables.output if PAPER else [])
         + rules.counting_tables.output
         + rules.vp_tables.output
         + rules.ts_tables.output
@@ -38,3 +37,7 @@ rule report:
         LOGS + "/report.log",
     script:
         "../scripts/report.py"
+
+
+# On a cluster (profiles/slurm) the tables and the report run on the submitting host.
+localrules: rp_tables, ablation_tables, stage2_ablation_tables, counting_tables, vp_tables, ts_tables, result_tables, summary, report

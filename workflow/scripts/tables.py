@@ -12,10 +12,12 @@ if rule == "result_tables":
     write_tsv(failures, out.failures)
     write_markdown(T.failures_markdown(failures), out.md)
 elif rule == "summary":
-    parts = [("RP discovery", snakemake.input.rp), ("Stage-I ablation", snakemake.input.ablation),
-             ("Stage-II ablation", snakemake.input.stage2_ablation),
-             ("Counting", snakemake.input.counting), ("Vanishing points", snakemake.input.vpd),
-             ("Translation symmetry", snakemake.input.ts), ("Failures", snakemake.input.failures)]
+    inp = snakemake.input  # the ablation tables only in `paper` runs
+    parts = [("RP discovery", inp.rp), ("Stage-I ablation", inp.get("ablation")),
+             ("Stage-II ablation", inp.get("stage2_ablation")), ("Counting", inp.counting),
+             ("Vanishing points", inp.vpd), ("Translation symmetry", inp.ts),
+             ("Failures", inp.failures)]
+    parts = [(heading, path) for heading, path in parts if path]
     write_markdown(T.summary_markdown(parts, T.summary_header(p.backbone)), out.md)
 else:
     refs = T.dataset_refs(p.datasets, list(p.datasets))
@@ -30,7 +32,8 @@ else:
     elif rule == "counting_tables":
         T.counting_tables(refs, p.results, ev, out.tsv, out.md)
     elif rule == "vp_tables":
-        T.vp_tables(refs, p.results, ev, out.tsv, out.md, out.errors, out.tests, figures)
+        T.vp_tables(refs, p.results, ev, out.tsv, out.md, out.errors, out.tests, figures,
+                    dict(p.methods))
     elif rule == "ts_tables":
         T.ts_tables(refs, p.results, ev, out.tsv, out.md, figures)
     else:
