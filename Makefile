@@ -11,7 +11,7 @@ CORES  ?= 2
 # On your own machine, CPU-only torch wheels: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH_INDEX ?=
 
-.PHONY: setup run holdout stress test report clean
+.PHONY: setup run holdout stress test report clean cluster-test
 
 setup: $(STAMP)
 
@@ -47,6 +47,11 @@ report: setup
 
 test: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/python -m pytest -q
+
+# profiles/slurm on a real one-node SLURM cluster on this machine (tests/cluster/start_slurm.sh
+# installs slurm-wlm + munge when root, and starts it), outputs compared with a local run
+cluster-test: setup
+	PATH="$(CURDIR)/$(BIN):$$PATH" RESCU_CLUSTER_TEST=1 $(BIN)/python -m pytest -q -rs -m slurm tests/test_slurm.py
 
 clean:
 	rm -rf results/* logs .snakemake
