@@ -1,6 +1,7 @@
 # Two commands on a fresh machine with only Python (3.11+) installed:
 #   make run    the main job: the pipeline on the default config (synthetic benchmark,
 #               package photos, and ../shared/data when present) -> results/
+#   (make paper: every table of the paper, ablations and full datasets -> results/paper/)
 #   make test   the test suite
 # Both create .venv and install the pinned dependencies when needed.
 PYTHON ?= python3
@@ -11,7 +12,7 @@ CORES  ?= 2
 # On your own machine, CPU-only torch wheels: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH_INDEX ?=
 
-.PHONY: setup run holdout stress test report clean cluster-test
+.PHONY: setup run paper holdout stress test report clean cluster-test
 
 setup: $(STAMP)
 
@@ -25,6 +26,11 @@ $(STAMP): requirements.txt pyproject.toml
 
 run: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES)
+
+# every table of the paper: the main methods and the ablations on every image of each
+# dataset (config/paper.yaml) -> results/paper/
+paper: setup
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/paper.yaml
 
 # the synthetic benchmark again with another seed (config/holdout.yaml) -> results/holdout/;
 # make holdout SEED=11 -> that seed, in results/holdout-11/
