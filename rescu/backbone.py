@@ -217,6 +217,32 @@ def box_rois(boxes: np.ndarray, map_hw: tuple[int, int],
                      (b[:, 0] + b[:, 2]) * sx, (b[:, 1] + b[:, 3]) * sy], 1).astype(np.float32)
 
 
+def _roi_align():
+    """torchvision's compiled ``roi_align`` operator, loaded without importing the
+    torchvision package (whose ``__init__`` imports its models and costs ~1.5 s per
+    process); the same kernel :func:`torchvision.ops.roi_align` calls on tensors, so the
+    same floats. Falls back to that function where the library cannot be found."""
+    torch = _torch()
+    try:
+        return torch.ops.torchvision.roi_align
+    except (AttributeError, RuntimeError):
+        pass
+    import importlib.util
+
+    spec = importlib.util.find_spec("torchvision")
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        for lib in sorted(glob.glob(os.path.join(folder, "_C*.so"))):
+            try:
+                torch.ops.load_library(lib)
+                return torch.ops.torchvision.roi_align
+            except (OSError, RuntimeError, AttributeError):
+                continue
+    from torchvision.ops import roi_align
+
+    return lambda x, rois, scale, ph, pw, ratio, aligned: roi_align(
+        x, rois, (ph, pw), spatial_scale=scale, sampling_ratio=ratio, aligned=aligned)
+
+
 def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
                pool_size: int = 2, chunk: int = 4096) -> np.ndarray:
     """RoI-align features of boxes from a shared feature map.
@@ -238,7 +264,7 @@ def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
         L2-normalised pooled features (rows of zeros for N = 0).
     """
     torch = _torch()
-    from torchvision.ops import roi_align
+    roi_align = _roi_align()
 
     b = np.asarray(boxes, np.float32).reshape(-1, 4)
     c = int(fmap.shape[1])
@@ -248,8 +274,8 @@ def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
     for i in range(0, len(b), chunk):
         rois = box_rois(b[i:i + chunk], (int(fmap.shape[2]), int(fmap.shape[3])), image_size)
         with torch.no_grad():
-            r = roi_align(fmap, torch.from_numpy(rois).to(fmap.device), (pool_size, pool_size),
-                          spatial_scale=1.0, sampling_ratio=2, aligned=True)
+            r = roi_align(fmap, torch.from_numpy(rois).to(fmap.device), 1.0, pool_size,
+                          pool_size, 2, True)  # spatial scale, output size, sampling, aligned
         out.append(r.reshape(len(rois), -1).cpu().numpy())
     f = np.concatenate(out).astype(np.float32)
     n = np.linalg.norm(f, axis=1, keepdims=True)
