@@ -101,11 +101,22 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
                         cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1)
         source = w(f"{s1}.json")
         if method == "rescu-ii":
+            # the pipeline's thread counts (config `threads`): the same floats as its run,
+            # and no threads spinning against each other on a busy machine
+            import cv2
+            import torch
+
+            threads = cfg.get("threads") or {}
+            restore = (torch.get_num_threads(), cv2.getNumThreads())
+            pipeline.limit_threads(threads.get("stage2_features", 2), torch=True)
             pipeline.stage2_features(w("image.png"), w("meta.json"), source, w("stage2.h5"),
                                      cfg["stage2"])
+            pipeline.limit_threads(threads.get("stage2_head", 1), torch=True)
             pipeline.stage2_train(w("stage2.h5"), source, w("head.pt"), cfg["stage2"])
             pipeline.stage2_predict(w("stage2.h5"), w("head.pt"), source, w("rescu-ii.json"),
                                     w("meta.json"), cfg["stage2"])
+            torch.set_num_threads(restore[0])  # the caller's settings back
+            cv2.setNumThreads(restore[1])
             source = w("rescu-ii.json")
         rect = Path(out_dir) / f"{stem}_rectified" if out_dir is not None else work / "rect"
         pipeline.scene(w("image.png"), w("meta.json"), source, w("scene.json"), str(rect),
