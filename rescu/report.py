@@ -1,111 +1,853 @@
-"""A self-contained HTML report: tables, curves, and pictures of what was found."""
+"""A self-contained HTML report that reads top-down: per dataset the headline figures
+beside pictures of what was found, then each evaluation as a compact table next to its
+curve (long per-threshold tables as a plot and a link to their TSV), then the ablations
+and diagnostics.
+
+Everything is embedded (pictures as base64 JPEG), except the links to the TSV tables,
+which are relative to the HTML file (``../tables/<name>.tsv`` in a run's results folder).
+:func:`chromium_layout` and :func:`chromium_screenshot` look at the page the way a
+reader does, in headless Chromium.
+"""
 
 from __future__ import annotations
 
 import base64
 import html
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
 
 from .io import atomic_path
 
+# ----------------------------------------------------------------------------- names
+#: Column name of the pipeline's tables -> what a reader sees as the column header.
+HUMAN_NAMES: dict[str, str] = {
+    "dataset": "Dataset", "subset": "Subset", "method": "Method",
+    "adaptive": "Adaptive parameters", "n_images": "Images", "image": "Image",
+    "instance_precision": "Instance precision", "instance_recall": "Instance recall",
+    "rp_precision": "RP precision", "rp_recall": "RP recall",
+    "instance_precision_pooled": "Instance precision (pooled)",
+    "instance_recall_pooled": "Instance recall (pooled)",
+    "n_matched": "GT patterns matched", "count_mae": "Count error (MAE)",
+    "exact_rate": "Exact count rate",
+    "n_matched_rps": "Detected patterns matched",
+    "count_mae_all_rps": "Count error, all matched patterns",
+    "exact_rate_all_rps": "Exact count rate, all matched patterns",
+    "n_dominant": "Images with a dominant pattern",
+    "dominant_matched_rate": "Dominant pattern matched",
+    "dominant_count_mae": "Dominant count error (MAE)",
+    "dominant_exact_rate": "Dominant exact count rate",
+    "kind": "Error", "threshold": "Threshold", "success_rate": "Success rate",
+    "error": "Error", "method_a": "Method A", "method_b": "Method B",
+    "n_pairs": "Image pairs", "median_a": "Median A", "median_b": "Median B",
+    "mean_a": "Mean A", "mean_b": "Mean B", "metric": "Metric", "p_value": "p-value",
+    "point_error_px": "Point error (px)", "angle_error_deg": "Angle error (°)",
+    "vp_missing": "Without a VP", "focal_px": "Focal length (px)",
+    "focal_source": "Focal length from", "n_gt_vps": "GT VPs",
+    "t": "Tolerance t", "sr_ts": "SR_ts", "sr_ts_flag": "Flagged as TS",
+    "tpr": "True positive rate", "fpr": "False positive rate",
+    "n_equal": "Equally spaced GT patterns", "n_unequal": "Unequally spaced GT patterns",
+    "sweep": "Sweep", "stage": "Stage", "type": "Error type", "message": "Message",
+    "n_patterns": "Patterns", "dominant_count": "Dominant count",
+    "base": "Base caption", "enhanced": "Caption",
+}
+_SUFFIXES = (("_p_vs_best", ", p vs best"), ("_mean", " (mean)"), ("_std", " (std)"),
+             ("_best", ", best"), ("_n", " (n)"))
+_ACRONYMS = {"rp": "RP", "rps": "RPs", "vp": "VP", "vps": "VPs", "ts": "TS", "mae": "MAE",
+             "tpr": "TPR", "fpr": "FPR", "px": "px", "gt": "GT", "iod": "IOD", "sr": "SR"}
 
-def _img_tag(path: str | Path, width: int | None = None) -> str:
-    """An <img> with the picture embedded as a JPEG at most twice ``width`` pixels wide
-    (sharp on high-density screens, small enough to keep the report portable)."""
+#: Order of the methods in the headline tables (others follow in table order).
+HEADLINE_METHODS = ("RESCU-II", "RESCU-I", "GRASP")
+RP_METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
+_SHORT_METRICS = {"instance_precision": "Instance P", "instance_recall": "Instance R",
+                  "rp_precision": "RP P", "rp_recall": "RP R"}
+
+
+def human_name(col: str) -> str:
+    """The header a reader sees for a table column (``instance_precision_mean`` ->
+    ``Instance precision (mean)``); a name that is not a snake_case identifier is
+    returned as it is."""
+    if col in HUMAN_NAMES:
+        return HUMAN_NAMES[col]
+    if not re.fullmatch(r"[a-z][a-z0-9_]*", col):
+        return col
+    for suffix, label in _SUFFIXES:
+        if col.endswith(suffix) and col[: -len(suffix)] in HUMAN_NAMES:
+            return HUMAN_NAMES[col[: -len(suffix)]] + label
+    words = [_ACRONYMS.get(w, w) for w in col.split("_")]
+    if words[0] == "n" and len(words) > 1:
+        words = ["number", "of"] + words[1:]
+    text = " ".join(words)
+    return text[:1].upper() + text[1:]
+
+
+def md_inline(text: str) -> str:
+    """HTML of one line of Markdown: escaped, with ``**bold**``, ```code``` and
+    ``_italics_`` turned into tags (no Markdown syntax reaches the page)."""
+    s = html.escape(text, quote=False)
+    s = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", s)
+    s = re.sub(r"`(.+?)`", r"<code>\1</code>", s)
+    s = re.sub(r"(?<![\w])_(.+?)_(?![\w])", r"<i>\1</i>", s)
+    return s.replace("**", "")
+
+
+# ----------------------------------------------------------------------------- cells
+def _num(v: Any, decimals: int = 2) -> str:
+    """A number as a reader sees it: integers plain, floats with ``decimals``, NaN ``–``,
+    infinity ``∞``."""
+    if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v)):
+        return "–"
+    if isinstance(v, (float, np.floating)) and np.isinf(v):
+        return "∞" if v > 0 else "-∞"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.{decimals}f}"
+    return str(v)
+
+
+def mean_std(mean: Any, std: Any, decimals: int = 2) -> str:
+    """``"0.98 ± 0.03"`` (``–`` when the mean is undefined)."""
+    m = _num(_float(mean), decimals)
+    if m == "–":
+        return m
+    s = _num(_float(std), decimals)
+    return m if s == "–" else f"{m} ± {s}"
+
+
+def _float(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+#: Columns that count things (shown as integers; so is any ``n_*`` column).
+COUNT_COLUMNS = {"dominant_count", "Without a VP", "Images", "With a pattern"}
+
+
+def format_frame(df: pd.DataFrame, decimals: int = 2) -> pd.DataFrame:
+    """Every cell as a string: counts (``n_*`` and :data:`COUNT_COLUMNS`) as integers,
+    other numbers with ``decimals`` (a rate of 1 is ``1.00``), text as it is."""
+    out = pd.DataFrame(index=df.index)
+    for c in df.columns:
+        is_count = str(c).startswith("n_") or c in COUNT_COLUMNS
+        col = df[c]
+        if col.dtype == bool:
+            out[c] = col.map(_num)
+        elif pd.api.types.is_numeric_dtype(col):
+            out[c] = [_num(int(v) if is_count and np.isfinite(v) else float(v), decimals)
+                      for v in col.astype(float)]
+        else:
+            out[c] = col.map(lambda v: _num(v, decimals) if isinstance(
+                v, (int, float, np.number)) else ("–" if v is None else str(v)))
+    return out
+
+
+@dataclass
+class Table:
+    """A table as shown: formatted cells, the original column keys (headers through
+    :func:`human_name`), and which cells are bold (best) or italic (not significantly
+    different from the best).
+
+    ``text`` columns are left-aligned, ``wrap`` columns may wrap (long text)."""
+
+    cells: pd.DataFrame
+    bold: pd.DataFrame | None = None
+    italic: pd.DataFrame | None = None
+    text: Sequence[str] = ()
+    wrap: Sequence[str] = ()
+    headers: Mapping[str, str] = field(default_factory=dict)
+    css: str = "t"
+
+    def to_html(self) -> str:
+        cols = list(self.cells.columns)
+        head = "".join(
+            f'<th class="{self._cls(c)}">{html.escape(self.headers.get(c, human_name(c)))}'
+            "</th>" for c in cols)
+        rows = []
+        for i in range(len(self.cells)):
+            tds = []
+            for c in cols:
+                v = html.escape(str(self.cells.iloc[i][c]))
+                if self.bold is not None and c in self.bold and bool(self.bold.iloc[i][c]):
+                    v = f"<b>{v}</b>"
+                elif self.italic is not None and c in self.italic and \
+                        bool(self.italic.iloc[i][c]):
+                    v = f"<i>{v}</i>"
+                tds.append(f'<td class="{self._cls(c)}">{v}</td>')
+            rows.append("<tr>" + "".join(tds) + "</tr>")
+        return (f'<div class="tw"><table class="{self.css}"><thead><tr>{head}</tr></thead>'
+                f'<tbody>{"".join(rows)}</tbody></table></div>')
+
+    def _cls(self, c: str) -> str:
+        return "wrap" if c in self.wrap else "txt" if c in self.text else "num"
+
+
+def read_tsv(path: str | Path | None) -> pd.DataFrame | None:
+    """The table, or None when the file does not exist; an empty file is an empty table."""
+    if path is None or not Path(path).exists():
+        return None
+    if Path(path).stat().st_size == 0:
+        return pd.DataFrame()
+    return pd.read_csv(path, sep="\t")
+
+
+def _method_order(methods: Iterable[str], first: Sequence[str] = HEADLINE_METHODS) -> list[str]:
+    ms = list(dict.fromkeys(methods))
+    return [m for m in first if m in ms] + [m for m in ms if m not in first]
+
+
+def _best_mask(values: pd.Series, decimals: int, higher_is_better: bool = True) -> pd.Series:
+    """True where the value equals the best one as shown (ties at ``decimals`` all bold)."""
+    v = pd.to_numeric(values, errors="coerce").round(decimals)
+    if not v.notna().any():
+        return pd.Series(False, index=values.index)
+    best = v.max() if higher_is_better else v.min()
+    return (v == best).fillna(False)
+
+
+def summary_cells(df: pd.DataFrame, row_cols: Sequence[str],
+                  metrics: Sequence[str] = RP_METRICS, decimals: int = 2,
+                  alpha: float | None = 0.05, group_cols: Sequence[str] = ("dataset", "subset"),
+                  count_col: str | None = "n_images") -> Table:
+    """A :func:`rescu.evaluation.summary_table`-style frame (``<m>_mean``, ``<m>_std``,
+    ``<m>_p_vs_best`` per metric) as one cell ``mean ± std`` per metric; within each
+    group (``group_cols`` present in ``df``) the best mean is bold and, with ``alpha``,
+    a mean whose paired test against the best gives ``p >= alpha`` is italic."""
+    groups = [c for c in group_cols if c in df.columns]
+    count = [count_col] if count_col and count_col in df.columns else []
+    cols = list(row_cols) + count
+    cells = format_frame(df[cols], decimals)
+    bold = pd.DataFrame(False, index=df.index, columns=cols)
+    italic = pd.DataFrame(False, index=df.index, columns=cols)
+    for m in metrics:
+        if f"{m}_mean" not in df.columns:
+            continue
+        cells[m] = [mean_std(a, b, decimals) for a, b in
+                    zip(df[f"{m}_mean"], df.get(f"{m}_std", pd.Series(np.nan, df.index)))]
+        bm = (df.groupby(groups, sort=False)[f"{m}_mean"]
+              .transform(lambda s: _best_mask(s, decimals)) if groups else
+              _best_mask(df[f"{m}_mean"], decimals)).astype(bool)
+        bold[m] = bm
+        p = df.get(f"{m}_p_vs_best")
+        italic[m] = (~bm & (pd.to_numeric(p, errors="coerce") >= alpha).fillna(False)) \
+            if alpha is not None and p is not None else False
+    order = list(row_cols) + [m for m in metrics if m in cells.columns] + count
+    return Table(cells[order].reset_index(drop=True), bold[order].reset_index(drop=True),
+                 italic[order].reset_index(drop=True), text=list(row_cols))
+
+
+# ----------------------------------------------------------------------------- headlines
+def rp_headline(rp: pd.DataFrame, dataset: str, decimals: int = 2) -> Table | None:
+    """The headline of a dataset with recurring-pattern ground truth: one row per method
+    (RESCU-II, RESCU-I, GRASP first), instance and RP precision / recall as mean ± std
+    over all its images, the best in bold, and the number of images."""
+    g = rp[rp["dataset"].astype(str) == dataset]
+    if "subset" in g.columns:
+        g = g[g["subset"].astype(str) == "all"]
+    if g.empty:
+        return None
+    g = g.set_index("method").loc[_method_order(g["method"])].reset_index()
+    t = summary_cells(g, ["method"], decimals=decimals, alpha=None, group_cols=())
+    t.headers = dict(_SHORT_METRICS)
+    t.css = "t headline"
+    return t
+
+
+def _nearest(values: Iterable[float], target: float) -> float | None:
+    v = sorted(set(float(x) for x in values))
+    return min(v, key=lambda x: (abs(x - target), x)) if v else None
+
+
+def vp_headline(vpd: pd.DataFrame, dataset: str, errors: pd.DataFrame | None = None,
+                px: float = 5, deg: float = 5, decimals: int = 2) -> Table | None:
+    """The headline of a dataset with vanishing-point ground truth only: per method the
+    share of images whose VP is within ``px`` pixels and within ``deg`` degrees (the
+    nearest thresholds the run has), the median angle error, the best in bold."""
+    g = vpd[vpd["dataset"].astype(str) == dataset]
+    if g.empty:
+        return None
+    methods = list(dict.fromkeys(g["method"]))
+    rows = {m: {"method": m} for m in methods}
+    higher = {}
+    for kind, target, unit in (("point_px", px, " px"), ("angle_deg", deg, "°")):
+        gk = g[g["kind"] == kind]
+        th = _nearest(gk["threshold"], target)
+        if th is None:
+            continue
+        col = f"VP within {th:g}{unit}"
+        higher[col] = True
+        for m in methods:
+            r = gk[(gk["method"] == m) & (gk["threshold"].astype(float) == th)]
+            rows[m][col] = float(r["success_rate"].iloc[0]) if len(r) else np.nan
+            rows[m]["n_images"] = int(r["n_images"].iloc[0]) if len(r) else rows[m].get(
+                "n_images", 0)
+    if errors is not None and len(errors):
+        e = errors[errors["dataset"].astype(str) == dataset]
+        if len(e):
+            col = "Median angle error (°)"
+            higher[col] = False
+            for m in methods:
+                a = e.loc[e["method"] == m, "angle_error_deg"].to_numpy(float)
+                rows[m][col] = float(np.median(a)) if len(a) else np.nan
+    df = pd.DataFrame(list(rows.values()))
+    cols = ["method"] + list(higher) + (["n_images"] if "n_images" in df else [])
+    df = df[cols]
+    bold = pd.DataFrame(False, index=df.index, columns=cols)
+    for c, hi in higher.items():
+        bold[c] = _best_mask(df[c], decimals, hi)
+    cells = format_frame(df, decimals)
+    return Table(cells, bold, text=["method"], css="t headline")
+
+
+def found_headline(captions: pd.DataFrame, dataset: str) -> Table | None:
+    """The headline of a dataset without ground truth: what RESCU-II found (images,
+    images with a pattern, patterns per image and the dominant pattern's count, medians)."""
+    g = captions[captions["dataset"].astype(str) == dataset]
+    if g.empty:
+        return None
+    n_pat = pd.to_numeric(g["n_patterns"], errors="coerce")
+    dom = pd.to_numeric(g["dominant_count"], errors="coerce")
+    dom = dom[dom > 0]
+    row = {"Images": str(len(g)), "With a pattern": str(int((n_pat > 0).sum())),
+           "Patterns per image (median)": _num(float(n_pat.median()), 1),
+           "Dominant count (median)": _num(float(dom.median()), 1) if len(dom) else "–"}
+    return Table(pd.DataFrame([row]), css="t headline")
+
+
+# ----------------------------------------------------------------------------- compact tables
+def _pick_thresholds(values: Iterable[float], k: int = 3) -> list[float]:
+    """At most ``k`` of the thresholds: the smallest, the largest and the middle one."""
+    v = sorted(set(float(x) for x in values))
+    if len(v) <= k:
+        return v
+    idx = sorted(set(int(round(i * (len(v) - 1) / (k - 1))) for i in range(k)))
+    return [v[i] for i in idx]
+
+
+def vp_compact(vpd: pd.DataFrame, dataset: str, errors: pd.DataFrame | None = None,
+               decimals: int = 2) -> Table | None:
+    """Methods x a few thresholds of the VP success rate (the full sweep is the curve and
+    the TSV), with the median angle error and the images without a VP."""
+    g = vpd[vpd["dataset"].astype(str) == dataset]
+    if g.empty:
+        return None
+    methods = list(dict.fromkeys(g["method"]))
+    rows = {m: {"method": m} for m in methods}
+    higher: dict[str, bool] = {}
+    for kind, unit in (("point_px", " px"), ("angle_deg", "°")):
+        gk = g[g["kind"] == kind]
+        for th in _pick_thresholds(gk["threshold"]):
+            col = f"≤ {th:g}{unit}"
+            higher[col] = True
+            for m in methods:
+                r = gk[(gk["method"] == m) & (gk["threshold"].astype(float) == th)]
+                rows[m][col] = float(r["success_rate"].iloc[0]) if len(r) else np.nan
+                if len(r):
+                    rows[m]["n_images"] = int(r["n_images"].iloc[0])
+    if errors is not None and len(errors):
+        e = errors[errors["dataset"].astype(str) == dataset]
+        for m in methods:
+            em = e[e["method"] == m]
+            a = em["angle_error_deg"].to_numpy(float)  # a missing VP: inf
+            rows[m]["Median angle error (°)"] = float(np.median(a)) if len(a) else np.nan
+            if "vp_missing" in em:
+                rows[m]["Without a VP"] = int(em["vp_missing"].astype(str).str.lower()
+                                              .eq("true").sum())
+        higher["Median angle error (°)"] = False
+    df = pd.DataFrame(list(rows.values()))
+    cols = ["method", *[c for c in higher if c in df], *[c for c in ("Without a VP",) if c in df]]
+    df = df[cols]
+    bold = pd.DataFrame(False, index=df.index, columns=cols)
+    for c, hi in higher.items():
+        if c in df:
+            bold[c] = _best_mask(df[c], decimals, hi)
+    cells = format_frame(df, decimals)
+    return Table(cells, bold, text=["method"], headers={"n_images": "Images"})
+
+
+def ts_compact(ts: pd.DataFrame, decimals: int = 2,
+               t_values: Sequence[float] = (0.05, 0.10)) -> Table | None:
+    """Per dataset and method: the share of images flagged as TS, SR_ts at a few
+    tolerances t of the fine sweep, and TPR / FPR at the first of them (where truth is
+    known). The sweep itself is the curve and the TSV."""
+    if ts is None or ts.empty:
+        return None
+    fine = ts[ts["sweep"] == "fine"] if "sweep" in ts.columns else ts
+    rows = []
+    for (ds, m), g in fine.groupby(["dataset", "method"], sort=False):
+        r: dict[str, Any] = {"dataset": ds, "method": m,
+                             "n_images": int(g["n_images"].iloc[0])}
+        if "sr_ts_flag" in g:
+            r["Flagged as TS"] = float(g["sr_ts_flag"].iloc[0])
+        ths = [t for t in (_nearest(g["t"], v) for v in t_values) if t is not None]
+        for th in dict.fromkeys(ths):
+            r[f"SR_ts at t = {th:g}"] = float(g.loc[g["t"].astype(float) == th, "sr_ts"].iloc[0])
+        if ths:
+            at = g[g["t"].astype(float) == ths[0]].iloc[0]
+            for c, label in (("tpr", "TPR"), ("fpr", "FPR")):
+                if c in g and np.isfinite(float(at[c])):
+                    r[f"{label} at t = {ths[0]:g}"] = float(at[c])
+        rows.append(r)
+    df = pd.DataFrame(rows)
+    cols = ["dataset", "method"] + [c for c in df.columns if c not in
+                                    ("dataset", "method", "n_images")] + ["n_images"]
+    df = df[cols]
+    return Table(format_frame(df, decimals), text=["dataset", "method"],
+                 headers={"n_images": "Images"})
+
+
+COUNTING_COLUMNS = ("dataset", "method", "n_images", "n_matched", "count_mae", "exact_rate",
+                    "dominant_matched_rate", "dominant_count_mae", "dominant_exact_rate")
+
+
+def counting_compact(counting: pd.DataFrame, decimals: int = 2) -> Table | None:
+    """The counting table's main columns (matched GT patterns, their count error and exact
+    rate; the dominant pattern's); within a dataset the best in bold."""
+    if counting is None or counting.empty:
+        return None
+    cols = [c for c in COUNTING_COLUMNS if c in counting.columns]
+    df = counting[cols].reset_index(drop=True)
+    bold = pd.DataFrame(False, index=df.index, columns=cols)
+    for c in cols:
+        if c in ("count_mae", "dominant_count_mae", "exact_rate", "dominant_exact_rate",
+                 "dominant_matched_rate"):
+            hi = not c.endswith("mae")
+            bold[c] = df.groupby("dataset", sort=False)[c].transform(
+                lambda s: _best_mask(s, decimals, hi)).astype(bool) if "dataset" in df else \
+                _best_mask(df[c], decimals, hi)
+    return Table(format_frame(df, decimals), bold, text=["dataset", "method"])
+
+
+def plain_table(df: pd.DataFrame, decimals: int = 2, text: Sequence[str] = (),
+                wrap: Sequence[str] = ()) -> Table:
+    """Any table, human headers, numbers formatted; string columns left-aligned."""
+    text = list(text) + [c for c in df.columns if df[c].dtype == object and c not in wrap]
+    return Table(format_frame(df, decimals).reset_index(drop=True), text=text, wrap=wrap)
+
+
+# ----------------------------------------------------------------------------- pictures
+def _img_tag(path: str | Path, width: int | None = None, height: int | None = None,
+             alt: str | None = None) -> str:
+    """An <img> with the picture embedded as a JPEG at twice the shown size (sharp on
+    high-density screens, small enough to keep the report portable), shown ``width``
+    wide or ``height`` high; the tag states both sizes, so the layout does not wait for
+    the picture."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    name = html.escape(alt or Path(path).name)
     if img is None:
-        return f"<p><em>(unreadable picture {html.escape(Path(path).name)})</em></p>"
-    if width and img.shape[1] > 2 * width:
-        f = 2 * width / img.shape[1]
-        img = cv2.resize(img, (2 * width, max(1, round(img.shape[0] * f))),
+        return f"<p><em>(unreadable picture {name})</em></p>"
+    h0, w0 = img.shape[:2]
+    if height:
+        w, h = max(1, round(w0 * height / h0)), height
+    elif width:
+        w, h = width, max(1, round(h0 * width / w0))
+    else:
+        w, h = w0, h0
+    if w0 > 2 * w:
+        img = cv2.resize(img, (2 * w, max(1, round(h0 * 2 * w / w0))),
                          interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
     data = base64.b64encode(buf.tobytes()).decode("ascii")
-    w = f' width="{width}"' if width else ""
-    return f'<img src="data:image/jpeg;base64,{data}"{w} alt="{html.escape(Path(path).name)}">'
+    return f'<img src="data:image/jpeg;base64,{data}" width="{w}" height="{h}" alt="{name}">'
 
 
-def _table_html(tsv: str | Path) -> str:
-    import pandas as pd
-
-    p = Path(tsv)
-    if not p.exists() or p.stat().st_size == 0:
-        return "<p><em>(no rows)</em></p>"
-    df = pd.read_csv(p, sep="\t")
-    if df.empty:
-        return "<p><em>(no rows)</em></p>"
-    return df.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.3f}", border=0,
-                      classes="t")
+def _plural(n: Any, word: str) -> str:
+    """``"1 image"``, ``"3 images"``."""
+    return f"{_num(n)} {word}{'' if _num(n) == '1' else 's'}"
 
 
-def build_report(out_html: str | Path, title: str, intro: str,
-                 tables: Sequence[tuple[str, str | Path]], figures: Sequence[str | Path],
-                 samples: Sequence[dict[str, Any]]) -> None:
-    """Write one HTML file with everything embedded (no external files).
+def _anchor(*parts: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]+", "-", "-".join(parts)).strip("-")
+
+
+@dataclass
+class Sample:
+    """One picture of what was found: dataset, image name, overlay PNG, rectified views,
+    a one-line summary (patterns and counts, or the failure) and the caption."""
+
+    dataset: str
+    image: str
+    overlay: Path
+    rectified: list[Path] = field(default_factory=list)
+    summary: str = ""
+    caption: str = ""
+
+    @property
+    def anchor(self) -> str:
+        return _anchor("img", self.dataset, Path(self.image).stem)
+
+
+# ----------------------------------------------------------------------------- page
+CSS = """
+*{box-sizing:border-box}
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,"DejaVu Sans",sans-serif;
+ color:#1d1d1f;margin:0 auto;padding:12px 20px 40px;max-width:1360px;line-height:1.35}
+h1{font-size:26px;margin:4px 0 2px}
+h2{font-size:20px;margin:28px 0 6px;padding-top:8px;border-top:2px solid #ddd}
+h3{font-size:16px;margin:8px 0 4px}
+h3 .sub{font-weight:normal;color:#666;font-size:13px;margin-left:6px}
+p{margin:4px 0}
+.lead{font-size:15px;margin:0 0 2px}
+.meta,.note{font-size:12.5px;color:#555}
+nav{font-size:13px;margin:4px 0 6px}
+nav a{margin-right:12px}
+a{color:#0b5cad}
+.tw{max-width:100%;overflow-x:auto}
+table.t{border-collapse:collapse;font-size:13px;margin:2px 0 6px}
+table.t th{font-weight:600;vertical-align:bottom;padding:3px 7px;border-bottom:2px solid #999;
+ max-width:9em;white-space:normal;text-align:right}
+table.t td{padding:2px 7px;border-bottom:1px solid #e4e4e4;white-space:nowrap;
+ text-align:right;font-variant-numeric:tabular-nums}
+table.t th.txt,table.t td.txt,table.t th.wrap,table.t td.wrap{text-align:left}
+table.t td.wrap{white-space:normal;min-width:14em;max-width:38em}
+table.t th.wrap{max-width:none}
+table.headline{font-size:14px}
+table.headline th{max-width:7em}
+.ds{display:flex;flex-wrap:wrap;gap:8px 22px;align-items:flex-start;padding:6px 0 8px;
+ border-bottom:1px solid #eee}
+.ds .nums{flex:0 0 610px;max-width:100%}
+.thumbs{display:flex;gap:8px;flex-wrap:wrap}
+.thumbs figure{margin:0}
+.thumbs figcaption{font-size:11.5px;color:#444;max-width:240px;white-space:nowrap;
+ overflow:hidden;text-overflow:ellipsis}
+.pair{display:flex;flex-wrap:wrap;gap:8px 24px;align-items:flex-start}
+.pair>div{flex:0 1 auto;max-width:100%}
+.pair>div.fig{flex:1 1 420px;min-width:0}
+figure{margin:4px 0}
+figure img,.pair img{max-width:100%;height:auto}
+.gallery{display:flex;flex-wrap:wrap;gap:14px}
+.gallery figure{width:316px;margin:0}
+.gallery figcaption{font-size:12.5px}
+.gallery .rect img{margin:2px 4px 0 0}
+details summary{cursor:pointer;font-size:13px;color:#0b5cad}
+code{font-size:12px}
+"""
+
+#: Runs only when the page is opened with ``#check``: writes the page's layout (window
+#: and page width, each table's box, the first headline table's and first picture's
+#: boxes) as JSON into ``<pre id="layout-check">``, for :func:`chromium_layout`.
+CHECK_JS = """
+(function(){
+ if(location.hash!=="#check")return;
+ function box(e){if(!e)return null;var r=e.getBoundingClientRect();
+  return {left:r.left,top:r.top+scrollY,right:r.right,bottom:r.bottom+scrollY,
+          width:r.width,height:r.height};}
+ var de=document.documentElement,out={innerWidth:innerWidth,innerHeight:innerHeight,
+  clientWidth:de.clientWidth,scrollWidth:de.scrollWidth,bodyScrollWidth:document.body.scrollWidth,
+  tables:[],headline:box(document.querySelector("table.headline")),
+  firstImg:box(document.querySelector("img")),imgsOnFirstScreen:0,
+  firstH2:box(document.querySelector("h2"))};
+ document.querySelectorAll("table").forEach(function(t){var b=box(t);
+  b.cls=t.className;b.scrollWidth=t.scrollWidth;out.tables.push(b);});
+ document.querySelectorAll("img").forEach(function(i){var b=box(i);
+  if(b.top<innerHeight&&b.bottom>0&&b.width>0)out.imgsOnFirstScreen++;});
+ var pre=document.getElementById("layout-check")||document.createElement("pre");
+ pre.id="layout-check";pre.style.display="none";pre.textContent=JSON.stringify(out);
+ document.body.appendChild(pre);
+})();
+"""
+
+
+def _tsv_link(path: Path, out_html: Path, label: str | None = None) -> str:
+    rel = os.path.relpath(path, out_html.parent).replace(os.sep, "/")
+    return f'<a href="{html.escape(rel)}">{html.escape(label or path.name)}</a>'
+
+
+def _figure(path: Path, width: int, caption: str = "") -> str:
+    cap = f"<figcaption class='note'>{caption}</figcaption>" if caption else ""
+    return f"<figure>{_img_tag(path, width=width)}{cap}</figure>"
+
+
+def _datasets(samples: Sequence[Sample], *frames: pd.DataFrame | None,
+              order: Sequence[str] = ()) -> list[str]:
+    """The datasets that the samples and frames name, those of ``order`` first in its
+    order (the run's), the others as they come."""
+    names = [s.dataset for s in samples]
+    for f in frames:
+        if f is not None and "dataset" in f.columns:
+            names += [str(d) for d in f["dataset"]]
+    names = list(dict.fromkeys(names))
+    return [d for d in order if d in names] + [d for d in names if d not in order]
+
+
+def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str | Path,
+                 samples: Sequence[Sample], datasets: Sequence[str] | None = None,
+                 title: str = "RESCU report", meta: str = "", alpha: float = 0.05,
+                 iod_h: float | None = None, decimals: int = 2, thumbs: int = 3,
+                 tables: Iterable[str | Path] | None = None) -> None:
+    """Write the report: one HTML file with everything embedded but the TSV links.
 
     Parameters
     ----------
-    tables : list of ``(heading, tsv_path)``
-    figures : list of PNG paths (curves)
-    samples : list of ``{"dataset", "image", "overlay": png, "rectified": [png, ...],
-        "caption": str, "summary": str}``
+    tables_dir, figures_dir : folders of the run's tables (``*.tsv``; the ones that do
+        not exist are left out) and curves (``rp_curves_<dataset>.png``,
+        ``vpd_<dataset>.png``, ``ts_sweep.png``)
+    samples : pictures of what was found, in dataset order; the first ``thumbs`` of a
+        dataset stand beside its headline
+    datasets : the datasets of the run in order (default: as the samples and tables
+        name them)
+    meta : one line of Markdown under the title (what produced the tables)
+    alpha, iod_h : the significance level of the paired tests (italics) and the IOD
+        threshold of the tables, as the run used them (for the notes)
+    tables : the table files this run made (default: every one in ``tables_dir``); one
+        left out here is not shown even if an earlier run left it there (e.g. the
+        ablations of a ``paper`` run)
     """
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
-             "</title><style>body{font-family:sans-serif;max-width:1200px;margin:auto;"
-             "padding:1em}table.t{border-collapse:collapse;font-size:13px;margin:0.5em 0 1.5em}"
-             "table.t td,table.t th{border-bottom:1px solid #ddd;padding:3px 8px;"
-             "text-align:right}figure{display:inline-block;margin:6px;vertical-align:top;"
-             "max-width:560px}figcaption{font-size:13px}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1>", f"<p>{intro}</p>", "<h2>Tables</h2>"]
-    for heading, tsv in tables:
-        parts.append(f"<h3>{html.escape(heading)}</h3>")
-        parts.append(_table_html(tsv))
-    if figures:
-        parts.append("<h2>Curves</h2>")
-        for f in figures:
-            if Path(f).exists():
-                parts.append(f"<figure>{_img_tag(f, 540)}<figcaption>{html.escape(Path(f).stem)}"
-                             "</figcaption></figure>")
-    parts.append("<h2>What was found (sample images)</h2>")
-    current = None
+    out_html, t, fig = Path(out_html), Path(tables_dir), Path(figures_dir)
+    made = None if tables is None else {Path(p).name for p in tables}
+
+    def load(path: Path) -> pd.DataFrame | None:
+        return None if made is not None and path.name not in made else read_tsv(path)
+
+    rp = load(t / "rp_discovery.tsv")
+    counting = load(t / "counting.tsv")
+    vpd = load(t / "vpd.tsv")
+    vp_err = load(t / "vpd_errors.tsv")
+    vp_tests = load(t / "vpd_tests.tsv")
+    ts = load(t / "ts.tsv")
+    abl = load(t / "ablation.tsv")
+    abl2 = load(t / "stage2_ablation.tsv")
+    failures = load(t / "failures.tsv")
+    captions = load(t / "captions.tsv")
+    names = list(datasets) if datasets else _datasets(samples, captions, rp, vpd)
+    by_ds: dict[str, list[Sample]] = {}
     for s in samples:
-        if s["dataset"] != current:
-            current = s["dataset"]
-            parts.append(f"<h3>{html.escape(current)}</h3>")
-        rect = "".join(_img_tag(r, 160) for r in s.get("rectified", []))
-        parts.append(
-            f"<figure>{_img_tag(s['overlay'], 540)}<figcaption><b>{html.escape(s['image'])}</b>: "
-            f"{html.escape(s.get('summary', ''))}<br><i>{html.escape(s.get('caption', ''))}</i>"
-            f"{'<br>rectified: ' + rect if rect else ''}</figcaption></figure>")
-    parts.append("</body></html>")
+        by_ds.setdefault(s.dataset, []).append(s)
+    n_img = (captions.groupby("dataset").size().to_dict()
+             if captions is not None and len(captions) else {})
+    h = f"IOD h = {iod_h:g}" if iod_h is not None else "the IOD protocol"
+    link = lambda name, label=None: _tsv_link(t / name, out_html, label)  # noqa: E731
+
+    nav = [("rp", "Recurring patterns", rp), ("counting", "Counting", counting),
+           ("vp", "Vanishing points", vpd), ("ts", "Translation symmetry", ts),
+           ("pictures", "Pictures", samples or None),
+           ("ablations", "Ablations", abl if abl is not None else abl2),
+           ("diagnostics", "Failures and captions", failures if failures is not None
+            else captions)]
+    n_total = sum(n_img.values()) if n_img else None
+    parts = [
+        "<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        "<p class='lead'>Recurring patterns found in "
+        + (f"{_plural(n_total, 'image')} of " if n_total else "")
+        + f"{_plural(len(names), 'dataset')} without training data or "
+        "labels: per dataset the headline figures beside pictures of what was found "
+        "(boxes: instances of each pattern), then each evaluation in detail.</p>",
+        "<p class='meta'>" + (meta + " " if meta else "")
+        + f"P / R: precision / recall of instances and of whole recurring patterns (RPs) at "
+        f"{html.escape(h)}, mean ± std over images; <b>bold</b>: best. All tables as TSV in "
+        + _tsv_link(t, out_html, "tables/") + ".</p>",
+        "<nav>" + "".join(f"<a href='#{a}'>{label}</a>" for a, label, x in nav
+                          if x is not None) + "</nav>"]
+
+    # Per dataset: the headline beside the first pictures.
+    for ds in names:
+        tab, what = None, ""
+        if rp is not None and len(rp):
+            tab, what = rp_headline(rp, ds, decimals), "recurring-pattern ground truth"
+        if tab is None and vpd is not None and len(vpd):
+            tab, what = (vp_headline(vpd, ds, vp_err, decimals=decimals),
+                         "vanishing-point ground truth")
+        if tab is None and captions is not None and len(captions):
+            tab, what = found_headline(captions, ds), "no ground truth: what RESCU-II found"
+        if tab is None:
+            what = ""
+        sub = [_plural(n_img[ds], "image") if ds in n_img else "", what]
+        parts.append(f"<section class='ds' id='{_anchor('ds', ds)}'><div class='nums'>"
+                     f"<h3>{html.escape(ds)}<span class='sub'>"
+                     f"{html.escape(' · '.join(x for x in sub if x))}</span></h3>"
+                     + (tab.to_html() if tab is not None else
+                        "<p class='note'>(no table for this dataset)</p>") + "</div>")
+        th = []
+        for s in by_ds.get(ds, [])[:thumbs]:
+            th.append(f"<figure><a href='#{s.anchor}'>"
+                      f"{_img_tag(s.overlay, height=165, alt=Path(s.image).name)}</a>"
+                      f"<figcaption title='{html.escape(s.caption)}'>"
+                      f"{html.escape(Path(s.image).stem)}: {html.escape(s.summary)}"
+                      "</figcaption></figure>")
+        parts.append(f"<div class='thumbs'>{''.join(th)}</div></section>")
+
+    # Recurring patterns: per dataset the full table (subsets) above its curves.
+    if rp is not None:
+        parts.append("<h2 id='rp'>Recurring patterns</h2><p class='note'>Mean ± std over "
+                     f"images at {html.escape(h)}, per subset of the images; <b>bold</b>: best "
+                     f"of the subset, <i>italics</i>: not significantly different from it "
+                     f"(paired Wilcoxon, p ≥ {alpha:g}). Curves: the metrics as the IOD "
+                     f"threshold h varies. {link('rp_discovery.tsv')}, per image: "
+                     f"{link('rp_scores.tsv')}, curves: {link('rp_curves.tsv')}.</p>")
+        for ds in _datasets([], rp, order=names):
+            g = rp[rp["dataset"].astype(str) == ds]
+            tab = summary_cells(g, ["subset", "method"], decimals=decimals, alpha=alpha)
+            parts.append(f"<h3>{html.escape(ds)}</h3><div class='pair'><div>{tab.to_html()}"
+                         "</div></div>")
+            if (fig / f"rp_curves_{ds}.png").exists():
+                parts.append(_figure(fig / f"rp_curves_{ds}.png", 1100))
+        if not len(rp):
+            parts.append("<p class='note'>No dataset with recurring-pattern ground truth.</p>")
+
+    if counting is not None:
+        tab = counting_compact(counting, decimals)
+        parts.append("<h2 id='counting'>Counting</h2><p class='note'>Each ground-truth "
+                     "pattern that a found pattern matches is counted by the matching pattern "
+                     "with the most instances: count error and share of exact counts over them; "
+                     "the same for each image's dominant pattern. Every column (counts over all "
+                     f"matched patterns, pooled precision / recall) in {link('counting.tsv')}."
+                     "</p>" + (tab.to_html() if tab is not None else
+                               "<p class='note'>No dataset with recurring-pattern ground "
+                               "truth.</p>"))
+
+    if vpd is not None:
+        parts.append("<h2 id='vp'>Vanishing points</h2><p class='note'>Share of images whose "
+                     "vanishing point lies within a threshold of the ground truth (point error "
+                     "in pixels, angle error of the VP direction in degrees); a missing VP "
+                     "fails every threshold. The table picks three thresholds of each; the "
+                     f"curves show all: {link('vpd.tsv')}, per image: {link('vpd_errors.tsv')}"
+                     f", paired tests: {link('vpd_tests.tsv')}.</p>")
+        for ds in _datasets([], vpd, order=names):
+            tab = vp_compact(vpd, ds, vp_err, decimals)
+            png = fig / f"vpd_{ds}.png"
+            n = pd.to_numeric(vpd.loc[vpd["dataset"].astype(str) == ds, "n_images"]).max()
+            parts.append(f"<h3>{html.escape(ds)}<span class='sub'>{_plural(n, 'image')} with "
+                         "VP ground truth</span></h3><div class='pair'><div>"
+                         + (tab.to_html() if tab is not None else "")
+                         + _tests_details(vp_tests, ds) + "</div>"
+                         + (f"<div class='fig'>{_figure(png, 640)}</div>" if png.exists()
+                            else "")
+                         + "</div>")
+        if not len(vpd):
+            parts.append("<p class='note'>No dataset with vanishing-point ground truth.</p>")
+
+    if ts is not None:
+        tab = ts_compact(ts, decimals)
+        png = fig / "ts_sweep.png"
+        parts.append("<h2 id='ts'>Translation symmetry</h2><p class='note'>SR_ts: share of "
+                     "images with a pattern whose cross ratio lies within t of 4/3 (equal "
+                     "spacing in 3D); TPR / FPR on ground-truth patterns with equal / unequal "
+                     "spacing; flagged: images RESCU marks as TS. The curves sweep t over "
+                     f"(0, 0.15] and (0, 1]: {link('ts.tsv')}.</p><div class='pair'><div>"
+                     + (tab.to_html() if tab is not None else
+                        "<p class='note'>No dataset with recurring-pattern ground truth.</p>")
+                     + "</div>" + (f"<div class='fig'>{_figure(png, 640)}</div>"
+                                   if png.exists() else "")
+                     + "</div>")
+
+    if samples:
+        parts.append("<h2 id='pictures'>Pictures: what was found</h2><p class='note'>The "
+                     "overlays: the instances of each recurring pattern (one colour per "
+                     "pattern), its count, vanishing point and translation symmetry (TS), the "
+                     "caption in the band below; under each, the rectified views of its "
+                     "patterns.</p>")
+        for ds in names:
+            if ds not in by_ds:
+                continue
+            parts.append(f"<h3>{html.escape(ds)}</h3><div class='gallery'>")
+            for s in by_ds[ds]:
+                rect = "".join(_img_tag(r, height=48) for r in s.rectified[:6])
+                parts.append(
+                    f"<figure id='{s.anchor}'>{_img_tag(s.overlay, width=316, alt=s.image)}"
+                    f"<figcaption><b>{html.escape(s.image)}</b>: {html.escape(s.summary)}"
+                    + (f"<div class='rect'>{rect}</div>" if rect else "")
+                    + "</figcaption></figure>")
+            parts.append("</div>")
+
+    if abl is not None or abl2 is not None:
+        parts.append("<h2 id='ablations'>Ablations</h2>")
+        if abl is not None:
+            parts.append("<h3>Stage I: which parameters are adaptive, orientation mode</h3>"
+                         f"<p class='note'>All images; {link('ablation.tsv')}.</p>")
+            for ds in _datasets([], abl, order=names):
+                g = abl[abl["dataset"].astype(str) == ds]
+                tab = summary_cells(g, ["adaptive"], decimals=decimals, alpha=alpha)
+                parts.append(f"<p class='note'><b>{html.escape(ds)}</b></p>" + tab.to_html())
+        if abl2 is not None:
+            parts.append("<h3>Stage II: proposals and prediction</h3><p class='note'>All "
+                         f"images; per subset in {link('stage2_ablation.tsv')}.</p>")
+            for ds in _datasets([], abl2, order=names):
+                g = abl2[abl2["dataset"].astype(str) == ds]
+                if "subset" in g.columns:
+                    g = g[g["subset"].astype(str) == "all"]
+                tab = summary_cells(g, ["method"], decimals=decimals, alpha=alpha)
+                parts.append(f"<p class='note'><b>{html.escape(ds)}</b></p>" + tab.to_html())
+
+    if failures is not None or captions is not None:
+        parts.append("<h2 id='diagnostics'>Failures and captions</h2>")
+        if failures is not None:
+            parts.append("<h3>Failures</h3>")
+            parts.append("<p class='note'>No image failed.</p>" if not len(failures) else
+                         plain_table(failures, decimals, wrap=["message"]).to_html())
+        if captions is not None and len(captions):
+            cap = captions.copy()
+            if "image" in cap:
+                cap["image"] = cap["image"].map(lambda p: Path(str(p)).name)
+            tab = plain_table(cap, decimals, wrap=[c for c in ("base", "enhanced")
+                                                   if c in cap]).to_html()
+            parts.append(f"<h3>Captions</h3><details{' open' if len(cap) <= 20 else ''}>"
+                         f"<summary>{len(cap)} images ({link('captions.tsv')})</summary>"
+                         f"{tab}</details>")
+    parts.append(f"<script>{CHECK_JS}</script></body></html>")
     with atomic_path(out_html) as tmp:
         tmp.write_text("\n".join(parts))
 
 
+def _tests_details(tests: pd.DataFrame | None, ds: str) -> str:
+    """The paired tests of one dataset's VP errors, folded."""
+    if tests is None or not len(tests):
+        return ""
+    g = tests[tests["dataset"].astype(str) == ds].drop(columns="dataset")
+    if g.empty:
+        return ""
+    g = g.assign(error=g["error"].map(lambda e: human_name(str(e)).lower()))
+    tab = plain_table(g, 2)
+    tab.cells["p_value"] = [_num(v, 3) for v in g["p_value"]]
+    return (f"<details><summary>Paired tests of the errors ({len(g)})</summary>"
+            f"{tab.to_html()}</details>")
+
+
+def _summary_meta(summary_md: Path) -> str:
+    """The line of ``summary.md`` that says what produced the tables (version, backbone),
+    as HTML without Markdown syntax; the part that repeats the table legend is left out."""
+    if not summary_md.exists():
+        return ""
+    lines = [x.strip() for x in summary_md.read_text().splitlines()]
+    title = next((x.lstrip("# ") for x in lines if x.startswith("# ")), "")
+    body = next((x for x in lines if x and not x.startswith("#")), "")
+    body = body.split(" Metrics:")[0]
+    title = title.split(":")[0]
+    return md_inline(f"{title}. {body}" if title else body)
+
+
 def build_run_report(out_html: str | Path, results: str | Path,
-                     samples: dict[str, list[str]]) -> None:
+                     samples: Mapping[str, Sequence[str]],
+                     evaluation: Mapping[str, Any] | None = None,
+                     tables: Iterable[str | Path] | None = None) -> None:
     """The report of a pipeline run from its results folder.
 
-    ``samples`` maps each dataset to the image stems whose overlays are shown.
+    ``samples`` maps each dataset to the image stems whose overlays are shown;
+    ``evaluation`` is the config's ``evaluation`` section (``significance_alpha``,
+    ``iod_h``, ``decimals``) for the notes and number formats; ``tables`` the table
+    files the run made (default: all in ``<results>/tables``).
     """
     from .io import read_result
 
     results = Path(results)
-    t = results / "tables"
-    tables = [("RP discovery (mean, std, n per metric)", t / "rp_discovery.tsv"),
-              ("Stage-I ablation: adaptive parameters and orientation mode", t / "ablation.tsv"),
-              ("Stage-II ablation: proposals", t / "stage2_ablation.tsv"),
-              ("Counting", t / "counting.tsv"),
-              ("Vanishing-point detection: success rates", t / "vpd.tsv"),
-              ("Vanishing points: paired tests", t / "vpd_tests.tsv"),
-              ("Translation symmetry: SR_ts vs t", t / "ts.tsv"),
-              ("Failures (image, stage, message)", t / "failures.tsv"),
-              ("Captions", t / "captions.tsv")]
-    tables = [(h, p) for h, p in tables if p.exists()]  # ablations only in `paper` runs
-    figures = sorted((results / "figures").glob("*.png"))
+    evaluation = evaluation or {}
     items = []
     for ds, stems in samples.items():
         for stem in stems:
@@ -113,17 +855,93 @@ def build_run_report(out_html: str | Path, results: str | Path,
             rect_dir = results / ds / "rectified" / stem
             rect = sorted(rect_dir.glob("*.png")) if rect_dir.is_dir() else []
             f = res.extra.get("failure")
+            counts = [p.count for p in res.patterns]
             summary = (f"failed in {f.get('stage')}: {f.get('message')}" if f else
-                       f"{len(res.patterns)} pattern(s), counts "
-                       f"{', '.join(str(p.count) for p in res.patterns) or '-'}")
-            items.append({"dataset": ds, "image": res.image or stem,
-                          "overlay": results / ds / "overlay" / f"{stem}.png",
-                          "rectified": rect, "summary": summary,
-                          "caption": (res.caption or {}).get("enhanced", "")})
-    summary_md = t / "summary.md"
-    intro = ("Recurring patterns found without training data or labels; vanishing points from "
-             "the implicit lines of the patterns; translation symmetry by the cross ratio; "
-             "counts; captions. Tables: mean ± std over images. " +
-             (html.escape(summary_md.read_text().splitlines()[2]) if summary_md.exists()
-              and len(summary_md.read_text().splitlines()) > 2 else ""))
-    build_report(out_html, "RESCU report", intro, tables, figures, items)
+                       f"{len(counts)} pattern{'s' if len(counts) != 1 else ''}"
+                       + (f", counts {', '.join(str(c) for c in counts)}" if counts else ""))
+            items.append(Sample(ds, res.image or stem, results / ds / "overlay" / f"{stem}.png",
+                                rect, summary, (res.caption or {}).get("enhanced", "")))
+    build_report(out_html, results / "tables", results / "figures", items,
+                 datasets=list(samples) or None,
+                 meta=_summary_meta(results / "tables" / "summary.md"),
+                 alpha=float(evaluation.get("significance_alpha", 0.05)),
+                 iod_h=evaluation.get("iod_h"),
+                 decimals=int(evaluation.get("decimals", 2)), tables=tables)
+
+
+# ----------------------------------------------------------------------------- the page as seen
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                  "--no-first-run", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync")
+
+
+def find_chromium() -> str | None:
+    """The Chromium executable (``chromium``, ``chromium-browser``, ``google-chrome``), or
+    None."""
+    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
+        p = shutil.which(name)
+        if p:
+            return p
+    return None
+
+
+def _chromium(args: Sequence[str], timeout: float) -> subprocess.CompletedProcess:
+    exe = find_chromium()
+    if exe is None:
+        raise FileNotFoundError("no Chromium executable (apt-get install chromium)")
+    with tempfile.TemporaryDirectory(prefix="rescu-chromium-") as profile:
+        return subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *args],
+                              capture_output=True, text=True, timeout=timeout)
+
+
+def chromium_screenshot(html_path: str | Path, png: str | Path, width: int = 1400,
+                        height: int = 900, timeout: float = 120) -> Path:
+    """Screenshot of the first ``width`` x ``height`` screen of the page, as a reader
+    opening it in a window of that size sees it."""
+    png = Path(png).resolve()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    proc = _chromium([f"--window-size={width},{height}", f"--screenshot={png}",
+                      Path(html_path).resolve().as_uri()], timeout)
+    if not png.exists():
+        raise RuntimeError(f"chromium wrote no screenshot ({proc.returncode}):\n"
+                           f"{proc.stderr[-2000:]}")
+    return png
+
+
+def chromium_layout(html_path: str | Path, width: int = 1400, height: int = 900,
+                    timeout: float = 120) -> dict[str, Any]:
+    """The page's layout in a ``width`` x ``height`` window of headless Chromium: the
+    JSON that the report's inline check script writes when opened with ``#check``
+    (``innerWidth``, ``clientWidth``, ``scrollWidth`` of the page, ``tables`` with their
+    boxes in page pixels, ``headline`` and ``firstImg`` boxes, ``imgsOnFirstScreen``)."""
+    proc = _chromium([f"--window-size={width},{height}", "--dump-dom",
+                      Path(html_path).resolve().as_uri() + "#check"], timeout)
+    m = re.search(r'<pre id="layout-check"[^>]*>(.*?)</pre>', proc.stdout, re.S)
+    if not m:
+        raise RuntimeError(f"no layout in chromium's DOM ({proc.returncode}):\n"
+                           f"{proc.stderr[-2000:]}")
+    return json.loads(html.unescape(m.group(1)))
+
+
+def first_screen_problems(layout: Mapping[str, Any], height: int = 900) -> list[str]:
+    """What keeps the first screen of :func:`chromium_layout`'s page from reading well
+    (empty: nothing): a page or table wider than the window, no headline table or no
+    picture within the first ``height`` pixels (or the window's inner height, if less)."""
+    problems = []
+    width = layout["clientWidth"]
+    screen = min(height, layout.get("innerHeight") or height)
+    if layout["scrollWidth"] > width:
+        problems.append(f"page {layout['scrollWidth']} px wide, window {width} px")
+    for t in layout["tables"]:
+        if t["right"] > width + 0.5 or t["scrollWidth"] > width:
+            problems.append(f"table '{t['cls']}' reaches {t['right']:.0f} px "
+                            f"({t['width']:.0f} px wide, window {width} px)")
+    hl = layout.get("headline")
+    if not hl:
+        problems.append("no headline table")
+    elif hl["bottom"] > screen:
+        problems.append(f"headline table ends at {hl['bottom']:.0f} px, below the first "
+                        f"screen ({screen} px)")
+    if layout.get("imgsOnFirstScreen", 0) < 1:
+        problems.append("no picture on the first screen")
+    return problems

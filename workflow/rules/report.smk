@@ -1,5 +1,5 @@
-# The HTML report: tables, curves, and for a sample of images per dataset the overlay
-# picture, the rectified views and the caption.
+# The HTML report: per dataset the headline figures beside overlay pictures, then each
+# evaluation as a compact table next to its curve, the ablations and diagnostics.
 
 
 def report_samples():
@@ -33,6 +33,7 @@ rule report:
     params:
         samples=report_samples(),
         results=RESULTS,
+        evaluation=config["evaluation"],
     log:
         LOGS + "/report.log",
     script:

@@ -3,4 +3,5 @@ from rescu.pipeline import setup_logging
 from rescu.report import build_run_report
 
 setup_logging(snakemake.log[0])
-build_run_report(snakemake.output.html, snakemake.params.results, snakemake.params.samples)
+build_run_report(snakemake.output.html, snakemake.params.results, snakemake.params.samples,
+                 snakemake.params.evaluation, tables=snakemake.input.tables)
