@@ -23,6 +23,7 @@ Parameters P_d, P_s, P_theta are fixed (0.2 of the diagonal, 0.5, 30 degrees).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -117,9 +118,11 @@ class _Grasp:
     def copy_at(self, ref: int, pos: np.ndarray, tol: float, taken: set[int],
                 avail: np.ndarray) -> int:
         dd, qq = self.tree.query(pos, k=4, distance_upper_bound=tol)
-        for d, q in zip(np.atleast_1d(dd), np.atleast_1d(qq)):
-            if np.isfinite(d) and q not in taken and avail[q] and self.desc_close(ref, int(q)):
-                return int(q)
+        # plain Python scalars: this runs ~10^5 times per image (numpy scalar checks cost
+        # more than the query); a missing neighbour has d = inf and q = n
+        for d, q in zip(dd.tolist(), qq.tolist()):
+            if d != math.inf and q not in taken and avail[q] and self.desc_close(ref, q):
+                return q
         return -1
 
     def tol(self, om: np.ndarray) -> float:

@@ -1,0 +1,133 @@
+"""Per-job overhead of the pipeline: what a Snakemake job costs that does nothing.
+
+    python benchmarks/job_overhead.py [--jobs 20] [--results results]
+
+Prints
+1. the wall time per job of a no-op rule written like the pipeline's adapters (the
+   script imports ``rescu.pipeline``, sets up its log, limits threads, copies its input
+   to its output): ``snakemake --cores 1`` with ``--jobs`` + 1 jobs against one with 1
+   job, the difference over ``--jobs`` (Snakemake's scheduling of each job included,
+   its start-up not); and the seconds its ``benchmark:`` file records per job;
+2. the seconds a fresh interpreter takes to import what each per-image step imports
+   (median of 3);
+3. with ``--results`` (a finished run), the median seconds per job of every rule, from
+   the run's ``benchmarks/`` files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+SNAKEFILE = """
+rule all:
+    input: expand("out/{{i}}.txt", i=range({n}))
+
+rule noop:
+    input: "in.txt"
+    output: "out/{{i}}.txt"
+    log: "logs/{{i}}.log"
+    benchmark: "bench/{{i}}.tsv"
+    script: "noop.py"
+"""
+
+SCRIPT = """
+import shutil
+from rescu import pipeline
+
+pipeline.setup_logging(snakemake.log[0])
+pipeline.limit_threads(snakemake.threads)
+shutil.copy(snakemake.input[0], snakemake.output[0])
+"""
+
+STEP_IMPORTS = {
+    "prepare / features": "from rescu import pipeline, io, features",
+    "stage I": "from rescu import pipeline, stage1",
+    "GRASP": "from rescu import pipeline, grasp",
+    "stage II (torch)": "from rescu import pipeline, stage2, backbone; import torch",
+    "scene": "from rescu import pipeline, scene, completion",
+    "caption": "from rescu import pipeline, caption",
+    "overlay": "from rescu import pipeline, visualize",
+    "tables": "from rescu import tables, evaluation",
+}
+
+
+def _run_noop(n: int) -> tuple[float, list[float]]:
+    """Seconds of one ``snakemake --cores 1`` process running ``n`` no-op jobs, and the
+    seconds each job's benchmark file records."""
+    with tempfile.TemporaryDirectory(prefix="rescu-noop-") as d:
+        w = Path(d)
+        (w / "Snakefile").write_text(SNAKEFILE.format(n=n))
+        (w / "noop.py").write_text(SCRIPT)
+        (w / "in.txt").write_text("x\n")
+        t0 = time.perf_counter()
+        proc = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--quiet", "all"],
+                              cwd=w, capture_output=True, text=True,
+                              env={"PATH": f"{BIN}:/usr/bin:/bin"})
+        total = time.perf_counter() - t0
+        if proc.returncode:
+            sys.exit(f"snakemake failed:\n{proc.stderr[-3000:]}")
+        bench = [float((w / "bench" / f"{i}.tsv").read_text().splitlines()[1].split("\t")[0])
+                 for i in range(n)]
+        return total, bench
+
+
+def noop_jobs(n: int) -> tuple[float, float]:
+    """(wall seconds per job, median benchmark seconds per job) of no-op jobs: the
+    difference between a run of ``n + 1`` jobs and one of 1 job, over ``n`` (Snakemake's
+    start-up, DAG and scheduling of the run itself cancel out)."""
+    one, _ = _run_noop(1)
+    many, bench = _run_noop(n + 1)
+    print(f"  (snakemake process: 1 job {one:.1f} s, {n + 1} jobs {many:.1f} s)")
+    return (many - one) / n, statistics.median(bench)
+
+
+def import_seconds(stmt: str, repeat: int = 3) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-c", stmt], check=True)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def rule_medians(results: Path) -> dict[str, tuple[int, float]]:
+    """rule -> (jobs, median seconds) from ``results/benchmarks/<dataset>/<rule>/*.tsv``."""
+    by_rule: dict[str, list[float]] = {}
+    for f in (results / "benchmarks").glob("**/*.tsv"):
+        lines = f.read_text().splitlines()
+        if len(lines) > 1:
+            by_rule.setdefault(f.parent.name, []).append(float(lines[1].split("\t")[0]))
+    return {r: (len(v), statistics.median(v)) for r, v in sorted(by_rule.items())}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--jobs", type=int, default=20, help="no-op jobs (default 20)")
+    ap.add_argument("--results", type=Path, default=None,
+                    help="a finished run's results folder: median seconds per rule")
+    a = ap.parse_args(argv)
+    if a.jobs < 1:
+        ap.error("--jobs must be >= 1")
+    print(f"no-op job ({a.jobs} jobs, snakemake --cores 1):")
+    per_job, bench = noop_jobs(a.jobs)
+    print(f"  wall per job {per_job:.2f} s; its benchmark file records {bench:.2f} s")
+    print("fresh interpreter importing what a step imports (median of 3):")
+    for name, stmt in STEP_IMPORTS.items():
+        print(f"  {name:<20} {import_seconds(stmt):.2f} s")
+    if a.results is not None:
+        print(f"median seconds per job, {a.results}/benchmarks:")
+        for rule, (n, med) in rule_medians(a.results).items():
+            print(f"  {rule:<26} {n:>5} jobs  {med:7.2f} s")
+
+
+if __name__ == "__main__":
+    main()
