@@ -1,7 +1,8 @@
 """The ``rescu`` command: run RESCU on your own photos, evaluate predictions.
 
 Exit codes: 0 success; 1 some images failed (their JSON records why; the others are
-done); 2 bad usage, configuration or input files; 3 an unexpected internal error.
+done; an image whose stage II failed keeps stage I's patterns); 2 bad usage,
+configuration or input files; 3 an unexpected internal error.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 EXIT_OK, EXIT_IMAGE_FAILED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
+# 1 also when a step failed but the photo kept the previous step's result (its JSON's
+# failure record has "degraded_to"; the summary line says so)
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
@@ -115,10 +118,14 @@ def _check_out_dir(out: Path, photos: Sequence[Path]) -> None:
 
 def _summary_line(name: str, res: Any) -> str:
     f = res.extra.get("failure")
-    if f:
+    note = ""
+    if f and f.get("degraded_to"):  # a step failed; the previous step's patterns kept
+        note = (f" [FAILED in {f.get('stage')}: {f.get('message')}; "
+                f"{f.get('degraded_to')}'s result kept]")
+    elif f:
         return f"{name}: FAILED in {f.get('stage')}: {f.get('message')}"
     if not res.patterns:
-        return f"{name}: no recurring pattern"
+        return f"{name}: no recurring pattern{note}"
     parts = [f"{len(res.patterns)} RP(s), counts " + ",".join(str(p.count) for p in res.patterns)]
     if res.vanishing_point is not None:
         parts.append("VP " + ("inside" if res.vanishing_point.inside_image else "outside")
@@ -127,7 +134,7 @@ def _summary_line(name: str, res: Any) -> str:
         parts.append("translation symmetry")
     cap = (res.caption or {}).get("enhanced")
     line = f"{name}: " + "; ".join(parts)
-    return line + (f' — "{cap}"' if cap else "")
+    return line + (f' — "{cap}"' if cap else "") + note
 
 
 def cmd_discover(args: argparse.Namespace) -> int:

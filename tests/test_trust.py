@@ -245,3 +245,18 @@ def test_wheel_installed_outside_the_checkout_runs(tmp_path):
     d = json.loads((work / "out" / "shelf.json").read_text())
     assert d["method"] == "rescu-ii" and max(p["count"] for p in d["patterns"]) >= 5
     shutil.rmtree(venv)
+
+
+def test_summary_line_of_a_degraded_result_shows_patterns_and_the_failure():
+    from rescu.cli import _summary_line
+    from rescu.types import ImageResult, Instance, Pattern
+
+    res = ImageResult(image="x.jpg", width=10, height=10, method="rescu-ii",
+                      patterns=[Pattern(0, 1.0, [Instance((0, 0, 2, 2)), Instance((4, 0, 2, 2))])],
+                      extra={"failure": {"stage": "stage2-predict", "message": "boom",
+                                         "type": "ValueError", "degraded_to": "rescu-i"}})
+    line = _summary_line("x.jpg", res)
+    assert line.startswith("x.jpg: 1 RP(s), counts 2")
+    assert "FAILED in stage2-predict: boom; rescu-i's result kept" in line
+    res.extra["failure"].pop("degraded_to")
+    assert _summary_line("x.jpg", res) == "x.jpg: FAILED in stage2-predict: boom"
