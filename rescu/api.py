@@ -52,8 +52,10 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     -------
     ImageResult
         With ``extra["failure"]`` set (and no pattern) when the image could not be
-        processed (unreadable, too small, a step failed): this function does not raise
-        for a bad image.
+        processed (unreadable, too small, stage I failed): this function does not raise
+        for a bad image. When a later step failed (stage II, scene, caption), the
+        previous step's patterns are kept and the record has ``"degraded_to"`` (see
+        :func:`rescu.pipeline.is_degraded`).
 
     Raises
     ------

@@ -155,18 +155,22 @@ def cmd_discover(args: argparse.Namespace) -> int:
     except OSError as e:
         raise InputError(f"--out {out}: cannot write {out / 'rescu.log'} "
                          f"({e.strerror or e})") from None
-    failed = 0
+    failed = degraded = 0
     bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
                disable=args.quiet or None, file=sys.stderr)
     for photo, name in bar:
         bar.set_postfix_str(photo.name)
         res = discover(photo, out_dir=out, method=args.method, config=cfg,
                        keep_work=args.keep_work, name=name, validated=True)
-        failed += bool(res.extra.get("failure"))
+        f = res.extra.get("failure")
+        failed += bool(f) and not f.get("degraded_to")
+        degraded += bool(f) and bool(f.get("degraded_to"))
         tqdm.write(_summary_line(photo.name, res), file=sys.stdout)
-    print(f"{len(photos) - failed} of {len(photos)} image(s) done; results in {out}/ "
+    kept = (f" ({degraded} with a failed step, the previous step's result kept)"
+            if degraded else "")
+    print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
           f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
-    return EXIT_IMAGE_FAILED if failed else EXIT_OK
+    return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

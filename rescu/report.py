@@ -856,9 +856,12 @@ def build_run_report(out_html: str | Path, results: str | Path,
             rect = sorted(rect_dir.glob("*.png")) if rect_dir.is_dir() else []
             f = res.extra.get("failure")
             counts = [p.count for p in res.patterns]
-            summary = (f"failed in {f.get('stage')}: {f.get('message')}" if f else
-                       f"{len(counts)} pattern{'s' if len(counts) != 1 else ''}"
+            summary = (f"{len(counts)} pattern{'s' if len(counts) != 1 else ''}"
                        + (f", counts {', '.join(str(c) for c in counts)}" if counts else ""))
+            if f and f.get("degraded_to"):  # a step failed; the previous step's result kept
+                summary += f" ({f.get('stage')} failed; {f.get('degraded_to')}'s result)"
+            elif f:
+                summary = f"failed in {f.get('stage')}: {f.get('message')}"
             items.append(Sample(ds, res.image or stem, results / ds / "overlay" / f"{stem}.png",
                                 rect, summary, (res.caption or {}).get("enhanced", "")))
     build_report(out_html, results / "tables", results / "figures", items,

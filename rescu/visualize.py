@@ -97,7 +97,10 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     if result.caption:
         text = result.caption.get("enhanced") or result.caption.get("base") or ""
     failure = result.extra.get("failure")
-    if failure:
+    if failure and failure.get("degraded_to"):  # a step failed; the previous result kept
+        text = (f"{text} [{failure.get('stage')} failed; {failure.get('degraded_to')}'s "
+                f"result shown]").strip()
+    elif failure:
         text = f"FAILED in {failure.get('stage')}: {failure.get('message')}"
     if not result.patterns and not failure:
         text = text or "No recurring pattern found."

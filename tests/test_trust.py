@@ -260,3 +260,21 @@ def test_summary_line_of_a_degraded_result_shows_patterns_and_the_failure():
     assert "FAILED in stage2-predict: boom; rescu-i's result kept" in line
     res.extra["failure"].pop("degraded_to")
     assert _summary_line("x.jpg", res) == "x.jpg: FAILED in stage2-predict: boom"
+
+
+def test_degraded_result_is_drawn_with_its_patterns(monkeypatch):
+    import numpy as np
+
+    from rescu import visualize
+    from rescu.types import ImageResult, Instance, Pattern
+
+    texts = []
+    monkeypatch.setattr(visualize, "_wrap", lambda t, w: texts.append(t) or [t])
+    res = ImageResult(image="x.jpg", width=60, height=40, method="rescu-ii",
+                      patterns=[Pattern(0, 1.0, [Instance((2, 2, 8, 8)), Instance((20, 2, 8, 8))])],
+                      caption={"base": "b", "enhanced": "Two similar objects."},
+                      extra={"failure": {"stage": "stage2-train", "message": "boom",
+                                         "degraded_to": "rescu-i"}})
+    img = visualize.overlay(np.zeros((40, 60, 3), np.uint8), 1.0, res)
+    assert img.shape[0] > 40
+    assert texts == ["Two similar objects. [stage2-train failed; rescu-i's result shown]"]
