@@ -37,19 +37,10 @@ def stage2_upstream():
 
 
 def stage2_predict_variants():
-    """``stage2_ablation.predict_variants``, checked: prediction keys only, and names
-    other than those of ``stage2_ablation.variants`` (both write to stage2-ablation/)."""
-    pv = config["stage2_ablation"].get("predict_variants") or {}
-    for name, over in pv.items():
-        bad = [k for k in over if not is_predict_only(k)]
-        if bad:
-            raise ValueError(f"stage2_ablation.predict_variants.{name}: {bad} are not "
-                             f"prediction keys (put such a variant under "
-                             f"stage2_ablation.variants)")
-        if name in config["stage2_ablation"]["variants"]:
-            raise ValueError(f"stage2_ablation: {name!r} is both a variant and a "
-                             f"predict variant")
-    return pv
+    """``stage2_ablation.predict_variants`` (prediction keys only, names other than those
+    of ``stage2_ablation.variants``: checked once with the whole config by
+    :func:`rescu.config.validate_config` in the Snakefile)."""
+    return config["stage2_ablation"].get("predict_variants") or {}
 
 
 def images(dataset):
