@@ -458,12 +458,27 @@ def _deterministic(seed: int):
     import torch
 
     prev = torch.are_deterministic_algorithms_enabled()
+    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     torch.manual_seed(int(seed))
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    _set_deterministic(torch, True, warn_only=True)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(prev)
+        _set_deterministic(torch, prev, warn_only=prev_warn)
+
+
+def _set_deterministic(torch: Any, mode: bool, warn_only: bool) -> None:
+    """``torch.use_deterministic_algorithms`` without its import of ``torch._inductor``.
+
+    The public function also sets the compiler's (Inductor's) flag, and importing the
+    compiler costs about 1.7 s per process on a 2-core machine; stage II never compiles,
+    so only the eager-mode flag is set (the same C++ switch the public function sets).
+    """
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None:  # a torch without the private switch: the public call
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        setter(mode, warn_only=warn_only)
 
 
 def _augment_image(rgb: np.ndarray, k: int, rng: np.random.Generator
@@ -782,6 +797,57 @@ def _finetune_examples(feats: dict[str, np.ndarray], params: Stage2Params,
 
 
 # ----------------------------------------------------------------------------- step 2
+def dbscan_labels(x: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
+    """DBSCAN labels of the rows of ``x``, as ``sklearn.cluster.DBSCAN(eps, min_samples)``.
+
+    The same algorithm as scikit-learn's (Euclidean neighbourhoods with distance <= eps,
+    each point counted in its own; core points have at least ``min_samples``; clusters
+    numbered in the order of their first core point, a border point joining the first
+    cluster that reaches it; -1 = noise), written in NumPy for the few dozen instances
+    of one RP: importing ``sklearn.cluster`` alone costs about 0.9 s per process.
+    Squared distances are computed as scikit-learn's brute-force search computes them
+    (float64, ``|a|^2 - 2 a.b + |b|^2``). ``tests/test_stage2.py`` checks the labels
+    against scikit-learn.
+
+    Parameters
+    ----------
+    x : (N, D) float
+        Points.
+    eps : float
+        Neighbourhood radius (same units as ``x``).
+    min_samples : int
+        Neighbourhood size (the point included) that makes a core point.
+
+    Returns
+    -------
+    (N,) int64 labels: 0, 1, ... per cluster, -1 for noise.
+    """
+    x64 = np.asarray(x, np.float64)
+    n = len(x64)
+    labels = np.full(n, -1, np.int64)
+    if n == 0:
+        return labels
+    sq = np.einsum("ij,ij->i", x64, x64)
+    d2 = np.maximum(sq[:, None] - 2.0 * (x64 @ x64.T) + sq[None, :], 0.0)
+    np.fill_diagonal(d2, 0.0)
+    near = d2 <= float(eps) ** 2
+    core = near.sum(1) >= int(min_samples)
+    label = 0
+    for i in range(n):
+        if labels[i] != -1 or not core[i]:
+            continue
+        stack = [i]
+        while stack:
+            j = stack.pop()
+            if labels[j] != -1:
+                continue
+            labels[j] = label
+            if core[j]:
+                stack.extend(int(k) for k in np.nonzero(near[j] & (labels == -1))[0])
+        label += 1
+    return labels
+
+
 def cluster_centres(x: np.ndarray, eps: float | None = None, min_samples: int = 2
                     ) -> tuple[np.ndarray, np.ndarray]:
     """DBSCAN cluster centres of one RP's instance features.
@@ -802,8 +868,6 @@ def cluster_centres(x: np.ndarray, eps: float | None = None, min_samples: int = 
     labels : (N,) int
         Cluster of every instance (noise points relabelled to their own centre).
     """
-    from sklearn.cluster import DBSCAN
-
     x = np.asarray(x, np.float32)
     if x.ndim != 2 or len(x) == 0:
         raise ValueError(f"x must be an (N, D) array with N >= 1, got {x.shape}")
@@ -815,7 +879,7 @@ def cluster_centres(x: np.ndarray, eps: float | None = None, min_samples: int = 
             np.fill_diagonal(dd, np.inf)
             eps = float(np.median(dd.min(1))) * 1.5
     eps = max(float(eps), 1e-6)
-    lab = DBSCAN(eps=eps, min_samples=int(min_samples)).fit_predict(x)
+    lab = dbscan_labels(x, eps, int(min_samples))
     nxt = lab.max() + 1 if len(lab) else 0
     lab = lab.copy()
     for i in np.nonzero(lab < 0)[0]:
@@ -995,6 +1059,8 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     """
     import torch
 
+    from .optim import Adam
+
     rp_index = [int(v) for v in np.asarray(feats["rp_index"]).reshape(-1)]
     backbone = _str(feats["backbone"])
     for i in rp_index:
@@ -1030,7 +1096,7 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     w = np.where(counts > 0, len(tr) / (n_cls * np.maximum(counts, 1)), 0.0)
     with _deterministic(params.seed):
         head = _make_head(X.shape[1], tuple(params.hidden_sizes), n_cls)
-        opt = torch.optim.Adam(head.parameters(), lr=params.lr, betas=(params.beta1, 0.999))
+        opt = Adam(head.parameters(), lr=params.lr, betas=(params.beta1, 0.999))
         lossf = torch.nn.CrossEntropyLoss(weight=torch.tensor(w, dtype=torch.float32))
         Xt = torch.from_numpy(Xs.astype(np.float32))
         yt = torch.from_numpy(y)

@@ -8,6 +8,7 @@ torch = pytest.importorskip("torch")
 from rescu import io  # noqa: E402
 from rescu.metrics import iod_matrix  # noqa: E402
 from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
+                          dbscan_labels,
                           finetune_record, impute_half, visible_half_features,
                           load_checkpoint, occlude_instances, predict_stage2,
                           save_checkpoint, score_features, select_examples, train_heads)
@@ -252,6 +253,22 @@ def test_cluster_centres_and_params():
     assert Stage2Params.from_dict({"input_scales": [1, 1.5]}).input_scales == (1.0, 1.5)
     with pytest.raises(ValueError, match="hidden_sizes"):
         Stage2Params(hidden_sizes=(8,))
+
+
+def test_dbscan_labels_are_scikit_learns():
+    sklearn_cluster = pytest.importorskip("sklearn.cluster")
+    rng = np.random.default_rng(0)
+    for trial in range(300):
+        n = int(rng.integers(1, 40))
+        k = int(rng.integers(1, 5))
+        centres = rng.normal(size=(k, 16))
+        x = centres[rng.integers(0, k, n)] + rng.normal(scale=0.3, size=(n, 16))
+        x = (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+        eps = float(rng.uniform(0.05, 1.0))
+        ms = int(rng.integers(1, 5))
+        want = sklearn_cluster.DBSCAN(eps=eps, min_samples=ms).fit_predict(x)
+        np.testing.assert_array_equal(dbscan_labels(x, eps, ms), want, err_msg=f"trial {trial}")
+    assert dbscan_labels(np.zeros((0, 3), np.float32), 0.5, 2).shape == (0,)
 
 
 def test_bad_inputs():
