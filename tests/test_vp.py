@@ -440,3 +440,15 @@ def test_registered_centres_fix_a_partial_box_and_duplicates_leave_the_row():
     # stage-II instances without features keep their box centres
     np.testing.assert_array_equal(V.registered_centres(c, fp[:, :4])[4:], c[4:])
     np.testing.assert_array_equal(V.registered_centres(c, None), c)
+
+
+def test_quantiles_are_scipy_stats():
+    from scipy.stats import chi2, f
+
+    from rescu.vp import _chi2_ppf, _f_ppf
+
+    for q in (0.8, 0.95, 0.99, 0.999, 0.9999):
+        for d in (1, 2, 3, 7, 40):
+            assert _chi2_ppf(q, d) == chi2.ppf(q, d)
+            for d2 in (1, 2, 5, 100):
+                assert _f_ppf(q, d, d2) == f.ppf(q, d, d2)
