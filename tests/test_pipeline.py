@@ -23,3 +23,15 @@ def test_ablation_variant_list_and_mapping() -> None:
 def test_ablation_variant_errors(spec, match) -> None:
     with pytest.raises(ValueError, match=match):
         pipeline.ablation_overrides(spec)
+
+
+def test_retain_freed_memory_on_glibc():
+    import platform
+
+    from rescu.pipeline import retain_freed_memory
+
+    got = retain_freed_memory()
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert got is True
+    else:
+        assert got in (True, False)
