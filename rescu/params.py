@@ -1,7 +1,21 @@
-"""Building the parameter dataclasses (``XxxParams``) from configuration mappings."""
+"""Building the parameter dataclasses (``XxxParams``) from configuration mappings, and
+the one home of their defaults.
+
+Every default value lives once, in the shipped default configuration
+(``rescu/defaults/config.yaml``, equal to the checkout's ``config/config.yaml``). A
+parameter dataclass reads its field defaults from there with :func:`config_defaults`::
+
+    _D = config_defaults("stage1")
+
+    @dataclass(frozen=True)
+    class Stage1Params:
+        P_d: float = _D["P_d"]
+"""
 
 from __future__ import annotations
 
+import copy
+import functools
 from dataclasses import fields
 from typing import Any, Mapping, TypeVar
 
@@ -25,3 +39,29 @@ def checked_mapping(cls: type, d: Mapping[str, Any] | None, label: str = "key") 
 def params_from_dict(cls: type[T], d: Mapping[str, Any] | None) -> T:
     """``cls(**d)`` after :func:`checked_mapping`."""
     return cls(**checked_mapping(cls, d))
+
+
+@functools.cache
+def _default_config() -> dict[str, Any]:
+    """The shipped default configuration, parsed once per process."""
+    import importlib.resources
+
+    import yaml
+
+    return yaml.safe_load((importlib.resources.files("rescu") / "defaults" / "config.yaml")
+                          .read_text())
+
+
+def config_defaults(*path: str) -> dict[str, Any]:
+    """A copy of the default configuration's mapping at ``path``.
+
+    ``config_defaults("stage1")`` is the ``stage1`` section, ``config_defaults("scene",
+    "completion")`` a nested one. YAML lists stay lists: a tuple-typed field converts
+    (``tuple(_D["adaptive"])``). Raises KeyError naming the path when it is absent.
+    """
+    d: Any = _default_config()
+    for i, k in enumerate(path):
+        if not isinstance(d, dict) or k not in d:
+            raise KeyError(f"default configuration has no {'.'.join(path[:i + 1])!r}")
+        d = d[k]
+    return copy.deepcopy(d)

@@ -208,3 +208,17 @@ def test_run_datasets_selects_and_names_unknown_datasets(tmp_path):
         build_image_table({**cfg, "run_datasets": "synthetic,chesss"}, str(tmp_path))
     with pytest.raises(InputError, match="run_datasets: names no dataset"):
         selected_datasets({**cfg, "run_datasets": []})
+
+
+def test_config_defaults_are_the_shipped_config():
+    from rescu.config import DEFAULT_CONFIG, _read_yaml
+    from rescu.params import config_defaults
+
+    shipped = _read_yaml(DEFAULT_CONFIG)
+    assert config_defaults("stage1") == shipped["stage1"]
+    assert config_defaults("scene", "completion") == shipped["scene"]["completion"]
+    d = config_defaults("stage1")
+    d["P_d"] = -1  # a copy: the next caller sees the shipped value
+    assert config_defaults("stage1")["P_d"] == shipped["stage1"]["P_d"]
+    with pytest.raises(KeyError, match="stage1.nope"):
+        config_defaults("stage1", "nope")
