@@ -607,7 +607,7 @@ def retain_freed_memory(limit: int = RETAIN_BYTES) -> bool:
     page faults and 4 s of system time per stage-II image on a 2-core machine). This sets
     glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to ``limit``: the process's
     peak resident memory grows by about 0.4 GB and stage II runs about 1.5x faster
-    (``benchmarks/stage2_cost.py``). Outputs do not change. A no-op returning False
+    (``benchmarks/speed/stage2_cost.py``). Outputs do not change. A no-op returning False
     where the C library has no ``mallopt`` (macOS, Windows); True once set.
     """
     import ctypes

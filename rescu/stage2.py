@@ -148,7 +148,7 @@ class Stage2Params:
     lattice_only : bool
         New instances come only from lattice windows (the other proposals are training
         examples only); on real stage-I output the off-lattice additions were mostly
-        false (see benchmarks/eval_stage2.py).
+        false (measured with the retired eval_stage2 script; CHANGELOG.md).
     dbscan_eps : float or None
         DBSCAN radius in feature space (Euclidean on L2-normalised features);
         ``None`` = the median distance of each instance to its nearest other instance.

@@ -239,10 +239,10 @@ def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
 
 
 def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
-    """benchmarks/stage2_misses.py on a finished run: one row per GT instance that no
+    """benchmarks/studies/stage2_misses.py on a finished run: one row per GT instance that no
     RESCU-II instance covers (IOD >= 0.5), each with one of its causes; a GT RP with
     nothing found has only 'rp not found' rows, the others never."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
+    sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
     import stage2_misses as SM
 
     from rescu.evaluation import load_predictions
@@ -275,9 +275,9 @@ def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
 
 def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, capsys):
     """A prediction-only stage-II variant gives the same instances whether the pipeline's
-    stage2_predict_ablation rule or benchmarks/stage2_variants.py computes it, and the
+    stage2_predict_ablation rule or benchmarks/studies/stage2_variants.py computes it, and the
     script then reuses the run's features and head instead of recomputing them."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
+    sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
     import stage2_variants as SV
 
     work, _ = finished_run
@@ -300,11 +300,11 @@ def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, ca
 
 
 def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_run, capsys):
-    """benchmarks/vp_ac_sweep.py recomputes the image VP from the scene step's input: at
+    """benchmarks/studies/vp_ac_sweep.py recomputes the image VP from the scene step's input: at
     the config's budget and seed with the AC on, its errors are the pipeline's own
     (scene/), and without the AC those of scene-noac/; every variant has one row per
     image with a GT VP."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
+    sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
     import vp_ac_sweep as AS
 
     from rescu.config import load_config
@@ -340,9 +340,9 @@ def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_ru
 
 
 def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_run, capsys):
-    """benchmarks/completion_variants.py with no override recomputes exactly the run's
+    """benchmarks/studies/completion_variants.py with no override recomputes exactly the run's
     scene/ JSONs, prints both rows, and refuses its folder for other settings."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
+    sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
     import completion_variants as CV
 
     work, cfg_path = finished_run

@@ -22,8 +22,8 @@ paired Wilcoxon p-value of AC against no AC over all images x seeds.
 
 Usage (after ``snakemake --cores 2``, from the repository root)::
 
-    python benchmarks/vp_ac_sweep.py results
-    python benchmarks/vp_ac_sweep.py results --datasets synthetic --budgets 5 10 1000 --lsd
+    python benchmarks/studies/vp_ac_sweep.py results
+    python benchmarks/studies/vp_ac_sweep.py results --datasets synthetic --budgets 5 10 1000 --lsd
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout's rescu package
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402

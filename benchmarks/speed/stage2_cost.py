@@ -1,6 +1,6 @@
 """Whole-image cost of RESCU-II against RESCU-I: ``rescu discover`` as whole processes.
 
-    python benchmarks/stage2_cost.py [IMAGE ...] [--repeat 3] [--data ../shared/data]
+    python benchmarks/speed/stage2_cost.py [IMAGE ...] [--repeat 3] [--data ../shared/data]
 
 Without images, takes the first image of each ``../shared/data`` set (five sets: facades,
 street facades, chess, aerial cars, York Urban). For every image, ``--repeat``
@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 RESCU = Path(sys.executable).parent / "rescu"
 SETS = ("cmp_facade", "spb_facades", "chess", "aerial_cars", "york_urban")
 

@@ -21,8 +21,8 @@ but overwrites the run's results, this keeps both side by side.
 
 Usage (after a run, from the repository root)::
 
-    python benchmarks/completion_variants.py results --set max_step_ratio=2.0
-    python benchmarks/completion_variants.py results/holdout --set end_instances=2 --workers 2
+    python benchmarks/studies/completion_variants.py results --set max_step_ratio=2.0
+    python benchmarks/studies/completion_variants.py results/holdout --set end_instances=2 --workers 2
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
 
 
 def _one(job: tuple[str, str, str, str, dict[str, Any]]) -> tuple[str, str]:

@@ -1,6 +1,6 @@
 """Per-job overhead of the pipeline: what a Snakemake job costs that does nothing.
 
-    python benchmarks/job_overhead.py [--jobs 20] [--results results]
+    python benchmarks/speed/job_overhead.py [--jobs 20] [--results results]
 
 Prints
 1. the wall time per job of a no-op rule written like the pipeline's adapters (the
@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 SNAKEFILE = """

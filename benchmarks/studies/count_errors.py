@@ -8,9 +8,9 @@ the dataset has it (:func:`rescu.evaluation.count_errors`). Prints; asserts noth
 
 Usage (after ``snakemake --cores 2``, from the repository root)::
 
-    python benchmarks/count_errors.py results                      # synthetic, final
-    python benchmarks/count_errors.py results/holdout --method rescu-ii
-    python benchmarks/count_errors.py results --dataset cmp_facade --all
+    python benchmarks/studies/count_errors.py results                      # synthetic, final
+    python benchmarks/studies/count_errors.py results/holdout --method rescu-ii
+    python benchmarks/studies/count_errors.py results --dataset cmp_facade --all
 
 ``--method`` is the per-image JSON folder under ``<results>/<dataset>/`` (final,
 rescu-ii, rescu-i, grasp, scene). The dataset folder comes from ``config/config.yaml``
@@ -22,7 +22,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,10 +26,10 @@ What comes after stage II (scene, completion) is not re-run: compare with the ru
 
 Usage (after a run, from the repository root)::
 
-    python benchmarks/stage2_variants.py results --set occlude_prob=0.5
-    python benchmarks/stage2_variants.py results/holdout-11 --set occlude_prob=0.5
-    python benchmarks/stage2_variants.py results --set visible_half=true   # prediction only
-    python benchmarks/stage2_variants.py results --name ft --set finetune=true \\
+    python benchmarks/studies/stage2_variants.py results --set occlude_prob=0.5
+    python benchmarks/studies/stage2_variants.py results/holdout-11 --set occlude_prob=0.5
+    python benchmarks/studies/stage2_variants.py results --set visible_half=true   # prediction only
+    python benchmarks/studies/stage2_variants.py results --name ft --set finetune=true \\
         --set device=cuda --workers 6          # end-to-end fine-tuning, on a GPU
 """
 
@@ -43,7 +43,9 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
 
 from _cli import parse_sets  # noqa: E402  (re-exported: the tests call it from here)
 

@@ -19,9 +19,9 @@ stage-II instances' boxes in the conflict and line gates, so a pair can differ f
 
 Usage (after a run, from the repository root)::
 
-    python benchmarks/merge_pairs.py results                        # synthetic
-    python benchmarks/merge_pairs.py results/holdout-11
-    python benchmarks/merge_pairs.py results --dataset spb_facades
+    python benchmarks/studies/merge_pairs.py results                        # synthetic
+    python benchmarks/studies/merge_pairs.py results/holdout-11
+    python benchmarks/studies/merge_pairs.py results --dataset spb_facades
 """
 
 from __future__ import annotations
@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ hard) and the exact-count rate per matched GT RP, beside RESCU-I.
 
 Usage (after ``snakemake --cores 2``)::
 
-    python benchmarks/sweep_lattice_gates.py results --datasets synthetic cmp_facade \\
+    python benchmarks/studies/sweep_lattice_gates.py results --datasets synthetic cmp_facade \\
         --ratios 1.0 1.25 1.5 --thresholds 0.99 0.97 0.95 0.9 --scene
 
 The dataset folders are read from ``config/config.yaml`` (synthetic:
@@ -31,7 +31,7 @@ import tempfile
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout's rescu package
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", action="store_true",
                     help="also run the scene step (completion) and count on its output")
     ap.add_argument("--config", type=Path,
-                    default=Path(__file__).resolve().parents[1] / "config" / "config.yaml")
+                    default=Path(__file__).resolve().parents[2] / "config" / "config.yaml")
     a = ap.parse_args(argv)
     cfg = load_config(a.config)
     pd.set_option("display.width", 200)

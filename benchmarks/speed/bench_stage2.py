@@ -6,7 +6,7 @@ the plain forward passes over the image at the configured scales for comparison.
 
 Usage::
 
-    python benchmarks/bench_stage2.py [image] [--threads 1] [--params '{"n_augment": 2}']
+    python benchmarks/speed/bench_stage2.py [image] [--threads 1] [--params '{"n_augment": 2}']
 
 Without an image a 1152x864 synthetic facade (grid of textured windows) is used.
 Stage-I input: a grid RP with 60 % of the windows (the rest to be found).

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_stage1.py [--image PATH] [--megapixels 0.3 1 3]
+    python benchmarks/speed/bench_stage1.py [--image PATH] [--megapixels 0.3 1 3]
         [--grasp-keypoints 1000] [--repeats 3] [--grasp-memory] [--skip-grasp]
 
 For an image resized to each size: seconds and tracemalloc peak (MiB) of SIFT
@@ -37,7 +37,7 @@ from rescu.stage1 import Stage1Params, _context, discover, precompute_urps  # no
 from rescu.urp import Gates  # noqa: E402
 
 cv2.setNumThreads(1)
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def measure(fn):

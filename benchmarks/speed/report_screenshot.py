@@ -2,7 +2,7 @@
 ``index.html`` in a 1400 x 900 window, and a check of its layout (no table wider than
 the window, the headline table and a picture on the first screen).
 
-    python benchmarks/report_screenshot.py results/report/index.html docs/report-first-screen.png
+    python benchmarks/speed/report_screenshot.py results/report/index.html docs/report-first-screen.png
 
 Needs Chromium (Debian: ``apt-get install chromium``). Exits 1 when the layout check
 fails, 2 when Chromium is missing.

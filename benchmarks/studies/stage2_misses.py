@@ -24,9 +24,9 @@ nothing; the causes use the run's own stage-II parameters from the config.
 
 Usage (after ``snakemake --cores 2`` or ``make stress``, from the repository root)::
 
-    python benchmarks/stage2_misses.py results
-    python benchmarks/stage2_misses.py results/stress --list
-    python benchmarks/stage2_misses.py results --dataset cmp_facade
+    python benchmarks/studies/stage2_misses.py results
+    python benchmarks/studies/stage2_misses.py results/stress --list
+    python benchmarks/studies/stage2_misses.py results --dataset cmp_facade
 """
 
 from __future__ import annotations
@@ -35,7 +35,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
 
 CAUSES = ("rp not found", "no lattice window", "window p < 0.8", "window p 0.8 - gate",
           "window p >= gate")
