@@ -219,19 +219,21 @@ def test_wheel_installed_outside_the_checkout_runs(tmp_path):
                     "--no-build-isolation", "-w", str(wheels), str(REPO)], check=True,
                    capture_output=True, timeout=600)
     (wheel,) = wheels.glob("rescu-*.whl")
+    # the new environment sees no checkout: with PYTHONPATH on one, pip would take rescu
+    # as installed already and skip the wheel
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=600)
     py = venv / "bin" / "python"
     site = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_path("
-                                "'purelib'))"], capture_output=True, text=True,
+                                "'purelib'))"], capture_output=True, text=True, env=env,
                                check=True).stdout.strip())
     (site / "deps.pth").write_text(sysconfig.get_path("purelib") + "\n")
     subprocess.run([str(py), "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
-                    str(wheel)], check=True, capture_output=True, timeout=600)
+                    str(wheel)], check=True, capture_output=True, timeout=600, env=env)
     work = tmp_path / "elsewhere"
     work.mkdir()
     shelf_photo(work / "shelf.png")
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     where = subprocess.run([str(py), "-c", "import rescu; print(rescu.__file__)"], cwd=work,
                            capture_output=True, text=True, env=env, check=True).stdout
     assert where.startswith(str(site)), where  # the installed copy, not the checkout
