@@ -35,12 +35,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from rescu import counting as C  # noqa: E402
+from rescu.scene import counting as C  # noqa: E402
 from rescu import io  # noqa: E402
-from rescu import scene as SC  # noqa: E402
-from rescu import symmetry as S  # noqa: E402
-from rescu import vp as V  # noqa: E402
-from rescu.metrics import score_image  # noqa: E402
+from rescu.scene import analyse as SC  # noqa: E402
+from rescu.scene import symmetry as S  # noqa: E402
+from rescu.scene import vp as V  # noqa: E402
+from rescu.evaluation.metrics import score_image  # noqa: E402
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
 THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
@@ -101,7 +101,7 @@ def gt_results(dataset: Path, noise: float, seed: int) -> tuple[list[ImageResult
 def run_synth(args: argparse.Namespace) -> None:
     dataset = Path(args.dataset) if args.dataset else Path(args.out)
     if not args.dataset:
-        from rescu import synth  # written by another helper
+        from rescu.data import synth  # written by another helper
 
         t0 = time.perf_counter()
         synth.generate_dataset(dataset, synth.SynthParams.from_dict(

@@ -30,12 +30,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from rescu.counting import count_errors, count_pairs  # noqa: E402
-from rescu.features import FeatureParams, extract_features  # noqa: E402
-from rescu.grasp import GraspParams, discover_grasp  # noqa: E402
+from rescu.scene.counting import count_errors, count_pairs  # noqa: E402
+from rescu.discovery.features import FeatureParams, extract_features  # noqa: E402
+from rescu.discovery.grasp import GraspParams, discover_grasp  # noqa: E402
 from rescu.io import load_coco_rps, load_image  # noqa: E402
-from rescu.metrics import METRICS, score_image, summarise  # noqa: E402
-from rescu.stage1 import Stage1Params, discover, rps_to_patterns  # noqa: E402
+from rescu.evaluation.metrics import METRICS, score_image, summarise  # noqa: E402
+from rescu.discovery.stage1 import Stage1Params, discover, rps_to_patterns  # noqa: E402
 
 
 def _parse_set(items: list[str]) -> dict:

@@ -67,9 +67,10 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(a.threads)
     from rescu import io
-    from rescu.counting import count_errors, count_pairs
-    from rescu.metrics import score_image, summarise
-    from rescu.stage2 import Stage2Params, compute_stage2_features, predict_stage2, train_heads
+    from rescu.scene.counting import count_errors, count_pairs
+    from rescu.evaluation.metrics import score_image, summarise
+    from rescu.extension.stage2 import (Stage2Params, compute_stage2_features, predict_stage2,
+                                        train_heads)
 
     params = Stage2Params.from_dict(json.loads(a.params))
     root = Path(a.dataset)
@@ -109,8 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             s1 = io.read_result(p)
         else:
-            from rescu.features import extract_features
-            from rescu.stage1 import discover, rps_to_patterns
+            from rescu.discovery.features import extract_features
+            from rescu.discovery.stage1 import discover, rps_to_patterns
             from rescu.types import ImageResult
 
             f = extract_features(im.rgb, None, im.scale_factor)

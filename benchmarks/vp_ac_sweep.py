@@ -71,12 +71,12 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
     """
     import cv2
 
-    from rescu import completion as CO
+    from rescu.scene import completion as CO
     from rescu import io
-    from rescu import scene as SC
-    from rescu import vp as V
-    from rescu.datasets import dataset_root
-    from rescu.evaluation import load_vanishing_points
+    from rescu.scene import analyse as SC
+    from rescu.scene import vp as V
+    from rescu.data.datasets import dataset_root
+    from rescu.evaluation.evaluation import load_vanishing_points
     from rescu.pipeline import _scene_params, read_prepared
 
     base = _scene_params(cfg["scene"])
@@ -137,7 +137,7 @@ def summarise(df: pd.DataFrame, deg: Sequence[float]) -> pd.DataFrame:
     """Per dataset x method x budget x AC: success rate at each threshold in ``deg`` and
     the median error (degrees), each averaged over the seeds, and the paired Wilcoxon
     p-value of AC on against off over all images x seeds (:func:`rescu.vp.paired_test`)."""
-    from rescu import vp as V
+    from rescu.scene import vp as V
 
     out = []
     for (dsn, m, b), g in df.groupby(["dataset", "method", "budget"], sort=False):

@@ -174,7 +174,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate_predictions_cli
+    from .evaluation.evaluation import evaluate_predictions_cli
 
     return evaluate_predictions_cli(Path(args.dataset_dir), Path(args.pred_dir), h=args.h,
                                     out_dir=Path(args.out) if args.out else None)

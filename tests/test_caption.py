@@ -1,4 +1,4 @@
-"""Captions and the enhancement grammar (rescu.caption)."""
+"""Captions and the enhancement grammar (rescu.captions.caption)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rescu import caption as C
+from rescu.captions import caption as C
 from rescu.io import InputError
-from rescu.types import (ImageResult, Instance, Pattern, TranslationSymmetry,
-                         VanishingPoint)
+from rescu.types import ImageResult, Instance, Pattern, TranslationSymmetry, VanishingPoint
 
 RGB = np.zeros((40, 60, 3), np.uint8)
 

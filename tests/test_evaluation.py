@@ -1,4 +1,4 @@
-"""Dataset evaluation (rescu.evaluation) on tiny datasets built in tmp_path."""
+"""Dataset evaluation (rescu.evaluation.evaluation) on tiny datasets built in tmp_path."""
 
 from __future__ import annotations
 
@@ -13,11 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rescu import evaluation as E
+from rescu.evaluation import evaluation as E
 from rescu.io import load_coco_rps, write_json
-from rescu.metrics import METRICS
-from rescu.types import (ImageResult, Instance, Pattern, TranslationSymmetry,
-                         VanishingPoint)
+from rescu.evaluation.metrics import METRICS
+from rescu.types import ImageResult, Instance, Pattern, TranslationSymmetry, VanishingPoint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

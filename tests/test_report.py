@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from rescu import evaluation as E
-from rescu import report as R
+from rescu.evaluation import evaluation as E
+from rescu.evaluation import report as R
 
 METRICS = list(R.RP_METRICS)
 CHROMIUM = shutil.which("chromium") or R.find_chromium()
@@ -134,7 +134,7 @@ def fake_results(root: Path, paper: bool = True) -> tuple[Path, dict[str, list[s
         E.write_tsv(s2, t / "stage2_ablation.tsv")
     (t / "summary.md").write_text(
         "# RESCU 0.1.0: tables\n\nStage-II backbone: **efficientnet-lite0** (frozen, "
-        "ImageNet weights). Metrics: IOD protocol of `rescu.metrics`; mean ± std over "
+        "ImageNet weights). Metrics: IOD protocol of `rescu.evaluation.metrics`; mean ± std over "
         "images; bold = best.\n")
     for ds in ("synthetic", "cmp_facade"):
         write_png(fig / f"rp_curves_{ds}.png", 1920, 408)
@@ -171,8 +171,8 @@ def test_human_names():
 
 
 def test_md_inline_leaves_no_markdown():
-    s = R.md_inline("backbone: **efficientnet-lite0** of `rescu.metrics`, _not_ <b>")
-    assert s == ("backbone: <b>efficientnet-lite0</b> of <code>rescu.metrics</code>, "
+    s = R.md_inline("backbone: **efficientnet-lite0** of `rescu.evaluation.metrics`, _not_ <b>")
+    assert s == ("backbone: <b>efficientnet-lite0</b> of <code>rescu.evaluation.metrics</code>, "
                  "<i>not</i> &lt;b&gt;")
     assert "**" not in R.md_inline("a ** b **c")
 

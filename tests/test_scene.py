@@ -1,4 +1,4 @@
-"""Tests of rescu.scene: analyse_scene, SceneParams, rectify_pattern."""
+"""Tests of rescu.scene.analyse: analyse_scene, SceneParams, rectify_pattern."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from rescu import scene as SC
-from rescu import vp as V
+from rescu.scene import analyse as SC
+from rescu.scene import vp as V
 from rescu.types import ImageResult, Instance, Pattern, VanishingPoint
 
 WORDS = np.array([[0, 0], [0.6, 0], [0.6, 0.6], [0, 0.6], [0.3, 0.3], [0.18, 0.42]])

@@ -1,4 +1,4 @@
-"""Tests of the synthetic recurring-pattern benchmark (rescu.synth)."""
+"""Tests of the synthetic recurring-pattern benchmark (rescu.data.synth)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rescu.io import load_coco_rps, load_image, load_vanishing_points
-from rescu.synth import (SynthParams, camera_matrix, cross_ratio, generate_dataset,
-                         plane_homography, project_points, render_synthetic_image,
-                         rotation_matrix, row_vanishing_point, synthetic_image_names)
+from rescu.data.synth import (SynthParams, camera_matrix, cross_ratio, generate_dataset,
+                              plane_homography, project_points, render_synthetic_image,
+                              rotation_matrix, row_vanishing_point, synthetic_image_names)
 
 SMALL = dict(sizes=[[640, 480]], n_images=4)
 

@@ -1,4 +1,4 @@
-"""Tests of rescu.vp: RP-based VPD, the LSD baseline, the angular constraint, VP errors."""
+"""Tests of rescu.scene.vp: RP-based VPD, the LSD baseline, the angular constraint, VP errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rescu import vp as V
+from rescu.scene import vp as V
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -353,7 +353,7 @@ def test_ml_infinity_test_keeps_converging_row_and_snaps_frontal_one():
 
 
 def test_spacing_model_beats_line_model_on_single_equal_rows():
-    from rescu.symmetry import SymmetryParams
+    from rescu.scene.symmetry import SymmetryParams
 
     gt = unit(H_PERSP @ [1.0, 0, 0])
     err_line, err_sp = [], []
@@ -445,7 +445,7 @@ def test_registered_centres_fix_a_partial_box_and_duplicates_leave_the_row():
 def test_quantiles_are_scipy_stats():
     from scipy.stats import chi2, f
 
-    from rescu.vp import _chi2_ppf, _f_ppf
+    from rescu.scene.vp import _chi2_ppf, _f_ppf
 
     for q in (0.8, 0.95, 0.99, 0.999, 0.9999):
         for d in (1, 2, 3, 7, 40):

@@ -1,5 +1,5 @@
 """The paper's tables and curves over all datasets of a run (built on
-:mod:`rescu.evaluation`), written as TSV (numbers) and Markdown (people).
+:mod:`rescu.evaluation.evaluation`), written as TSV (numbers) and Markdown (people).
 
 Each ``*_tables`` function takes the datasets to evaluate as ``{name: DatasetRef}`` and
 the results folder where the per-image predictions of each method live
@@ -15,7 +15,7 @@ from typing import Any, Mapping, Sequence
 import pandas as pd
 
 from . import evaluation as E
-from .io import atomic_path, read_result
+from ..io import atomic_path, read_result
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
 RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
@@ -250,7 +250,7 @@ def summary_markdown(parts: Sequence[tuple[str, str | Path]], header: str) -> st
 
 def dataset_refs(table: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> dict[str, DatasetRef]:
     """:class:`DatasetRef` for the named datasets of an image table
-    (:func:`rescu.datasets.build_image_table`)."""
+    (:func:`rescu.data.datasets.build_image_table`)."""
     return {n: DatasetRef(Path(table[n]["root"]), sorted(dict(table[n]["names"]).values()))
             for n in names}
 
@@ -264,9 +264,9 @@ def failures_markdown(failures: pd.DataFrame) -> str:
 
 def summary_header(backbone: str) -> str:
     """The header of ``summary.md``: what produced the tables."""
-    from . import __version__
+    from .. import __version__
 
     return (f"# RESCU {__version__}: tables\n\nStage-II backbone: **{backbone or 'n/a'}** "
-            f"(frozen, ImageNet weights). Metrics: IOD protocol of `rescu.metrics`; mean ± std "
+            f"(frozen, ImageNet weights). Metrics: IOD protocol of `rescu.evaluation.metrics`; mean ± std "
             f"over images; bold = best, italics = not significantly different from the best "
             f"(paired Wilcoxon).\n")

@@ -5,8 +5,8 @@ stage I's own output and nothing else, what an instance of each RP looks like an
 the missing ones. Three per-image steps (three pipeline rules):
 
 1. :func:`compute_stage2_features` — region proposals (EdgeBoxes and/or windows at the
-   RP's instance scale, :mod:`rescu.proposals`) and frozen ImageNet features
-   (:mod:`rescu.backbone`) of the proposals, of the stage-I instances, of geometrically
+   RP's instance scale, :mod:`rescu.extension.proposals`) and frozen ImageNet features
+   (:mod:`rescu.extension.backbone`) of the proposals, of the stage-I instances, of geometrically
    deformed instance boxes and of hard negatives, in the image and in ``n_augment``
    globally transformed copies of it.
 2. :func:`train_heads` — self-supervised labels: DBSCAN on the features of each RP's
@@ -25,7 +25,7 @@ Departures from the paper (documented, environment-driven):
 
 * Frozen backbone, one pass per image / input scale / augmented copy, box features
   RoI-pooled from the shared map (no per-crop passes). ``finetune=True`` trains the
-  backbone end to end first (:mod:`rescu.finetune`; meant for a CUDA GPU, slow on a
+  backbone end to end first (:mod:`rescu.extension.finetune`; meant for a CUDA GPU, slow on a
   CPU) and pools every feature from the fine-tuned backbone.
 * Augmentation happens on the image copies (global: horizontal flip, rescale,
   brightness/contrast, blur) passed once each; the "local geometric deformation driven by
@@ -59,10 +59,10 @@ from typing import Any
 
 import numpy as np
 
-from .io import atomic_path
+from ..io import atomic_path
 from .proposals import ProposalParams, propose
-from .types import ImageResult, Instance
-from .params import checked_mapping
+from ..types import ImageResult, Instance
+from ..params import checked_mapping
 
 METHOD = "rescu-ii"
 
@@ -123,7 +123,7 @@ class Stage2Params:
         Most instance-scale windows per RP.
     lattice_windows : bool
         Add windows at the positions the RP's instance lattice predicts
-        (:func:`rescu.proposals.lattice_proposals`); they pass the looser
+        (:func:`rescu.extension.proposals.lattice_proposals`); they pass the looser
         ``lattice_*`` gates at prediction (a geometric prior for the missing instances).
     lattice_neighbours, lattice_steps : int
         k nearest instances giving the lattice steps; steps extrapolated past an instance.
@@ -212,15 +212,15 @@ class Stage2Params:
     seed : int
     finetune : bool
         Fine-tune the backbone end to end on the labelled boxes before pooling the
-        features (:func:`rescu.finetune.finetune_backbone`; meant for ``device: cuda``).
+        features (:func:`rescu.extension.finetune.finetune_backbone`; meant for ``device: cuda``).
     device : str
         Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
     merge : bool
         Merge RPs that are parts of one pattern as the last step
-        (:func:`rescu.merge.merge_split_patterns`).
+        (:func:`rescu.extension.merge.merge_split_patterns`).
     merge_similarity_ratio, merge_min_similarity, merge_size_tolerance,
     merge_duplicate_iou, merge_conflict_cover, merge_max_line_residual : float
-        :class:`rescu.merge.MergeParams` ``similarity_ratio``, ``min_similarity``,
+        :class:`rescu.extension.merge.MergeParams` ``similarity_ratio``, ``min_similarity``,
         ``size_tolerance``, ``duplicate_iou``, ``conflict_cover``, ``max_line_residual``.
     """
 
@@ -333,7 +333,7 @@ class Stage2Params:
                               lattice_scales=self.lattice_scales)
 
     def merge_params(self):
-        """The ``merge_*`` keys as :class:`rescu.merge.MergeParams`."""
+        """The ``merge_*`` keys as :class:`rescu.extension.merge.MergeParams`."""
         from .merge import MergeParams
 
         return MergeParams(similarity_ratio=self.merge_similarity_ratio,
@@ -369,7 +369,7 @@ def finetune_record(feats: dict[str, np.ndarray]) -> dict[str, Any] | None:
     Returns
     -------
     dict or None
-        :func:`rescu.finetune.finetune_backbone`'s record (``status``, ``epochs``, the
+        :func:`rescu.extension.finetune.finetune_backbone`'s record (``status``, ``epochs``, the
         loss history, ...); None when the features were computed with a frozen backbone
         (``finetune: false``).
     """
@@ -379,14 +379,14 @@ def finetune_record(feats: dict[str, np.ndarray]) -> dict[str, Any] | None:
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    from .metrics import iou_matrix
+    from ..evaluation.metrics import iou_matrix
 
     return iou_matrix(a, b)
 
 
 def _cover(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """intersection / min(area a, area b), (A, B)."""
-    from .metrics import cover_matrix
+    from ..evaluation.metrics import cover_matrix
 
     return cover_matrix(a, b)
 
@@ -1145,7 +1145,7 @@ def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint` (tensors on the CPU)."""
     import torch
 
-    from .io import InputError
+    from ..io import InputError
 
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
@@ -1189,7 +1189,7 @@ def impute_half(x: np.ndarray, fill: np.ndarray, side: int, pool_size: int) -> n
     Parameters
     ----------
     x : (N, C * pool_size**2) float
-        Pooled box features (:func:`rescu.backbone.pool_boxes`: a (C, rows, cols) grid,
+        Pooled box features (:func:`rescu.extension.backbone.pool_boxes`: a (C, rows, cols) grid,
         flattened).
     fill : (C * pool_size**2,) float
         The feature whose cells replace the hidden half (e.g. an RP's mean instance).
@@ -1381,7 +1381,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
 def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[int],
                  params: Stage2Params) -> ImageResult:
     """The last step of :func:`predict_stage2`: merge RPs that are parts of one pattern
-    (:func:`rescu.merge.merge_split_patterns` on the stage-I instance features);
+    (:func:`rescu.extension.merge.merge_split_patterns` on the stage-I instance features);
     ``extra["stage2"]["merged"]`` lists the merged id pairs (ids before the merge)."""
     if not params.merge or len(rp_index) < 2:
         return out

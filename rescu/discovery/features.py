@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from .io import read_h5, write_h5
-from .types import Features
-from .params import params_from_dict
+from ..io import read_h5, write_h5
+from ..types import Features
+from ..params import params_from_dict
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class FeatureParams:
     upsample_factor : float
         Factor of that upsampling (bicubic). The returned features are in the upsampled
         pixels and ``scale_factor`` is multiplied by it (processed = original *
-        scale_factor still holds), so :func:`rescu.stage1.rps_to_patterns` gives
+        scale_factor still holds), so :func:`rescu.discovery.stage1.rps_to_patterns` gives
         original pixels unchanged.
     """
 

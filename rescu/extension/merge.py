@@ -5,7 +5,7 @@ foreshortening the SIFT descriptors change along a row, so the unit-recurring-pa
 search builds one URP per part of the row. Stage II already has what is needed to see
 that the parts are one pattern: the frozen ImageNet features of every stage-I instance
 (``instance_features`` / ``instance_rp`` / ``instance_boxes`` of
-:func:`rescu.stage2.compute_stage2_features`). Two RPs A and B are *one* pattern when
+:func:`rescu.extension.stage2.compute_stage2_features`). Two RPs A and B are *one* pattern when
 
 * appearance: B continues A. Along a foreshortened row the appearance drifts, so the
   far ends of the two parts differ while the instances where they meet look alike, as
@@ -50,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import cover_matrix, iou_matrix
-from .params import checked_mapping
-from .types import ImageResult, Instance, Pattern
+from ..evaluation.metrics import cover_matrix, iou_matrix
+from ..params import checked_mapping
+from ..types import ImageResult, Instance, Pattern
 
 
 @dataclass(frozen=True)
@@ -325,7 +325,7 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
         p = groups[k][0]
         p.id = new_id
         out.patterns.append(p)
-    from .counting import dominant_pattern
+    from ..scene.counting import dominant_pattern
 
     dom = dominant_pattern(out.patterns)
     out.dominant_pattern = None if dom is None else int(out.patterns[dom].id)

@@ -3,7 +3,7 @@ adaptive parameters.
 
 Pipeline of :func:`discover`:
 
-1. candidate correspondences (:func:`rescu.urp.match_candidates`, once);
+1. candidate correspondences (:func:`rescu.discovery.urp.match_candidates`, once);
 2. URP precomputation (:func:`precompute_urps`, once): for every correspondence
    ``(a, b)`` and every spatial neighbour ``c`` of ``a`` the copy ``d`` of ``c`` near
    ``b`` is looked up among ``c``'s correspondences, and the URP ``(a, b, c, d)`` with its
@@ -24,7 +24,7 @@ Pipeline of :func:`discover`:
    loosest gates, and Omega* of a grid point is that matrix pruned under the grid
    point's gates (so the 45 grid points cost a few searches, not 45). The grid points
    also share the ungated affinities of the first prune pass of each loose matrix and
-   of every distinct pruned matrix (:class:`rescu.urp.AffinityParts`): a grid point
+   of every distinct pruned matrix (:class:`rescu.discovery.urp.AffinityParts`): a grid point
    only applies its own gates to them;
 4. with the chosen set, RPs are found one after the other: ``initials_per_pattern``
    searches from the best available initial URPs, the matrix with the largest U is
@@ -58,13 +58,13 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .params import params_from_dict
-from .io import read_h5, write_h5
-from .metrics import cover_matrix
+from ..params import params_from_dict
+from ..io import read_h5, write_h5
+from ..evaluation.metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
-from .types import Features, Instance, Pattern, RPMatrix
+from ..types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
-from .vp import registered_centres
+from ..scene.vp import registered_centres
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
@@ -78,7 +78,7 @@ class Stage1Params:
     sigma_s, sigma_theta : float
         Affinity bandwidths of the paper (0.2).
     orientation_mode : str
-        "wrapped" (default), "relative" or "paper" (see :mod:`rescu.urp`).
+        "wrapped" (default), "relative" or "paper" (see :mod:`rescu.discovery.urp`).
     P_d : float
         Max distance between features of one instance, fraction of the image diagonal.
     P_s : float
@@ -256,7 +256,7 @@ class URPTable:
 
     All arrays have length T. ``u`` is the ungated affinity; ``dist`` the larger
     within-instance distance (pixels), ``size_diff`` and ``rot`` (degrees) as in
-    :func:`rescu.urp.urp_terms`. ``seed`` breaks ties among correspondences of equal
+    :func:`rescu.discovery.urp.urp_terms`. ``seed`` breaks ties among correspondences of equal
     support (see :class:`Stage1Params`).
     """
 
@@ -470,7 +470,7 @@ def drop_duplicate_instances(features: Features, omega: np.ndarray, box_grow: fl
     * their boxes (:func:`instance_boxes`) overlap by more than ``max_cover`` of the
       smaller box's area, or
     * their registered centres (each word's typical offset from the instance centre
-      removed, :func:`rescu.vp.registered_centres`) are closer than
+      removed, :func:`rescu.scene.vp.registered_centres`) are closer than
       ``min_centre_distance`` times the RP's median larger box side.
 
     Instances are visited by decreasing number of words (ties: larger box, then lower

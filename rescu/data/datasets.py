@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable
 
-from .io import IMAGE_EXTENSIONS, InputError
+from ..io import IMAGE_EXTENSIONS, InputError
 
 SYNTHETIC_DIR = "data/synthetic"
 PHOTOS_DIR = "data/photos"

@@ -61,8 +61,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .types import VanishingPoint
-from .params import params_from_dict
+from ..types import VanishingPoint
+from ..params import params_from_dict
 
 # |w| of a unit-norm homogeneous pixel point below which it is "at infinity" for the
 # error measures (|w| = 1e-12 is a point about 1e12 pixels away).
@@ -1247,7 +1247,7 @@ def rp_vanishing_point(bboxes: np.ndarray, feature_points: np.ndarray | None,
     image_size : (int, int)
         ``(width, height)``, original pixels.
     params : VPParams
-    symmetry_params : rescu.symmetry.SymmetryParams or None
+    symmetry_params : rescu.scene.symmetry.SymmetryParams or None
         When given (and ``params.spacing_alpha`` > 0), rows that pass the
         translation-symmetry test also constrain the VP by their spacing
         (:func:`spacing_refine_vp`).

@@ -26,7 +26,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .io import atomic_path
+from ..io import atomic_path
 
 # ----------------------------------------------------------------------------- names
 #: Column name of the pipeline's tables -> what a reader sees as the column header.
@@ -222,7 +222,7 @@ def summary_cells(df: pd.DataFrame, row_cols: Sequence[str],
                   metrics: Sequence[str] = RP_METRICS, decimals: int = 2,
                   alpha: float | None = 0.05, group_cols: Sequence[str] = ("dataset", "subset"),
                   count_col: str | None = "n_images") -> Table:
-    """A :func:`rescu.evaluation.summary_table`-style frame (``<m>_mean``, ``<m>_std``,
+    """A :func:`rescu.evaluation.evaluation.summary_table`-style frame (``<m>_mean``, ``<m>_std``,
     ``<m>_p_vs_best`` per metric) as one cell ``mean ± std`` per metric; within each
     group (``group_cols`` present in ``df``) the best mean is bold and, with ``alpha``,
     a mean whose paired test against the best gives ``p >= alpha`` is italic."""
@@ -844,7 +844,7 @@ def build_run_report(out_html: str | Path, results: str | Path,
     ``iod_h``, ``decimals``) for the notes and number formats; ``tables`` the table
     files the run made (default: all in ``<results>/tables``).
     """
-    from .io import read_result
+    from ..io import read_result
 
     results = Path(results)
     evaluation = evaluation or {}

@@ -17,7 +17,7 @@ All boxes here are ``[x, y, w, h]`` in *processed* pixels (float32).
 """
 
 from __future__ import annotations
-from .params import checked_mapping
+from ..params import checked_mapping
 
 from dataclasses import dataclass
 from typing import Any, Sequence

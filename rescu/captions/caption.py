@@ -56,9 +56,9 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from .io import InputError
-from .types import BBox, ImageResult, Pattern
-from .params import checked_mapping
+from ..io import InputError
+from ..types import BBox, ImageResult, Pattern
+from ..params import checked_mapping
 
 logger = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ contain both kinds.
 """
 
 from __future__ import annotations
-from .params import params_from_dict
+from ..params import params_from_dict
 
 import math
 import os
@@ -1016,7 +1016,7 @@ def generate_dataset(out_dir: str | os.PathLike[str], params: SynthParams | None
     params : SynthParams, optional
         Defaults to ``SynthParams()``.
     """
-    from .io import write_image, write_json
+    from ..io import write_image, write_json
 
     p = params if params is not None else SynthParams()
     if not isinstance(p, SynthParams):

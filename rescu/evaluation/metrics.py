@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .types import BBox
+from ..types import BBox
 
 
 def iod_matrix(det: np.ndarray, gt: np.ndarray) -> np.ndarray:

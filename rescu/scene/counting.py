@@ -4,7 +4,7 @@
 * The *dominant* RP of an image is the one with the most instances; ties go to the
   higher score, then to the lower pattern index (so the choice is deterministic).
 * Count errors are measured on *matched* RPs: :func:`count_pairs` turns the assignment
-  of detected RPs to ground-truth RPs (``rescu.metrics.score_image(...).rp_assignment``)
+  of detected RPs to ground-truth RPs (``rescu.evaluation.metrics.score_image(...).rp_assignment``)
   into ``(predicted, ground-truth)`` count pairs, one per ground-truth RP that some
   detected RP is assigned to; when several detected RPs are assigned to the same
   ground-truth RP the one with the most instances is taken (ties: the first).
@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .types import Pattern
+from ..types import Pattern
 
 
 def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:

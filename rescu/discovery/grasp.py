@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .params import params_from_dict
+from ..params import params_from_dict
 from .stage1 import Stage1Output
-from .types import Features, RPMatrix
+from ..types import Features, RPMatrix
 from .urp import Gates, match_candidates, objective, root_sift
 
 
@@ -52,7 +52,7 @@ class GraspParams:
     max_steps : int
         Construction steps per iteration.
     P_d, P_s, P_theta : fixed gates (fraction of diagonal, size difference, degrees).
-    sigma_s, sigma_theta, orientation_mode : affinity (see rescu.urp).
+    sigma_s, sigma_theta, orientation_mode : affinity (see rescu.discovery.urp).
     match_k, match_max_dist, match_min_sep : candidate correspondences.
     pos_tol : float
         Position tolerance of a translated copy, fraction of the instance size (min 3 px).

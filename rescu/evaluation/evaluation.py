@@ -1,6 +1,6 @@
 """Evaluation tables, curves and significance tests over whole datasets.
 
-Builds on :mod:`rescu.metrics` (IOD protocol documented there). Inputs:
+Builds on :mod:`rescu.evaluation.metrics` (IOD protocol documented there). Inputs:
 
 * a dataset folder with ``annotations.json`` (COCO; GT RPs via
   :func:`rescu.io.load_coco_rps`), optionally ``truth.json`` (synthetic benchmark:
@@ -20,10 +20,10 @@ the best is *not* significant (p >= alpha) is in italics, as in the paper.
 
 Vanishing points (choices documented here): the prediction is the image-level
 ``vanishing_point``; it is compared with the *closest* ground-truth VP, separately for
-each error (:func:`rescu.vp.closest_gt_error`): the point error is the pixel distance
-between the dehomogenised points (:func:`rescu.vp.point_error`; infinite when exactly
+each error (:func:`rescu.scene.vp.closest_gt_error`): the point error is the pixel distance
+between the dehomogenised points (:func:`rescu.scene.vp.point_error`; infinite when exactly
 one lies at infinity), the angle error the angle between the back-projected 3D
-directions (:func:`rescu.vp.vector_error`; sign-free), with the true focal length and
+directions (:func:`rescu.scene.vp.vector_error`; sign-free), with the true focal length and
 principal point where the dataset gives them, else ``f = (w + h) / 4`` and the image
 centre. A missing prediction has infinite errors (a failure at every threshold).
 
@@ -32,7 +32,7 @@ Translation symmetry: a pattern shows TS at tolerance ``t`` when
 pattern (``which="any"``) or with a dominant pattern that is one (``"dominant"``). On
 synthetic data the true-positive rate is measured over the GT RPs with equal 3D spacing
 and the false-positive rate over the others, in both cases over the GT RPs that some
-predicted pattern with a finite cross ratio is assigned to (rescu.metrics rp_assignment).
+predicted pattern with a finite cross ratio is assigned to (rescu.evaluation.metrics rp_assignment).
 """
 
 from __future__ import annotations
@@ -45,15 +45,15 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .io import (GroundTruthRP, InputError, atomic_path, load_coco_rps,
-                 load_vanishing_points, read_json, read_result)
-from .counting import counting_patterns
+from ..io import (GroundTruthRP, InputError, atomic_path, load_coco_rps, load_vanishing_points,
+                  read_json, read_result)
+from ..scene.counting import counting_patterns
 from .metrics import METRICS, ImageScores, match_boxes, score_image
-from .types import ImageResult
-from .params import checked_mapping
+from ..types import ImageResult
+from ..params import checked_mapping
 
-if TYPE_CHECKING:     # imported where used: no table rule reads rescu/merge.py
-    from .merge import MergeParams
+if TYPE_CHECKING:     # imported where used: no table rule reads rescu/extension/merge.py
+    from ..extension.merge import MergeParams
 
 CROSS_RATIO_EQUAL = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -250,13 +250,13 @@ def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | P
     h : float
         IOD threshold.
     min_rp_precision : float
-        See :func:`rescu.metrics.score_image`.
+        See :func:`rescu.evaluation.metrics.score_image`.
 
     Returns
     -------
     DataFrame
         Columns ``dataset, image, method, subset, hard, prediction_missing``, the
-        metrics of :data:`rescu.metrics.METRICS` (NaN where undefined),
+        metrics of :data:`rescu.evaluation.metrics.METRICS` (NaN where undefined),
         ``n_det_instances, n_gt_instances, n_det_rps, n_gt_rps, gt_categories``.
     """
     if not 0.0 < h < 1.0:
@@ -571,7 +571,7 @@ def ablation_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 def _score_counting(res: ImageResult | None, gts: list[GroundTruthRP], h: float,
                     min_rp_precision: float) -> tuple[ImageScores, dict[int, int]]:
     """An image's scores and ``{GT RP index: detected RP index that counts it}``
-    (:func:`rescu.counting.counting_patterns`); no prediction counts nothing."""
+    (:func:`rescu.scene.counting.counting_patterns`); no prediction counts nothing."""
     s = score_image(_boxes(res), [g.boxes for g in gts], h, min_rp_precision)
     det_counts = [p.count for p in res.patterns] if res is not None else []
     return s, counting_patterns(det_counts, s.rp_assignment)
@@ -589,7 +589,7 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
         exact, dominant, counted`` (``dominant``: the prediction's dominant RP;
         ``counted``: this row is the one that counts the GT RP — of the detected RPs
         accepted for one GT RP, the one with the most instances, ties the first, as
-        :func:`rescu.counting.counting_patterns` defines), plus one row with ``gt_rp = -1``
+        :func:`rescu.scene.counting.counting_patterns` defines), plus one row with ``gt_rp = -1``
         (and NaN counts) for each image whose dominant RP is not accepted, so that the
         dominant-RP rates can count them.
     """
@@ -734,7 +734,7 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     params : MergeParams, optional
         The merge's tunables; default ``MergeParams()``.
     h, min_rp_precision : float
-        The RP-level matching of :func:`rescu.metrics.score_image` that assigns each RP
+        The RP-level matching of :func:`rescu.evaluation.metrics.score_image` that assigns each RP
         to a GT RP (IOD threshold; smallest precision of an accepted RP).
 
     Returns
@@ -744,11 +744,11 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
         ``a, b`` (pattern positions), ``gt_a, gt_b`` (the assigned GT RP index, -1 for
         none), ``same`` (both assigned to the same GT RP), and the ``merge, ratio, s_ab,
         s_aa, s_bb, size_ratio, conflicts, line_residual`` of
-        :func:`rescu.merge.pair_evidence`. The pipeline's merge
+        :func:`rescu.extension.merge.pair_evidence`. The pipeline's merge
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
     """
-    from .merge import MergeParams, pair_evidence
+    from ..extension.merge import MergeParams, pair_evidence
 
     params = params if params is not None else MergeParams()
     f = np.asarray(inst_feats, np.float64)
@@ -780,7 +780,7 @@ def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 
     Columns: ``n_matched`` (GT RPs that some detected RP is accepted for), ``count_mae``
     and ``exact_rate`` over them, each GT RP counted by its accepted detected RP with the
-    most instances (:func:`rescu.counting.count_pairs`); ``n_matched_rps``,
+    most instances (:func:`rescu.scene.counting.count_pairs`); ``n_matched_rps``,
     ``count_mae_all_rps`` and ``exact_rate_all_rps`` over every accepted detected RP (a
     GT RP split into two detected RPs, or a part of the object found as its own RP,
     gives two rows here, both usually short);
@@ -852,7 +852,7 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
         docstring), inf when missing.
         Images without a GT VP are left out.
     """
-    from .vp import closest_gt_error  # point_error / vector_error of rescu.vp
+    from ..scene.vp import closest_gt_error  # point_error / vector_error of rescu.vp
 
     dataset_dir = Path(dataset_dir)
     _check_pred_dirs(pred_dirs)
@@ -914,9 +914,9 @@ def vp_success_table(frame: pd.DataFrame,
 
 
 def vp_significance(frame: pd.DataFrame) -> pd.DataFrame:
-    """Paired Wilcoxon p-values (:func:`rescu.vp.paired_test`: a missing VP counts as an
+    """Paired Wilcoxon p-values (:func:`rescu.scene.vp.paired_test`: a missing VP counts as an
     error above every finite one) of the point and angle errors between method pairs."""
-    from .vp import paired_test
+    from ..scene.vp import paired_test
 
     rows = []
     for dsn, g in frame.groupby("dataset", sort=False):

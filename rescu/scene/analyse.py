@@ -3,17 +3,17 @@
 :func:`analyse_scene` takes an :class:`~rescu.types.ImageResult` from stage I or II and
 returns a copy in which
 
-* every pattern has ``vanishing_point`` (RP-based VPD, :mod:`rescu.vp`) and
-  ``translation_symmetry`` (cross-ratio test, :mod:`rescu.symmetry`) set, None where not
+* every pattern has ``vanishing_point`` (RP-based VPD, :mod:`rescu.scene.vp`) and
+  ``translation_symmetry`` (cross-ratio test, :mod:`rescu.scene.symmetry`) set, None where not
   determinable (fewer than two instances or no row; no row of ``min_instances``), and
   ``extra["rows"]``: the instance indices of each row used, ordered along the row
   towards the VP (for a VP at infinity: along its direction);
 * ``dominant_pattern`` is the ``id`` of the pattern with most instances (ties: higher
-  score, then earlier pattern; :func:`rescu.counting.dominant_pattern`), None without
+  score, then earlier pattern; :func:`rescu.scene.counting.dominant_pattern`), None without
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
   RP instances. Each pattern's VP is re-estimated jointly with the patterns that share
-  it (likelihood-ratio test, :func:`rescu.vp.joint_vanishing_point`) and the group
+  it (likelihood-ratio test, :func:`rescu.scene.vp.joint_vanishing_point`) and the group
   with the most instances wins (ties: the group of the more dominant pattern), so
   without sharing it is the dominant pattern's VP, and when that has none the VP of
   the largest other pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own
@@ -23,7 +23,7 @@ returns a copy in which
 
 ``method``, instances, scores and captions are unchanged. All coordinates are original
 pixels. :func:`rectify_pattern` warps the region of one pattern so that its VP goes to
-infinity (see :func:`rescu.symmetry.vp_rectifying_homography`).
+infinity (see :func:`rescu.scene.symmetry.vp_rectifying_homography`).
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ import numpy as np
 from . import counting as C
 from . import symmetry as S
 from . import vp as V
-from .types import ImageResult, Pattern, VanishingPoint
-from .params import checked_mapping
+from ..types import ImageResult, Pattern, VanishingPoint
+from ..params import checked_mapping
 
 
 @dataclass(frozen=True)
@@ -205,7 +205,7 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     """The dominant VP: the VP shared by the most RP instances.
 
     Every pattern with a VP seeds a group: its VP re-estimated with the other patterns
-    that share it (:func:`rescu.vp.joint_vanishing_point`, the others tried in order of
+    that share it (:func:`rescu.scene.vp.joint_vanishing_point`, the others tried in order of
     decreasing VP support, i.e. number of inlier implicit lines, then count). The group
     with the most instances in total gives the image VP; ties go to the group seeded by
     the more dominant pattern (the dominant pattern first, then by count, score, order).

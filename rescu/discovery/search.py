@@ -619,7 +619,7 @@ def objective_parts(ctx: SearchContext, omega: np.ndarray) -> AffinityParts:
 def matrix_objective(ctx: SearchContext, omega: np.ndarray, gates: Gates,
                      parts: AffinityParts | None = None) -> float:
     """U(Omega) = 1/(M N) sum of u over its URPs, with the context's sigma and
-    orientation mode (as :func:`rescu.urp.objective`); ``parts`` from
+    orientation mode (as :func:`rescu.discovery.urp.objective`); ``parts`` from
     :func:`objective_parts` of the same omega saves recomputing the affinities."""
     omega = np.asarray(omega, np.int64)
     if omega.ndim != 2:

@@ -37,11 +37,11 @@ instances. It is accepted when its median NCC to the row instances is at least
 ``similarity_ratio`` x the median instance-to-instance NCC and at least
 ``min_similarity``, and when, at the refined position, every 4 consecutive points of the
 completed row give ``|cr - 4/3| <= cr_tolerance`` (the TS test's t; cr = cross ratio,
-:func:`rescu.symmetry.cross_ratio`). An empty background gap has NCC near 0.
+:func:`rescu.scene.symmetry.cross_ratio`). An empty background gap has NCC near 0.
 
 Grids
 -----
-After the rows, an RP of two or more rows (:func:`rescu.vp.pattern_rows` with rows of
+After the rows, an RP of two or more rows (:func:`rescu.scene.vp.pattern_rows` with rows of
 two or more instances, ordered across) is completed as a grid, one pair of neighbouring
 rows at a time: :func:`lattice_pair_fit` finds the projective lattice (a homography
 from integer cells (u, v), v = 0 / 1 for the two rows) that puts most instances on
@@ -53,7 +53,7 @@ per row pair, gets a box of the row's median size scaled by the local lattice st
 is verified by NCC as above. The lattice assumes rows and columns equally spaced in 3D
 (found instances may leave empty cells between them, up to ``max_gaps``); grids with
 unequal spacing get no fit and are left as they are. Instance positions are registered
-by their features (:func:`rescu.vp.registered_centres`).
+by their features (:func:`rescu.scene.vp.registered_centres`).
 
 Accepted candidates become instances with ``source = "completion"`` and ``score`` = their
 median NCC. They are appended after the existing instances (the columns of
@@ -77,8 +77,8 @@ import numpy as np
 
 from . import symmetry as S
 from . import vp as V
-from .params import params_from_dict
-from .types import ImageResult, Instance, Pattern
+from ..params import params_from_dict
+from ..types import ImageResult, Instance, Pattern
 
 SOURCE = "completion"
 
@@ -305,7 +305,7 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
         processed = original * scale_factor.
     vp_params : VPParams
         Row grouping (``row_tolerance``, ``min_row_instances``, ``register_centres``),
-        as the scene step uses it (:func:`rescu.vp.pattern_rows`).
+        as the scene step uses it (:func:`rescu.scene.vp.pattern_rows`).
 
     Returns
     -------

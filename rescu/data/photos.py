@@ -60,7 +60,7 @@ def export_package_photos(names: list[str] | tuple[str, ...] = PACKAGE_PHOTOS,
     FileNotFoundError
         If scikit-image's package folder lacks the file.
     """
-    from .io import atomic_path
+    from ..io import atomic_path
 
     if isinstance(names, str):
         raise ValueError(f"names must be a list of file names, got the string {names!r}")

@@ -1,0 +1,4 @@
+"""Datasets: the synthetic benchmark (``synth``), the package photos (``photos``) and the
+image table of a run (``datasets``). Per-image results and files are read and written by
+:mod:`rescu.io`. Nothing is imported here.
+"""
