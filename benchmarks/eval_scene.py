@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 
 from rescu.scene import counting as C  # noqa: E402
 from rescu import io  # noqa: E402
+from rescu import layout as L  # noqa: E402
 from rescu.scene import analyse as SC  # noqa: E402
 from rescu.scene import symmetry as S  # noqa: E402
 from rescu.scene import vp as V  # noqa: E402
@@ -138,7 +139,7 @@ def run_synth(args: argparse.Namespace) -> None:
                                p.translation_symmetry.detected))
             # per GT row, with the truth ordering
             pos = {a: i for i, a in enumerate(p.extra["gt_ids"])}
-            centres, _ = V.instance_centres_sizes(np.array([i.bbox for i in p.instances]))
+            centres, _ = L.instance_centres_sizes(np.array([i.bbox for i in p.instances]))
             for row in tp["rows"]:
                 if len(row) < params.symmetry.min_instances:
                     continue

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rescu import layout as L
 from rescu.scene import vp as V
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -63,38 +64,38 @@ def test_params_from_dict_rejects_unknown_key():
 # ----------------------------------------------------------------------------- rows
 def test_group_rows_wide_grid_gives_rows_in_order():
     b, _ = grid(H_FRONTAL, nx=5, ny=3)
-    c, sz = V.instance_centres_sizes(b)
-    rows = V.group_rows(c, sz)
+    c, sz = L.instance_centres_sizes(b)
+    rows = L.group_rows(c, sz)
     assert sorted(r.tolist() for r in rows) == [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9],
                                                 [10, 11, 12, 13, 14]]
 
 
 def test_group_rows_tall_grid_gives_columns_no_diagonals():
     b, _ = grid(H_FRONTAL, nx=3, ny=5)
-    c, sz = V.instance_centres_sizes(b)
-    rows = V.group_rows(c, sz)
+    c, sz = L.instance_centres_sizes(b)
+    rows = L.group_rows(c, sz)
     assert sorted(r.tolist() for r in rows) == [[0, 3, 6, 9, 12], [1, 4, 7, 10, 13],
                                                 [2, 5, 8, 11, 14]]
 
 
 def test_group_rows_square_grid_prefers_horizontal_rows():
     b, _ = grid(H_FRONTAL, nx=4, ny=4)
-    c, sz = V.instance_centres_sizes(b)
-    rows = V.group_rows(c, sz)
+    c, sz = L.instance_centres_sizes(b)
+    rows = L.group_rows(c, sz)
     assert sorted(r.tolist() for r in rows) == [[4 * j + i for i in range(4)]
                                                 for j in range(4)]
 
 
 def test_group_rows_two_instances_is_one_row_and_scatter_is_none():
     c = np.array([[10.0, 10], [50, 12]])
-    assert [r.tolist() for r in V.group_rows(c, np.array([5.0, 5]))] == [[0, 1]]
+    assert [r.tolist() for r in L.group_rows(c, np.array([5.0, 5]))] == [[0, 1]]
     tri = np.array([[0.0, 0], [100, 0], [50, 80]])
-    assert V.group_rows(tri, np.full(3, 10.0)) == []
+    assert L.group_rows(tri, np.full(3, 10.0)) == []
 
 
 def test_group_rows_bad_shape_names_argument():
     with pytest.raises(ValueError, match="centres"):
-        V.group_rows(np.zeros((3, 3)), np.ones(3))
+        L.group_rows(np.zeros((3, 3)), np.ones(3))
 
 
 # ----------------------------------------------------------------------------- VPD
@@ -300,11 +301,11 @@ def test_lsd_baseline_on_one_york_urban_image():
 def test_group_rows_prefers_horizontal_rows_over_slightly_tighter_columns():
     # 3 x 3 grid, column pitch 0.85 x the row pitch: still rows (no diagonals)
     c = np.array([[100.0 * i, 85.0 * j] for j in range(3) for i in range(3)])
-    rows = V.group_rows(c, np.full(9, 40.0))
+    rows = L.group_rows(c, np.full(9, 40.0))
     assert sorted(r.tolist() for r in rows) == [[0, 1, 2], [3, 4, 5], [6, 7, 8]]
     # columns twice as tight: columns
     c2 = np.array([[100.0 * i, 45.0 * j] for j in range(3) for i in range(3)])
-    rows2 = V.group_rows(c2, np.full(9, 30.0))
+    rows2 = L.group_rows(c2, np.full(9, 30.0))
     assert sorted(r.tolist() for r in rows2) == [[0, 3, 6], [1, 4, 7], [2, 5, 8]]
 
 
@@ -353,6 +354,9 @@ def test_ml_infinity_test_keeps_converging_row_and_snaps_frontal_one():
 
 
 def test_spacing_model_beats_line_model_on_single_equal_rows():
+    from functools import partial
+
+    from rescu.scene.analyse import equal_rows
     from rescu.scene.symmetry import SymmetryParams
 
     gt = unit(H_PERSP @ [1.0, 0, 0])
@@ -360,7 +364,8 @@ def test_spacing_model_beats_line_model_on_single_equal_rows():
     for seed in range(8):
         b, fp = grid(H_PERSP, nx=6, ny=1, noise=0.7, seed=seed)
         v_line, _ = V.rp_vanishing_point(b, fp, SIZE)
-        v_sp, _ = V.rp_vanishing_point(b, fp, SIZE, V.VPParams(), SymmetryParams())
+        row_test = partial(equal_rows, symmetry_params=SymmetryParams(), params=V.VPParams())
+        v_sp, _ = V.rp_vanishing_point(b, fp, SIZE, V.VPParams(), row_test)
         err_line.append(V.vector_error(v_line.homogeneous, gt, SIZE))
         err_sp.append(V.vector_error(v_sp.homogeneous, gt, SIZE))
     assert np.mean(err_sp) < 0.5 * np.mean(err_line)
@@ -397,7 +402,7 @@ def test_joint_vp_merges_patterns_sharing_the_vp_only():
     sets, vps = [], []
     for b, f in ((b0, f0), (b1, f1), (b2, f2)):
         vp, rows = V.rp_vanishing_point(b, f, SIZE, p)
-        c, sz = V.instance_centres_sizes(b)
+        c, sz = L.instance_centres_sizes(b)
         sets.append(V.pattern_lines(f, c, rows, sz))
         vps.append(vp)
     vp, used = V.joint_vanishing_point(sets, vps, SIZE, p)
@@ -423,23 +428,23 @@ def test_new_params_validated():
 
 def test_registered_centres_fix_a_partial_box_and_duplicates_leave_the_row():
     b, fp = grid(H_FRONTAL, nx=6, ny=1)
-    c, sz = V.instance_centres_sizes(b)
+    c, sz = L.instance_centres_sizes(b)
     # instance 2 detected with only its left half: box shifted and smaller
     b2 = b.copy()
     b2[2, 2] /= 2
-    c2, _ = V.instance_centres_sizes(b2)
-    np.testing.assert_allclose(V.registered_centres(c2, fp), c, atol=1e-9)
+    c2, _ = L.instance_centres_sizes(b2)
+    np.testing.assert_allclose(L.registered_centres(c2, fp), c, atol=1e-9)
     # a duplicate of instance 3 (same features, slightly shifted box): left out
     b3 = np.concatenate([b, b[3:4] + [2.0, 1.0, 0, 0]])
     fp3 = np.concatenate([fp, fp[:, 3:4]], axis=1)
     fp3[:2, 6] = np.nan  # fewer features than the original
-    cen, _, rows = V.pattern_rows(b3, fp3)
+    cen, _, rows = L.pattern_rows(b3, fp3, V.VPParams())
     assert [r.tolist() for r in rows] == [[0, 1, 2, 3, 4, 5]]
-    assert V.duplicate_instances(cen, V.instance_centres_sizes(b3)[1], fp3).tolist() == \
+    assert L.duplicate_instances(cen, L.instance_centres_sizes(b3)[1], fp3).tolist() == \
         [False] * 6 + [True]
     # stage-II instances without features keep their box centres
-    np.testing.assert_array_equal(V.registered_centres(c, fp[:, :4])[4:], c[4:])
-    np.testing.assert_array_equal(V.registered_centres(c, None), c)
+    np.testing.assert_array_equal(L.registered_centres(c, fp[:, :4])[4:], c[4:])
+    np.testing.assert_array_equal(L.registered_centres(c, None), c)
 
 
 def test_quantiles_are_scipy_stats():

@@ -60,11 +60,11 @@ from scipy.spatial import cKDTree
 
 from ..params import params_from_dict
 from ..io import read_h5, write_h5
+from ..layout import registered_centres
 from ..evaluation.metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from ..types import Features, Instance, Pattern, RPMatrix
 from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
-from ..scene.vp import registered_centres
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
@@ -470,7 +470,7 @@ def drop_duplicate_instances(features: Features, omega: np.ndarray, box_grow: fl
     * their boxes (:func:`instance_boxes`) overlap by more than ``max_cover`` of the
       smaller box's area, or
     * their registered centres (each word's typical offset from the instance centre
-      removed, :func:`rescu.scene.vp.registered_centres`) are closer than
+      removed, :func:`rescu.layout.registered_centres`) are closer than
       ``min_centre_distance`` times the RP's median larger box side.
 
     Instances are visited by decreasing number of words (ties: larger box, then lower

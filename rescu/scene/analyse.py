@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import Any
+from functools import partial
+from typing import Any, Sequence
 
 import numpy as np
 
+from .. import layout as L
 from . import counting as C
 from . import symmetry as S
 from . import vp as V
@@ -114,6 +116,42 @@ def _orient_rows(rows: list[np.ndarray], centres: np.ndarray,
     return out
 
 
+def equal_rows(feature_points: np.ndarray | None, centres: np.ndarray,
+               rows: Sequence[np.ndarray], symmetry_params: S.SymmetryParams | None,
+               params: V.VPParams = V.VPParams()) -> list[bool] | None:
+    """Per row, whether it passes the translation-symmetry test on its own.
+
+    The row test of the VP estimator (:data:`rescu.scene.vp.RowTest`): equally spaced rows
+    also constrain the VP by their spacing.
+
+    Parameters
+    ----------
+    feature_points : (M, N', 2) float or None
+        Corresponding features, pixels, NaN where missing.
+    centres : (N, 2) float
+        Instance centres, pixels.
+    rows : list of int arrays
+        Instance indices of each row, in order along it.
+    symmetry_params : SymmetryParams or None
+    params : VPParams
+
+    Returns
+    -------
+    list of bool or None
+        None when ``symmetry_params`` is None or ``params.spacing_alpha`` is 0 (spacing
+        model off); rows shorter than ``symmetry_params.min_instances`` are False.
+    """
+    if symmetry_params is None or params.spacing_alpha <= 0 or not rows:
+        return None
+    out = []
+    for r in rows:
+        r = np.asarray(r, int)
+        ts = (S.translation_symmetry(feature_points, centres, [r], symmetry_params)
+              if len(r) >= symmetry_params.min_instances else None)
+        out.append(bool(ts is not None and ts.detected))
+    return out
+
+
 def analyse_pattern(pattern: Pattern, image_size: tuple[int, int],
                     params: SceneParams = SceneParams()) -> Pattern:
     """A copy of ``pattern`` with its VP, translation symmetry and rows set.
@@ -134,8 +172,10 @@ def analyse_pattern(pattern: Pattern, image_size: tuple[int, int],
         if fp.ndim != 3 or fp.shape[2] != 2 or fp.shape[1] > len(b):
             raise ValueError(f"pattern {p.id}: feature_points must have shape (M, N, 2) "
                              f"with N <= {len(b)} instances, got {fp.shape}")
-    vp, rows = V.rp_vanishing_point(b, fp, image_size, params.vp, params.symmetry)
-    centres, _, _ = V.pattern_rows(b, fp, params.vp) if len(b) else (np.zeros((0, 2)),
+    vp, rows = V.rp_vanishing_point(b, fp, image_size, params.vp,
+                                    partial(equal_rows, symmetry_params=params.symmetry,
+                                            params=params.vp))
+    centres, _, _ = L.pattern_rows(b, fp, params.vp) if len(b) else (np.zeros((0, 2)),
                                                                       None, None)
     rows = _orient_rows(rows, centres, vp)
     p.vanishing_point = vp
@@ -189,13 +229,13 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
 def _pattern_lines(p: Pattern, params: SceneParams) -> V.Lines:
     """Implicit lines (with their points) of an analysed pattern, from its rows."""
     b = _boxes(p)
-    c, sz = V.instance_centres_sizes(b)
+    c, sz = L.instance_centres_sizes(b)
     if params.vp.register_centres and len(c) >= 2:
-        c = V.registered_centres(c, None if p.feature_points is None
+        c = L.registered_centres(c, None if p.feature_points is None
                                  else np.asarray(p.feature_points, float))
     rows = [np.asarray(r, int) for r in p.extra.get("rows", [])]
     fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
-    equal = V.equal_rows(fp, c, rows, params.symmetry, params.vp)
+    equal = equal_rows(fp, c, rows, params.symmetry, params.vp)
     return V.pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
                            params.vp.precision_floor_px, equal)
 

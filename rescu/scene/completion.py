@@ -41,7 +41,7 @@ completed row give ``|cr - 4/3| <= cr_tolerance`` (the TS test's t; cr = cross r
 
 Grids
 -----
-After the rows, an RP of two or more rows (:func:`rescu.scene.vp.pattern_rows` with rows of
+After the rows, an RP of two or more rows (:func:`rescu.layout.pattern_rows` with rows of
 two or more instances, ordered across) is completed as a grid, one pair of neighbouring
 rows at a time: :func:`lattice_pair_fit` finds the projective lattice (a homography
 from integer cells (u, v), v = 0 / 1 for the two rows) that puts most instances on
@@ -53,7 +53,7 @@ per row pair, gets a box of the row's median size scaled by the local lattice st
 is verified by NCC as above. The lattice assumes rows and columns equally spaced in 3D
 (found instances may leave empty cells between them, up to ``max_gaps``); grids with
 unequal spacing get no fit and are left as they are. Instance positions are registered
-by their features (:func:`rescu.scene.vp.registered_centres`).
+by their features (:func:`rescu.layout.registered_centres`).
 
 Accepted candidates become instances with ``source = "completion"`` and ``score`` = their
 median NCC. They are appended after the existing instances (the columns of
@@ -75,6 +75,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .. import layout as L
 from . import symmetry as S
 from . import vp as V
 from ..params import params_from_dict
@@ -305,7 +306,7 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
         processed = original * scale_factor.
     vp_params : VPParams
         Row grouping (``row_tolerance``, ``min_row_instances``, ``register_centres``),
-        as the scene step uses it (:func:`rescu.scene.vp.pattern_rows`).
+        as the scene step uses it (:func:`rescu.layout.pattern_rows`).
 
     Returns
     -------
@@ -343,7 +344,7 @@ def _complete_pattern(p: Pattern, gray: np.ndarray, params: CompletionParams, sf
     fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
     if fp is not None and (fp.ndim != 3 or fp.shape[1] > n):
         fp = None
-    c, sz, rows = V.pattern_rows(boxes, fp, vp_params)
+    c, sz, rows = L.pattern_rows(boxes, fp, vp_params)
     sym = S.SymmetryParams(threshold=params.cr_tolerance)
     new_rows: list[list[int]] = []
     added: list[Instance] = []
@@ -379,7 +380,7 @@ def _complete_row(r: np.ndarray, c: np.ndarray, boxes: np.ndarray, fp: np.ndarra
     if len(r) < params.min_row_instances:
         return None
     pts = c[r]
-    cen, d, _ = V.fit_line(pts)
+    cen, d, _ = L.fit_line(pts)
     t = (pts - cen) @ d
     order = np.argsort(t, kind="stable")
     r, pts, t = r[order], pts[order], t[order]
@@ -708,13 +709,13 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
         fp = None
     # registered centres (partial boxes: instances located by their features), rows of
     # two or more instances
-    c, sz, rows = V.pattern_rows(boxes, fp, dataclasses.replace(vp_params, min_row_instances=2))
+    c, sz, rows = L.pattern_rows(boxes, fp, dataclasses.replace(vp_params, min_row_instances=2))
     if np.any(sz <= 0):
         return []
     rows = [np.asarray(r, int) for r in rows if len(r) >= 2]
     if len(rows) < 2:
         return []
-    dirs = [V.fit_line(c[r])[1] for r in rows]
+    dirs = [L.fit_line(c[r])[1] for r in rows]
     d0 = dirs[0]
     dm = np.sum([d if d @ d0 >= 0 else -d for d in dirs], axis=0)
     dm /= np.linalg.norm(dm)

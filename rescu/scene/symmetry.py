@@ -41,9 +41,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..types import TranslationSymmetry
-from .vp import checked_points
+from ..layout import checked_points
 from ..params import params_from_dict
+from ..types import TranslationSymmetry
 
 CR_EQUAL_SPACING = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
@@ -145,7 +145,7 @@ def translation_symmetry(feature_points: np.ndarray | None, centres: np.ndarray,
         Instance centres, pixels.
     rows : list of int arrays
         Instance indices of each row in order along the row (see
-        :func:`rescu.scene.vp.group_rows`).
+        :func:`rescu.layout.group_rows`).
     params : SymmetryParams
 
     Returns
