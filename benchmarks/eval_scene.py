@@ -40,7 +40,9 @@ from rescu import io  # noqa: E402
 from rescu import layout as L  # noqa: E402
 from rescu.scene import analyse as SC  # noqa: E402
 from rescu.scene import symmetry as S  # noqa: E402
-from rescu.scene import vp as V  # noqa: E402
+from rescu.scene.vp.errors import (closest_gt_error, paired_test, success_rate,  # noqa: E402
+                                   vector_error)
+from rescu.scene.vp.lsd import line_vanishing_point  # noqa: E402
 from rescu.evaluation.metrics import score_image  # noqa: E402
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
@@ -52,7 +54,7 @@ def _vp_summary(name: str, errors: list[float]) -> None:
     if len(e) == 0:
         print(f"{name}: no images")
         return
-    sr = V.success_rate(e, THRESHOLDS)
+    sr = success_rate(e, THRESHOLDS)
     fin = e[np.isfinite(e)]
     med = float(np.median(np.where(np.isnan(e), np.inf, e)))
     print(f"{name}: n={len(e)} median_err_deg={med:.3f} "
@@ -122,12 +124,12 @@ def run_synth(args: argparse.Namespace) -> None:
         gts = g.get("vanishing_points", [])
         size = (res.width, res.height)
         if ti.get("subset") == "projective" and gts:
-            dom_err.append(np.inf if out.vanishing_point is None else V.closest_gt_error(
+            dom_err.append(np.inf if out.vanishing_point is None else closest_gt_error(
                 out.vanishing_point.homogeneous, gts, "vector", size, g.get("focal_px"),
                 g.get("principal_point")))
         for p, tp in zip(out.patterns, ti["patterns"]):
             if tp.get("vanishing_point") is not None:
-                pat_err.append(np.inf if p.vanishing_point is None else V.vector_error(
+                pat_err.append(np.inf if p.vanishing_point is None else vector_error(
                     p.vanishing_point.homogeneous, np.asarray(tp["vanishing_point"], float),
                     size, g.get("focal_px"), g.get("principal_point")))
             elif ti.get("subset") == "frontal":
@@ -177,9 +179,9 @@ def run_york(args: argparse.Namespace) -> None:
         g = gt[name]
         im = io.load_image(data / name)
         t0 = time.perf_counter()
-        vp = V.line_vanishing_point(im.rgb, params, im.scale_factor)
+        vp = line_vanishing_point(im.rgb, params, im.scale_factor)
         times.append(time.perf_counter() - t0)
-        errs.append(np.inf if vp is None else V.closest_gt_error(
+        errs.append(np.inf if vp is None else closest_gt_error(
             vp.homogeneous, g["vanishing_points"], "vector", (g["width"], g["height"]),
             g["focal_px"], g["principal_point"]))
     _vp_summary(f"LSD baseline on {data.name} (true focal, closest GT VP)", errs)
@@ -207,7 +209,7 @@ def _eval_pred_dir(pred: Path, data: Path, analyse: bool) -> dict[str, Any]:
             res = SC.analyse_scene(res, params)
         if vps is not None and res.image in vps and vps[res.image]["vanishing_points"]:
             g = vps[res.image]  # images without a GT VP (frontal synthetic) are left out
-            errs[res.image] = (np.inf if res.vanishing_point is None else V.closest_gt_error(
+            errs[res.image] = (np.inf if res.vanishing_point is None else closest_gt_error(
                 res.vanishing_point.homogeneous, g["vanishing_points"], "vector",
                 (g["width"], g["height"]), g["focal_px"], g["principal_point"]))
         if rps is not None and res.image in rps:
@@ -238,7 +240,7 @@ def run_pred(args: argparse.Namespace) -> None:
     for d, r in zip(args.pred[1:], outs[1:]):
         common = sorted(set(outs[0]["vp_errors"]) & set(r["vp_errors"]))
         if common:
-            p = V.paired_test([outs[0]["vp_errors"][k] for k in common],
+            p = paired_test([outs[0]["vp_errors"][k] for k in common],
                               [r["vp_errors"][k] for k in common])
             print(f"paired Wilcoxon {args.pred[0]} vs {d} on {len(common)} images: p={p:.4g}")
 

@@ -500,14 +500,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
     """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
-    from .scene import vp as V
+    from .scene.vp.lsd import line_vanishing_point
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
         p = _scene_params(params)
-        vp = V.line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
+        vp = line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp
         io.write_json(out_json, res)

@@ -20,10 +20,10 @@ the best is *not* significant (p >= alpha) is in italics, as in the paper.
 
 Vanishing points (choices documented here): the prediction is the image-level
 ``vanishing_point``; it is compared with the *closest* ground-truth VP, separately for
-each error (:func:`rescu.scene.vp.closest_gt_error`): the point error is the pixel distance
-between the dehomogenised points (:func:`rescu.scene.vp.point_error`; infinite when exactly
+each error (:func:`rescu.scene.vp.errors.closest_gt_error`): the point error is the pixel distance
+between the dehomogenised points (:func:`rescu.scene.vp.errors.point_error`; infinite when exactly
 one lies at infinity), the angle error the angle between the back-projected 3D
-directions (:func:`rescu.scene.vp.vector_error`; sign-free), with the true focal length and
+directions (:func:`rescu.scene.vp.errors.vector_error`; sign-free), with the true focal length and
 principal point where the dataset gives them, else ``f = (w + h) / 4`` and the image
 centre. A missing prediction has infinite errors (a failure at every threshold).
 
@@ -852,7 +852,7 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
         docstring), inf when missing.
         Images without a GT VP are left out.
     """
-    from ..scene.vp import closest_gt_error  # point_error / vector_error of rescu.vp
+    from ..scene.vp.errors import closest_gt_error
 
     dataset_dir = Path(dataset_dir)
     _check_pred_dirs(pred_dirs)
@@ -914,9 +914,9 @@ def vp_success_table(frame: pd.DataFrame,
 
 
 def vp_significance(frame: pd.DataFrame) -> pd.DataFrame:
-    """Paired Wilcoxon p-values (:func:`rescu.scene.vp.paired_test`: a missing VP counts as an
+    """Paired Wilcoxon p-values (:func:`rescu.scene.vp.errors.paired_test`: a missing VP counts as an
     error above every finite one) of the point and angle errors between method pairs."""
-    from ..scene.vp import paired_test
+    from ..scene.vp.errors import paired_test
 
     rows = []
     for dsn, g in frame.groupby("dataset", sort=False):

@@ -13,7 +13,7 @@ returns a copy in which
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
   RP instances. Each pattern's VP is re-estimated jointly with the patterns that share
-  it (likelihood-ratio test, :func:`rescu.scene.vp.joint_vanishing_point`) and the group
+  it (likelihood-ratio test, :func:`rescu.scene.vp.estimator.joint_vanishing_point`) and the group
   with the most instances wins (ties: the group of the more dominant pattern), so
   without sharing it is the dominant pattern's VP, and when that has none the VP of
   the largest other pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own
@@ -38,7 +38,10 @@ import numpy as np
 from .. import layout as L
 from . import counting as C
 from . import symmetry as S
-from . import vp as V
+from .vp.estimator import joint_vanishing_point, rp_vanishing_point
+from .vp.geometry import INFINITY_EPS
+from .vp.lines import Lines, pattern_lines
+from .vp.params import VPParams
 from ..types import ImageResult, Pattern, VanishingPoint
 from ..params import checked_mapping
 
@@ -64,7 +67,7 @@ class SceneParams:
         makes the rectification ill-posed: no view is returned.
     """
 
-    vp: V.VPParams = field(default_factory=V.VPParams)
+    vp: VPParams = field(default_factory=VPParams)
     symmetry: S.SymmetryParams = field(default_factory=S.SymmetryParams)
     rectify_max_side: int = 1024
     rectify_padding: float = 0.1
@@ -89,7 +92,7 @@ class SceneParams:
             if key in d and not isinstance(d[key], (dict, type(None))):
                 raise ValueError(f"SceneParams.{key} must be a mapping, got "
                                  f"{type(d[key]).__name__}")
-        d["vp"] = V.VPParams.from_dict(d.get("vp"))
+        d["vp"] = VPParams.from_dict(d.get("vp"))
         d["symmetry"] = S.SymmetryParams.from_dict(d.get("symmetry"))
         return cls(**d)
 
@@ -107,7 +110,7 @@ def _orient_rows(rows: list[np.ndarray], centres: np.ndarray,
     out = []
     for r in rows:
         a, b = centres[r[0]], centres[r[-1]]
-        if abs(v[2]) <= V.INFINITY_EPS:
+        if abs(v[2]) <= INFINITY_EPS:
             towards = float((b - a) @ v[:2]) >= 0
         else:
             p = v[:2] / v[2]
@@ -118,10 +121,10 @@ def _orient_rows(rows: list[np.ndarray], centres: np.ndarray,
 
 def equal_rows(feature_points: np.ndarray | None, centres: np.ndarray,
                rows: Sequence[np.ndarray], symmetry_params: S.SymmetryParams | None,
-               params: V.VPParams = V.VPParams()) -> list[bool] | None:
+               params: VPParams = VPParams()) -> list[bool] | None:
     """Per row, whether it passes the translation-symmetry test on its own.
 
-    The row test of the VP estimator (:data:`rescu.scene.vp.RowTest`): equally spaced rows
+    The row test of the VP estimator (:data:`rescu.scene.vp.estimator.RowTest`): equally spaced rows
     also constrain the VP by their spacing.
 
     Parameters
@@ -172,7 +175,7 @@ def analyse_pattern(pattern: Pattern, image_size: tuple[int, int],
         if fp.ndim != 3 or fp.shape[2] != 2 or fp.shape[1] > len(b):
             raise ValueError(f"pattern {p.id}: feature_points must have shape (M, N, 2) "
                              f"with N <= {len(b)} instances, got {fp.shape}")
-    vp, rows = V.rp_vanishing_point(b, fp, image_size, params.vp,
+    vp, rows = rp_vanishing_point(b, fp, image_size, params.vp,
                                     partial(equal_rows, symmetry_params=params.symmetry,
                                             params=params.vp))
     centres, _, _ = L.pattern_rows(b, fp, params.vp) if len(b) else (np.zeros((0, 2)),
@@ -226,7 +229,7 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     return res
 
 
-def _pattern_lines(p: Pattern, params: SceneParams) -> V.Lines:
+def _pattern_lines(p: Pattern, params: SceneParams) -> Lines:
     """Implicit lines (with their points) of an analysed pattern, from its rows."""
     b = _boxes(p)
     c, sz = L.instance_centres_sizes(b)
@@ -236,7 +239,7 @@ def _pattern_lines(p: Pattern, params: SceneParams) -> V.Lines:
     rows = [np.asarray(r, int) for r in p.extra.get("rows", [])]
     fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
     equal = equal_rows(fp, c, rows, params.symmetry, params.vp)
-    return V.pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
+    return pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
                            params.vp.precision_floor_px, equal)
 
 
@@ -245,7 +248,7 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     """The dominant VP: the VP shared by the most RP instances.
 
     Every pattern with a VP seeds a group: its VP re-estimated with the other patterns
-    that share it (:func:`rescu.scene.vp.joint_vanishing_point`, the others tried in order of
+    that share it (:func:`rescu.scene.vp.estimator.joint_vanishing_point`, the others tried in order of
     decreasing VP support, i.e. number of inlier implicit lines, then count). The group
     with the most instances in total gives the image VP; ties go to the group seeded by
     the more dominant pattern (the dominant pattern first, then by count, score, order).
@@ -263,7 +266,7 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
         order = [s] + sorted((i for i in have if i != s),
                              key=lambda i: (-patterns[i].vanishing_point.support,
                                             -patterns[i].count, i))
-        vp, used = V.joint_vanishing_point([lines[i] for i in order],
+        vp, used = joint_vanishing_point([lines[i] for i in order],
                                            [patterns[i].vanishing_point for i in order],
                                            size, params.vp)
         total = sum(patterns[order[u]].count for u in used)
@@ -320,7 +323,7 @@ def rectify_pattern(rgb: np.ndarray, scale_factor: float, pattern: Pattern,
     if vp is not None:
         v = np.diag([scale_factor, scale_factor, 1.0]) @ np.asarray(vp.homogeneous, float)
         v = v / np.linalg.norm(v)
-        if abs(v[2]) > V.INFINITY_EPS:
+        if abs(v[2]) > INFINITY_EPS:
             try:
                 h = S.vp_rectifying_homography(v, corners.mean(axis=0))
             except ValueError:

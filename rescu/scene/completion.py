@@ -77,7 +77,7 @@ import numpy as np
 
 from .. import layout as L
 from . import symmetry as S
-from . import vp as V
+from .vp.params import VPParams
 from ..params import params_from_dict
 from ..types import ImageResult, Instance, Pattern
 
@@ -292,7 +292,7 @@ def _acceptance(tmpl: list[np.ndarray], params: CompletionParams
 def complete_rows(result: ImageResult, gray: np.ndarray,
                   params: CompletionParams = CompletionParams(),
                   scale_factor: float = 1.0,
-                  vp_params: V.VPParams = V.VPParams()) -> ImageResult:
+                  vp_params: VPParams = VPParams()) -> ImageResult:
     """Complete the rows and grids of every pattern (see module docstring).
 
     Parameters
@@ -335,7 +335,7 @@ def complete_rows(result: ImageResult, gray: np.ndarray,
 
 
 def _complete_pattern(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: float,
-                      vp_params: V.VPParams) -> Pattern:
+                      vp_params: VPParams) -> Pattern:
     n = p.count
     if n < params.min_row_instances:
         p.extra["completed"] = p.extra["grid_completed"] = 0
@@ -699,7 +699,7 @@ def grid_missing_cells(ua: np.ndarray, ub: np.ndarray, max_missing: int
 
 
 def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: float,
-                   vp_params: V.VPParams) -> list[Instance]:
+                   vp_params: VPParams) -> list[Instance]:
     """Instances for the empty cells of grids of two or more rows (module docstring)."""
     boxes = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
     if len(boxes) < 4:
