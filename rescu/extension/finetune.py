@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from .backbone import FrozenBackbone, box_rois
+from .head import deterministic, make_head
 
 
 def _scaled(rgb: np.ndarray, scale: float) -> tuple[np.ndarray, float, float]:
@@ -85,8 +86,6 @@ def finetune_backbone(backbone: FrozenBackbone, rgb: np.ndarray, boxes: np.ndarr
     import torch
     from torchvision.ops import roi_align
 
-    from .stage2 import _deterministic, _make_head
-
     b = np.asarray(boxes, np.float32).reshape(-1, 4)
     y = np.asarray(labels, np.int64).reshape(-1)
     if len(b) != len(y):
@@ -114,13 +113,13 @@ def finetune_backbone(backbone: FrozenBackbone, rgb: np.ndarray, boxes: np.ndarr
     w = np.where(counts > 0, len(tr) / (n_classes * np.maximum(counts, 1)), 0.0)
 
     tuned = copy.copy(backbone)
-    with _deterministic(seed):
+    with deterministic(seed):
         tuned.model = copy.deepcopy(backbone.model)
         for p in tuned.model.parameters():
             p.requires_grad_(True)
         tuned.model.eval()  # frozen batch-norm statistics (one image per step)
         d = tuned.channels * pool_size * pool_size
-        head = _make_head(d, tuple(hidden_sizes), n_classes).to(dev)
+        head = make_head(d, tuple(hidden_sizes), n_classes).to(dev)
         params = list(tuned.model.parameters()) + list(head.parameters())
         opt = torch.optim.Adam(params, lr=lr, betas=(beta1, 0.999))
         lossf = torch.nn.CrossEntropyLoss(weight=torch.tensor(w, dtype=torch.float32,

@@ -50,7 +50,6 @@ Departures from the paper (documented, environment-driven):
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import json
 import os
@@ -60,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from ..io import atomic_path
+from .head import deterministic, make_head
 from .proposals import ProposalParams, propose
 from ..types import ImageResult, Instance
 from ..params import checked_mapping
@@ -451,34 +451,6 @@ def _rp_list(stage1: ImageResult, min_instances: int = 2) -> list[tuple[int, np.
         if len(p.instances) >= max(2, int(min_instances)):
             out.append((i, np.array([ins.bbox for ins in p.instances], np.float64)))
     return out
-
-
-@contextlib.contextmanager
-def _deterministic(seed: int):
-    import torch
-
-    prev = torch.are_deterministic_algorithms_enabled()
-    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.manual_seed(int(seed))
-    _set_deterministic(torch, True, warn_only=True)
-    try:
-        yield
-    finally:
-        _set_deterministic(torch, prev, warn_only=prev_warn)
-
-
-def _set_deterministic(torch: Any, mode: bool, warn_only: bool) -> None:
-    """``torch.use_deterministic_algorithms`` without its import of ``torch._inductor``.
-
-    The public function also sets the compiler's (Inductor's) flag, and importing the
-    compiler costs about 1.7 s per process on a 2-core machine; stage II never compiles,
-    so only the eager-mode flag is set (the same C++ switch the public function sets).
-    """
-    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
-    if setter is None:  # a torch without the private switch: the public call
-        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
-    else:
-        setter(mode, warn_only=warn_only)
 
 
 def _augment_image(rgb: np.ndarray, k: int, rng: np.random.Generator
@@ -1014,14 +986,6 @@ def _training_set(feats: dict[str, np.ndarray], sel: dict[str, Any], params: Sta
     return np.concatenate(xs), np.concatenate(ys)
 
 
-def _make_head(in_dim: int, hidden: tuple[int, ...], n_out: int):
-    import torch.nn as nn
-
-    return nn.Sequential(nn.Linear(in_dim, hidden[0]), nn.ReLU(),
-                         nn.Linear(hidden[0], hidden[1]), nn.ReLU(),
-                         nn.Linear(hidden[1], n_out))
-
-
 def _check_device(params: Stage2Params) -> None:
     """A CUDA device must be available when configured (clear error otherwise)."""
     import torch
@@ -1094,8 +1058,8 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     n_cls = len(rp_index) + 1
     counts = np.bincount(y[tr], minlength=n_cls).astype(np.float64)
     w = np.where(counts > 0, len(tr) / (n_cls * np.maximum(counts, 1)), 0.0)
-    with _deterministic(params.seed):
-        head = _make_head(X.shape[1], tuple(params.hidden_sizes), n_cls)
+    with deterministic(params.seed):
+        head = make_head(X.shape[1], tuple(params.hidden_sizes), n_cls)
         opt = Adam(head.parameters(), lr=params.lr, betas=(params.beta1, 0.999))
         lossf = torch.nn.CrossEntropyLoss(weight=torch.tensor(w, dtype=torch.float32))
         Xt = torch.from_numpy(Xs.astype(np.float32))
@@ -1170,7 +1134,7 @@ def score_features(x: np.ndarray, ckpt: dict[str, Any]) -> np.ndarray:
         out[:, 0] = 1.0
         return out
     x = x.reshape(len(x), -1)
-    head = _make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
+    head = make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
     head.load_state_dict(ckpt["state_dict"])
     head.eval()
     xt = (torch.from_numpy(x) - ckpt["mean"]) / ckpt["std"]
