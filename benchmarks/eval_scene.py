@@ -40,8 +40,8 @@ from rescu import io  # noqa: E402
 from rescu import layout as L  # noqa: E402
 from rescu.scene import analyse as SC  # noqa: E402
 from rescu.scene import symmetry as S  # noqa: E402
-from rescu.scene.vp.errors import (closest_gt_error, paired_test, success_rate,  # noqa: E402
-                                   vector_error)
+from rescu.scene.vp.errors import closest_gt_error, success_rate, vector_error  # noqa: E402
+from rescu.evaluation.vpd import paired_test  # noqa: E402
 from rescu.scene.vp.lsd import line_vanishing_point  # noqa: E402
 from rescu.evaluation.metrics import score_image  # noqa: E402
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402

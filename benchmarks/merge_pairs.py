@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from _cli import run_dataset, run_parser
 
-    from rescu.evaluation.evaluation import merge_pair_rows
+    from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
     from rescu.extension.stage2 import Stage2Params
 

@@ -44,7 +44,7 @@ CAUSES = ("rp not found", "no lattice window", "window p < 0.8", "window p 0.8 -
 def _occluded(truth: dict[str, Any], box: Any) -> float | None:
     """Occluded fraction of the synthetic truth instance centred in ``box`` (None: no
     truth record there)."""
-    from rescu.evaluation.evaluation import truth_instance_at
+    from rescu.evaluation.diagnostics import truth_instance_at
 
     for p in truth.get("patterns") or []:
         t = truth_instance_at(p.get("instances") or [], box)
@@ -63,7 +63,7 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
 
     from rescu import io
     from rescu.extension import stage2 as S2
-    from rescu.evaluation.evaluation import load_predictions, load_truth
+    from rescu.evaluation.core import load_predictions, load_truth
     from rescu.io import load_coco_rps
     from rescu.evaluation.metrics import iod_matrix
 

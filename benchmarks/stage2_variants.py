@@ -100,8 +100,8 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
 def main(argv: list[str] | None = None) -> int:
     from _cli import claim_variant_folder, images_with, run_dataset, run_jobs, run_parser
 
-    from rescu.evaluation.evaluation import (evaluate_rp_dataset, frame_markdown,
-                                             significance_table, summary_markdown, summary_table)
+    from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
+                                       summary_markdown, summary_table)
     from rescu.extension.stage2 import Stage2Params, is_predict_only
 
     ap = run_parser(__doc__)

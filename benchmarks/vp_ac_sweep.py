@@ -77,7 +77,7 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
     from rescu.scene.vp.errors import closest_gt_error
     from rescu.scene.vp.lsd import line_vanishing_point
     from rescu.data.datasets import dataset_root
-    from rescu.evaluation.evaluation import load_vanishing_points
+    from rescu.io import load_vanishing_points
     from rescu.pipeline import _scene_params, read_prepared
 
     base = _scene_params(cfg["scene"])
@@ -138,7 +138,7 @@ def summarise(df: pd.DataFrame, deg: Sequence[float]) -> pd.DataFrame:
     """Per dataset x method x budget x AC: success rate at each threshold in ``deg`` and
     the median error (degrees), each averaged over the seeds, and the paired Wilcoxon
     p-value of AC on against off over all images x seeds (:func:`rescu.vp.paired_test`)."""
-    from rescu.scene.vp.errors import paired_test
+    from rescu.evaluation.vpd import paired_test
 
     out = []
     for (dsn, m, b), g in df.groupby(["dataset", "method", "budget"], sort=False):

@@ -137,7 +137,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     """
     from .captions.caption import CaptionParams
     from .scene.completion import CompletionParams
-    from .evaluation.evaluation import EvaluationParams
+    from .evaluation.core import EvaluationParams
     from .discovery.features import FeatureParams
     from .discovery.grasp import GraspParams
     from .pipeline import ablation_overrides

@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from rescu.evaluation import evaluation as E
+from rescu.evaluation import core as E
+from rescu.evaluation import vpd as EV
 from rescu.evaluation import report as R
 
 METRICS = list(R.RP_METRICS)
@@ -74,8 +75,8 @@ def fake_results(root: Path, paper: bool = True) -> tuple[Path, dict[str, list[s
     E.write_tsv(scores, t / "rp_scores.tsv")
     errors = vp_errors()
     E.write_tsv(errors, t / "vpd_errors.tsv")
-    E.write_tsv(E.vp_success_table(errors), t / "vpd.tsv")
-    E.write_tsv(E.vp_significance(errors), t / "vpd_tests.tsv")
+    E.write_tsv(EV.vp_success_table(errors), t / "vpd.tsv")
+    E.write_tsv(EV.vp_significance(errors), t / "vpd_tests.tsv")
     ts = []
     for sweep, ts_ in (("fine", np.round(np.arange(1, 16) * 0.01, 2)),
                        ("coarse", np.round(np.arange(1, 21) * 0.05, 2))):
@@ -211,7 +212,7 @@ def test_ties_are_all_bold_and_italics_mark_no_significant_difference():
 
 def test_vp_and_found_headlines():
     errors = vp_errors()
-    success = E.vp_success_table(errors)
+    success = EV.vp_success_table(errors)
     t = R.vp_headline(success, "york_urban", errors)
     assert list(t.cells["method"]) == ["RESCU (AC)", "LSD lines"]
     assert {"VP within 5 px", "VP within 5°", "Median angle error (°)"} <= set(t.cells.columns)
@@ -228,7 +229,7 @@ def test_vp_and_found_headlines():
 
 def test_long_tables_are_compact():
     errors = vp_errors()
-    success = E.vp_success_table(errors)     # 2 methods x 2 kinds x 7 thresholds
+    success = EV.vp_success_table(errors)     # 2 methods x 2 kinds x 7 thresholds
     t = R.vp_compact(success, "synthetic", errors)
     assert len(t.cells) == 2
     assert [c for c in t.cells.columns if c.startswith("≤")] == \

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rescu import layout as L
-from rescu.scene.vp.errors import (closest_gt_error, paired_test, point_error, success_rate,
-                                   vector_error)
+from rescu.scene.vp.errors import closest_gt_error, point_error, success_rate, vector_error
+from rescu.evaluation.vpd import paired_test
 from rescu.scene.vp.estimator import joint_vanishing_point, rp_vanishing_point
 from rescu.scene.vp.geometry import _normaliser, ac_mask
 from rescu.scene.vp.lines import Lines, pattern_lines

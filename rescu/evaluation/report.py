@@ -222,7 +222,7 @@ def summary_cells(df: pd.DataFrame, row_cols: Sequence[str],
                   metrics: Sequence[str] = RP_METRICS, decimals: int = 2,
                   alpha: float | None = 0.05, group_cols: Sequence[str] = ("dataset", "subset"),
                   count_col: str | None = "n_images") -> Table:
-    """A :func:`rescu.evaluation.evaluation.summary_table`-style frame (``<m>_mean``, ``<m>_std``,
+    """A :func:`rescu.evaluation.core.summary_table`-style frame (``<m>_mean``, ``<m>_std``,
     ``<m>_p_vs_best`` per metric) as one cell ``mean ± std`` per metric; within each
     group (``group_cols`` present in ``df``) the best mean is bold and, with ``alpha``,
     a mean whose paired test against the best gives ``p >= alpha`` is italic."""

@@ -1,5 +1,6 @@
 """The paper's tables and curves over all datasets of a run (built on
-:mod:`rescu.evaluation.evaluation`), written as TSV (numbers) and Markdown (people).
+:mod:`rescu.evaluation.core`, ``counting``, ``vpd``, ``ts`` and ``plots``), written as TSV
+(numbers) and Markdown (people).
 
 Each ``*_tables`` function takes the datasets to evaluate as ``{name: DatasetRef}`` and
 the results folder where the per-image predictions of each method live
@@ -14,7 +15,11 @@ from typing import Any, Mapping, Sequence
 
 import pandas as pd
 
-from . import evaluation as E
+from . import core as E
+from . import counting as EC
+from . import plots as EP
+from . import ts as ET
+from . import vpd as EV
 from ..io import atomic_path, read_result
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
@@ -61,7 +66,7 @@ def rp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
                                             images=ref.images).assign(dataset=name))
         c = E.metric_curves(ref.root, dirs, params.h_curve, params.min_rp_precision,
                             images=ref.images).assign(dataset=name)
-        E.plot_metric_curves(c, Path(figures_dir) / f"rp_curves_{name}.png",
+        EP.plot_metric_curves(c, Path(figures_dir) / f"rp_curves_{name}.png",
                              title=f"{name}: metrics vs IOD threshold h")
         curves.append(c)
     scores = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
@@ -134,7 +139,7 @@ def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
     results = Path(results)
     tables = []
     for name, ref in datasets.items():
-        t = E.counting_table(ref.root, _pred_dirs(results, name, methods), params.iod_h,
+        t = EC.counting_table(ref.root, _pred_dirs(results, name, methods), params.iod_h,
                              params.min_rp_precision, images=ref.images)
         tables.append(_with_dataset(t, name))
     df = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
@@ -153,19 +158,19 @@ def vp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
     results = Path(results)
     frames = []
     for name, ref in datasets.items():
-        frames.append(E.vp_frame(ref.root, _pred_dirs(results, name, methods),
+        frames.append(EV.vp_frame(ref.root, _pred_dirs(results, name, methods),
                                  images=ref.images).assign(dataset=name))
     errors = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     E.write_tsv(errors, out_errors)
     if len(errors):
-        success = E.vp_success_table(errors, params.vp_px_thresholds, params.vp_deg_thresholds)
-        tests = E.vp_significance(errors)
+        success = EV.vp_success_table(errors, params.vp_px_thresholds, params.vp_deg_thresholds)
+        tests = EV.vp_significance(errors)
         for name in datasets:
             s = success[success["dataset"] == name]
             if len(s):
-                E.plot_vp_curves(s, Path(figures_dir) / f"vpd_{name}.png",
+                EP.plot_vp_curves(s, Path(figures_dir) / f"vpd_{name}.png",
                                  title=f"{name}: VP success rate")
-        md = E.vp_markdown(success, params.decimals, errors)
+        md = EV.vp_markdown(success, params.decimals, errors)
         if len(tests):
             md += "\n\nPaired Wilcoxon tests of per-image errors:\n\n" + \
                 E.frame_markdown(tests, 4)
@@ -189,10 +194,10 @@ def ts_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
     results = Path(results)
     sweeps = []
     for name, ref in datasets.items():
-        fr = E.ts_frame(ref.root, _pred_dirs(results, name, methods), params.iod_h,
+        fr = ET.ts_frame(ref.root, _pred_dirs(results, name, methods), params.iod_h,
                         params.min_rp_precision, images=ref.images)
         for label, ts in (("fine", params.ts_t_fine), ("coarse", params.ts_t_coarse)):
-            s = E.ts_sweep(fr, ts, params.ts_which).assign(dataset=name, sweep=label)
+            s = ET.ts_sweep(fr, ts, params.ts_which).assign(dataset=name, sweep=label)
             sweeps.append(s)
     df = pd.concat(sweeps, ignore_index=True) if sweeps else pd.DataFrame()
     if len(df):

@@ -1,7 +1,9 @@
 # Evaluation: the paper's tables (TSV + Markdown) and curves (PNG) over all datasets.
 TABLES = f"{RESULTS}/tables"
 FIGURES = f"{RESULTS}/figures"
-EVAL_CODE = code("evaluation/evaluation", "scene/counting", "evaluation/metrics", "evaluation/tables", "scene/vp")
+EVAL_CODE = code("evaluation/core", "evaluation/counting", "evaluation/vpd", "evaluation/ts",
+                 "evaluation/plots", "evaluation/metrics", "evaluation/tables", "scene/counting",
+                 "scene/symmetry", "scene/vp", "layout")
 
 
 def dataset_params(names):

@@ -109,31 +109,3 @@ def success_rate(errors: Sequence[float], thresholds: Sequence[float] | float) -
         return np.full(t.shape, np.nan)
     e = np.where(np.isnan(e), np.inf, e)
     return (e[None, :] <= t.reshape(-1, 1)).mean(axis=1).reshape(t.shape)
-
-
-def paired_test(errors_a: Sequence[float], errors_b: Sequence[float]) -> float:
-    """Two-sided Wilcoxon signed-rank p-value between two methods' per-image errors.
-
-    Pairs where either error is NaN are left out; infinite errors (a missing VP) are
-    replaced by a value above every finite error (the test uses ranks only). Returns 1.0
-    when all the paired differences are zero or fewer than one pair remains.
-    """
-    from scipy.stats import wilcoxon
-
-    a = np.asarray(errors_a, float).reshape(-1)
-    b = np.asarray(errors_b, float).reshape(-1)
-    if a.shape != b.shape:
-        raise ValueError(f"errors_a and errors_b must have the same length, "
-                         f"got {a.shape} and {b.shape}")
-    ok = ~(np.isnan(a) | np.isnan(b))
-    a, b = a[ok], b[ok]
-    fin = np.concatenate([a[np.isfinite(a)], b[np.isfinite(b)]])
-    big = (float(np.abs(fin).max()) if len(fin) else 0.0) * 2 + 1.0
-    a = np.where(np.isinf(a), np.sign(a) * big, a)
-    b = np.where(np.isinf(b), np.sign(b) * big, b)
-    d = a - b
-    if len(d) == 0 or np.all(d == 0):
-        return 1.0
-    res = wilcoxon(a, b, zero_method="wilcox")
-    p = float(res.pvalue)
-    return p if np.isfinite(p) else 1.0
