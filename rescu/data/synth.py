@@ -34,7 +34,6 @@ contain both kinds.
 """
 
 from __future__ import annotations
-from ..params import params_from_dict
 
 import math
 import os
@@ -45,10 +44,13 @@ from typing import Any
 
 import numpy as np
 
+from ..params import params_from_dict
+from ..scene.symmetry import CR_EQUAL_SPACING, row_cross_ratios
+
 __all__ = [
     "SynthParams", "SynthImage", "PHOTO_TEXTURES", "synthetic_image_names",
     "generate_dataset", "render_synthetic_image", "camera_matrix", "rotation_matrix",
-    "project_points", "plane_homography", "row_vanishing_point", "cross_ratio",
+    "project_points", "plane_homography", "row_vanishing_point",
 ]
 
 #: Photos inside scikit-image's package folder used as instance textures (read
@@ -301,21 +303,6 @@ def row_vanishing_point(K: np.ndarray, R: np.ndarray,
     return s, direc
 
 
-def cross_ratio(points: np.ndarray) -> float:
-    """Cross ratio ``(AC * BD) / (BC * AD)`` of 4 collinear points (4, 2) or (4,) pixels.
-
-    Equals 4/3 for points that are equally spaced in 3D (any perspective view).
-    """
-    p = np.asarray(points, float)
-    if p.ndim == 1:
-        p = p[:, None]
-    if p.shape[0] != 4:
-        raise ValueError(f"points must have 4 rows (A, B, C, D), got shape {p.shape}")
-    a, b, c, d = p
-    dist = lambda x, y: float(np.linalg.norm(x - y))  # noqa: E731
-    return dist(a, c) * dist(b, d) / (dist(b, c) * dist(a, d))
-
-
 # ============================================================================ textures
 @lru_cache(maxsize=None)
 def _photo(name: str) -> np.ndarray:
@@ -483,7 +470,8 @@ def _unequal_positions(rng: np.random.Generator, n: int, pitch0: float, change: 
         if len(p) != n - 1:
             continue
         x = np.concatenate([[0.0], np.cumsum(p)])
-        ok = all(abs(cross_ratio(x[k:k + 4]) - 4.0 / 3.0) > 0.08 for k in range(n - 3))
+        cr = row_cross_ratios(np.column_stack([x, np.zeros_like(x)]))
+        ok = bool(np.all(np.abs(cr - CR_EQUAL_SPACING) > 0.08))
         if ok:
             return x
     raise RuntimeError("could not draw an unequally spaced row")  # pragma: no cover
