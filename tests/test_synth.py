@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from rescu.io import load_coco_rps, load_image, load_vanishing_points
-from rescu.data.synth import (SynthParams, camera_matrix, generate_dataset, plane_homography,
-                              project_points, render_synthetic_image, rotation_matrix,
-                              row_vanishing_point, synthetic_image_names)
+from rescu.data.camera import (camera_matrix, plane_homography, project_points, rotation_matrix,
+                               row_vanishing_point)
+from rescu.data.synth import (SynthParams, generate_dataset, render_synthetic_image,
+                              synthetic_image_names)
 
 SMALL = dict(sizes=[[640, 480]], n_images=4)
 

@@ -2,7 +2,7 @@
 
 Each image shows 1 to ``max_rps`` recurring patterns (RPs). An RP is a set of textured
 instances (procedural shapes/stripes/glyphs or crops of photos shipped in
-scikit-image's package folder) laid out on a 3D plane as a *row* or a *grid*, either
+scikit-image's package folder; :mod:`rescu.data.textures`) laid out on a 3D plane as a *row* or a *grid*, either
 equally spaced (3D translation symmetry; cross ratio of 4 consecutive instances = 4/3)
 or, as negatives, with clearly unequal spacing. The planes are rendered by a pinhole
 camera: a *frontal* subset (plane parallel to the image: row vanishing points at
@@ -10,7 +10,8 @@ infinity) and a *projective* subset (plane tilted by 30-65 degrees: finite row V
 often outside the image). Non-recurring clutter, lighting gradients, noise and, in the
 *hard* images, partial occlusion and blur are added.
 
-Geometry (camera frame: x right, y down, z forward; pixels as in :mod:`rescu.types`):
+Geometry (:mod:`rescu.data.camera`; camera frame: x right, y down, z forward; pixels as
+in :mod:`rescu.types`):
 
 * plane points ``X = (u, v, 0)``; camera points ``X_c = R X + t``;
 * ``K = [[f, 0, c_x], [0, f, c_y], [0, 0, 1]]``; image point ``x ~ K X_c``;
@@ -38,7 +39,6 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import asdict, dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -46,20 +46,16 @@ import numpy as np
 
 from ..params import params_from_dict
 from ..scene.symmetry import CR_EQUAL_SPACING, row_cross_ratios
+from .camera import (camera_matrix, plane_homography, project_points, rotation_matrix,
+                     row_vanishing_point)
+from .textures import (available_photos, photo_texture, procedural_texture, rand_colour,
+                       silhouette, textured)
 
 __all__ = [
-    "SynthParams", "SynthImage", "PHOTO_TEXTURES", "synthetic_image_names",
-    "generate_dataset", "render_synthetic_image", "camera_matrix", "rotation_matrix",
-    "project_points", "plane_homography", "row_vanishing_point",
+    "SynthParams", "SynthImage", "synthetic_image_names", "generate_dataset",
+    "render_synthetic_image",
 ]
 
-#: Photos inside scikit-image's package folder used as instance textures (read
-#: directly from disk; none is fetched).
-PHOTO_TEXTURES: tuple[str, ...] = (
-    "astronaut.png", "coffee.png", "chelsea.png", "rocket.jpg", "brick.png", "coins.png",
-    "camera.png", "grass.png", "gravel.png", "motorcycle_left.png",
-    "hubble_deep_field.jpg", "ihc.png", "page.png", "text.png", "logo.png",
-)
 
 _GOLDEN = 0.6180339887498949      # subset assignment sequence (frac(i * phi))
 _SQRT3M1 = 0.7320508075688772     # hard assignment sequence (frac(i * (sqrt 3 - 1)))
@@ -196,258 +192,9 @@ def synthetic_image_names(n_images: int) -> list[str]:
 
 
 # ============================================================================ geometry
-def camera_matrix(f: float, cx: float, cy: float) -> np.ndarray:
-    """Pinhole intrinsics ``K`` (3, 3) float: focal ``f`` and principal point, pixels."""
-    if not f > 0:
-        raise ValueError(f"f must be > 0 pixels, got {f!r}")
-    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-
-
-def rotation_matrix(axis: np.ndarray | tuple[float, float, float], angle: float
-                    ) -> np.ndarray:
-    """Rotation (3, 3) by ``angle`` radians about ``axis`` (3,) (Rodrigues)."""
-    a = np.asarray(axis, float)
-    if a.shape != (3,) or not np.linalg.norm(a) > 0:
-        raise ValueError(f"axis must be a non-zero (3,) vector, got {axis!r}")
-    a = a / np.linalg.norm(a)
-    kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
-
-
-def _check_krt(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
-    K, R, t = np.asarray(K, float), np.asarray(R, float), np.asarray(t, float).reshape(-1)
-    if K.shape != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-    if R.shape != (3, 3):
-        raise ValueError(f"R must have shape (3, 3), got {R.shape}")
-    if t.shape != (3,):
-        raise ValueError(f"t must have shape (3,), got {t.shape}")
-    return K, R, t
-
-
-def project_points(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts3d: np.ndarray
-                   ) -> np.ndarray:
-    """Project 3D points to pixels: ``x ~ K (R X + t)``.
-
-    Parameters
-    ----------
-    K : (3, 3) float
-        Intrinsics, pixels.
-    R : (3, 3) float
-        Rotation plane (world) -> camera.
-    t : (3,) float
-        Translation, plane units in the camera frame.
-    pts3d : (N, 3) float, or (N, 2) plane points ``(u, v)`` (taken with ``z = 0``)
-        Points, plane units.
-
-    Returns
-    -------
-    (N, 2) float
-        Pixel coordinates (x right, y down). Raises ValueError if a point is not in front
-        of the camera (depth <= 0).
-    """
-    K, R, t = _check_krt(K, R, t)
-    p = np.asarray(pts3d, float)
-    if p.ndim != 2 or p.shape[1] not in (2, 3):
-        raise ValueError(f"pts3d must have shape (N, 3) or (N, 2), got {p.shape}")
-    if p.shape[1] == 2:
-        p = np.column_stack([p, np.zeros(len(p))])
-    xc = p @ R.T + t
-    if len(xc) and not np.all(xc[:, 2] > 0):
-        raise ValueError("project_points: some points are behind the camera (depth <= 0)")
-    xh = xc @ K.T
-    return xh[:, :2] / xh[:, 2:3]
-
-
-def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Homography (3, 3) from plane points ``(u, v, 1)`` to pixels: ``H = K [r1 r2 t]``."""
-    K, R, t = _check_krt(K, R, t)
-    return K @ np.column_stack([R[:, 0], R[:, 1], t])
-
-
-def _canonical_sign(v: np.ndarray) -> np.ndarray:
-    """Sign convention for homogeneous points / directions: ``w > 0``; if ``w ~ 0`` the
-    first non-zero coordinate is positive."""
-    v = np.asarray(v, float)
-    if abs(v[2]) > 1e-12:
-        return v if v[2] > 0 else -v
-    for c in v[:2]:
-        if abs(c) > 1e-12:
-            return v if c > 0 else -v
-    return v
-
-
-def row_vanishing_point(K: np.ndarray, R: np.ndarray,
-                        d_plane: np.ndarray | tuple[float, float, float] = (1.0, 0.0, 0.0)
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Vanishing point of the plane direction ``d`` (3,): ``v = K R d``.
-
-    Returns
-    -------
-    homogeneous : (3,) float
-        Pixel point ``(x, y, w)``, unit norm, ``w >= 0`` (``w = 0``: at infinity).
-    direction : (3,) float
-        Unit 3D direction ``R d`` in the camera frame, with the sign matching
-        ``homogeneous``.
-    """
-    K, R, _ = _check_krt(K, R, np.zeros(3))
-    d = np.asarray(d_plane, float).reshape(-1)
-    if d.shape != (3,) or not np.linalg.norm(d) > 0:
-        raise ValueError(f"d_plane must be a non-zero (3,) vector, got {d_plane!r}")
-    direc = R @ (d / np.linalg.norm(d))
-    v = K @ direc
-    v = v / np.linalg.norm(v)
-    s = _canonical_sign(v)
-    if not np.array_equal(s, v):
-        direc = -direc
-    return s, direc
 
 
 # ============================================================================ textures
-@lru_cache(maxsize=None)
-def _photo(name: str) -> np.ndarray:
-    """An RGB uint8 photo from scikit-image's package folder (read-only, cached)."""
-    import cv2
-    import skimage.data
-
-    path = os.path.join(os.path.dirname(skimage.data.__file__), name)
-    im = cv2.imread(path, cv2.IMREAD_COLOR)
-    if im is None:
-        raise FileNotFoundError(f"{path}: photo missing from scikit-image's package folder")
-    im = cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
-    im.setflags(write=False)
-    return im
-
-
-def _available_photos() -> tuple[str, ...]:
-    import skimage.data
-
-    d = os.path.dirname(skimage.data.__file__)
-    return tuple(n for n in PHOTO_TEXTURES if os.path.exists(os.path.join(d, n)))
-
-
-def _rand_colour(rng: np.random.Generator) -> tuple[int, int, int]:
-    import cv2
-
-    hsv = np.uint8([[[rng.integers(0, 180), rng.integers(90, 256), rng.integers(60, 256)]]])
-    return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0])
-
-
-def _procedural_texture(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
-    """A random textured patch (h, w, 3) uint8: gradient, shapes, stripes, glyphs."""
-    import cv2
-
-    c0, c1 = np.array(_rand_colour(rng), float), np.array(_rand_colour(rng), float)
-    ramp = np.linspace(0, 1, h)[:, None, None] if rng.random() < 0.5 else \
-        np.linspace(0, 1, w)[None, :, None]
-    img = np.ascontiguousarray(np.broadcast_to(c0 * (1 - ramp) + c1 * ramp, (h, w, 3))
-                               ).astype(np.uint8)
-    s = min(w, h)
-    if rng.random() < 0.6:  # stripes or checker in a sub-rectangle
-        x0, y0 = rng.integers(0, w // 2), rng.integers(0, h // 2)
-        x1, y1 = x0 + rng.integers(w // 4, w // 2 + 1), y0 + rng.integers(h // 4, h // 2 + 1)
-        period = int(rng.integers(max(3, s // 24), max(4, s // 8)))
-        yy, xx = np.mgrid[y0:min(y1, h), x0:min(x1, w)]
-        if rng.random() < 0.5:
-            on = ((xx + yy * rng.integers(0, 2)) // period) % 2 == 0
-        else:
-            on = ((xx // period) + (yy // period)) % 2 == 0
-        patch = img[y0:min(y1, h), x0:min(x1, w)]
-        patch[on] = _rand_colour(rng)
-    for n_shape in range(int(rng.integers(16, 29))):
-        col = _rand_colour(rng)
-        kind = rng.integers(0, 5)
-        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
-        big = n_shape < 6   # a few large shapes, then smaller detail
-        r = int(rng.integers(max(3, s // (8 if big else 16)), max(4, s // (4 if big else 8))))
-        if kind == 0:
-            cv2.circle(img, (cx, cy), r, col, -1, cv2.LINE_AA)
-        elif kind == 1:
-            cv2.ellipse(img, (cx, cy), (r, max(2, r // 2)), float(rng.uniform(0, 180)), 0, 360,
-                        col, -1, cv2.LINE_AA)
-        elif kind == 2:
-            pts = np.stack([cx + rng.integers(-r, r + 1, 5), cy + rng.integers(-r, r + 1, 5)],
-                           1).astype(np.int32)
-            cv2.fillPoly(img, [pts], col, cv2.LINE_AA)
-        elif kind == 3:
-            cv2.rectangle(img, (cx - r, cy - r // 2), (cx + r, cy + r // 2), col, -1)
-        else:
-            p2 = (int(rng.integers(0, w)), int(rng.integers(0, h)))
-            cv2.line(img, (cx, cy), p2, col, int(rng.integers(2, max(3, s // 30))), cv2.LINE_AA)
-    glyphs = "ABCDEFGHKMNPRSTWXYZ23456789#&@%"
-    fonts = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
-             cv2.FONT_HERSHEY_TRIPLEX)
-    for _ in range(int(rng.integers(1, 3))):
-        g = "".join(glyphs[int(i)] for i in rng.integers(0, len(glyphs), rng.integers(1, 3)))
-        scale = s / 60.0 * rng.uniform(0.7, 1.2)
-        font = fonts[int(rng.integers(0, len(fonts)))]
-        th = max(2, int(s / 40))
-        (tw, tth), _ = cv2.getTextSize(g, font, scale, th)
-        org = (int(rng.integers(0, max(1, w - tw))), int(rng.integers(tth, max(tth + 1, h))))
-        cv2.putText(img, g, org, font, scale, _rand_colour(rng), th, cv2.LINE_AA)
-    return img
-
-
-def _texture_score(tex: np.ndarray) -> float:
-    """Mean |Laplacian| (grey levels) of the texture seen at 48 x 48 px: a proxy for how
-    many SIFT keypoints a small instance of it yields."""
-    import cv2
-
-    g = cv2.cvtColor(cv2.resize(tex, (48, 48), interpolation=cv2.INTER_AREA),
-                     cv2.COLOR_RGB2GRAY).astype(np.float32)
-    return float(np.abs(cv2.Laplacian(g, cv2.CV_32F)).mean())
-
-
-def _textured(make: Any, tries: int, min_score: float = 16.0) -> np.ndarray:
-    """Call ``make()`` until the texture scores >= min_score (at most ``tries`` times);
-    returns the best-scoring texture."""
-    best, best_s = None, -1.0
-    for _ in range(tries):
-        tex = make()
-        sc = _texture_score(tex)
-        if sc > best_s:
-            best, best_s = tex, sc
-        if sc >= min_score:
-            break
-    return best  # type: ignore[return-value]
-
-
-def _photo_texture(rng: np.random.Generator, name: str, w: int, h: int) -> np.ndarray:
-    """A crop (h, w, 3) uint8 of a package photo; grey photos are tinted."""
-    import cv2
-
-    ph = _photo(name)
-    H, W = ph.shape[:2]
-    ch = int(min(H, W) * rng.uniform(0.22, 0.45))
-    cw = min(W, max(8, int(round(ch * w / h))))
-    ch = min(H, ch)
-    x0, y0 = int(rng.integers(0, W - cw + 1)), int(rng.integers(0, H - ch + 1))
-    crop = cv2.resize(np.ascontiguousarray(ph[y0:y0 + ch, x0:x0 + cw]), (w, h),
-                      interpolation=cv2.INTER_AREA).astype(np.float32)
-    lo, hi = np.percentile(crop, (2, 98))
-    crop = (crop - lo) * (215.0 / max(hi - lo, 1.0)) + 20.0   # contrast stretch
-    if np.ptp(crop.reshape(-1, 3).mean(0)) < 3 and np.abs(crop[..., 0] - crop[..., 1]).max() < 3:
-        tint = np.array(_rand_colour(rng), np.float32) / 255.0
-        crop = crop * (0.45 + 0.55 * tint)
-    return np.clip(crop, 0, 255).astype(np.uint8)
-
-
-def _silhouette(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
-    """Outline polygon (P, 2) in texture pixels (continuous coords): rect, ellipse or
-    rounded rectangle."""
-    kind = rng.random()
-    if kind < 0.5:
-        return np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
-    a = np.linspace(0, 2 * np.pi, 48, endpoint=False)
-    if kind < 0.75:
-        return np.column_stack([w / 2 + w / 2 * np.cos(a), h / 2 + h / 2 * np.sin(a)])
-    r = 0.22 * min(w, h)
-    pts = []
-    for (cx, cy), a0 in (((w - r, h - r), 0.0), ((r, h - r), 0.5 * np.pi),
-                         ((r, r), np.pi), ((w - r, r), 1.5 * np.pi)):
-        aa = a0 + np.linspace(0, 0.5 * np.pi, 7)
-        pts.append(np.column_stack([cx + r * np.cos(aa), cy + r * np.sin(aa)]))
-    return np.concatenate(pts)
 
 
 # ============================================================================ layouts
@@ -652,8 +399,8 @@ def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     """Smooth noise texture (h, w, 3) float32 between two random colours."""
     import cv2
 
-    c0 = np.array(_rand_colour(rng), np.float32) * rng.uniform(0.4, 0.9)
-    c1 = np.array(_rand_colour(rng), np.float32) * rng.uniform(0.4, 0.9)
+    c0 = np.array(rand_colour(rng), np.float32) * rng.uniform(0.4, 0.9)
+    c1 = np.array(rand_colour(rng), np.float32) * rng.uniform(0.4, 0.9)
     low = rng.random((max(2, h // 64), max(2, w // 64))).astype(np.float32)
     mid = rng.random((max(2, h // 12), max(2, w // 12))).astype(np.float32)
     a = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
@@ -669,7 +416,7 @@ def _add_clutter(rng: np.random.Generator, p: SynthParams, img: np.ndarray) -> N
     h, w = img.shape[:2]
     s = min(w, h)
     for _ in range(int(rng.integers(p.n_blobs[0], p.n_blobs[1] + 1))):
-        col = tuple(float(c) for c in _rand_colour(rng))
+        col = tuple(float(c) for c in rand_colour(rng))
         c = (int(rng.integers(0, w)), int(rng.integers(0, h)))
         if rng.random() < 0.5:
             ax = (int(rng.integers(s // 40, s // 8)), int(rng.integers(s // 40, s // 8)))
@@ -682,7 +429,7 @@ def _add_clutter(rng: np.random.Generator, p: SynthParams, img: np.ndarray) -> N
             pts = np.stack([c[0] + rad * np.cos(ang), c[1] + rad * np.sin(ang)], 1)
             cv2.fillPoly(img, [pts.astype(np.int32)], col, cv2.LINE_AA)
     for _ in range(int(rng.integers(p.n_lines[0], p.n_lines[1] + 1))):
-        col = tuple(float(c) for c in _rand_colour(rng))
+        col = tuple(float(c) for c in rand_colour(rng))
         a = (int(rng.integers(0, w)), int(rng.integers(0, h)))
         b = (int(rng.integers(0, w)), int(rng.integers(0, h)))
         cv2.line(img, a, b, col, int(rng.integers(1, 5)), cv2.LINE_AA)
@@ -808,7 +555,7 @@ def render_synthetic_image(params: SynthParams, index: int) -> SynthImage:
         raise RuntimeError(f"image {i}: no recurring pattern could be placed")
 
     # ---- textures, one per RP, distinct sources
-    photos = list(_available_photos())
+    photos = list(available_photos())
     rng.shuffle(photos)
     tex_list = []
     for _k, pl in enumerate(placed):
@@ -816,14 +563,14 @@ def render_synthetic_image(params: SynthParams, index: int) -> SynthImage:
         tw = max(8, int(round(th * pl.layout.size[0] / pl.layout.size[1])))
         if photos and rng.random() < p.photo_fraction:
             src = photos.pop()
-            tex = _textured(lambda: _photo_texture(rng, src, tw, th), 8)
+            tex = textured(lambda: photo_texture(rng, src, tw, th), 8)
             if rng.random() < 0.5:
-                cv2.rectangle(tex, (0, 0), (tw - 1, th - 1), _rand_colour(rng),
+                cv2.rectangle(tex, (0, 0), (tw - 1, th - 1), rand_colour(rng),
                               max(2, th // 30))
         else:
             src = "procedural"
-            tex = _textured(lambda: _procedural_texture(rng, tw, th), 4)
-        outline = _silhouette(rng, tw, th)
+            tex = textured(lambda: procedural_texture(rng, tw, th), 4)
+        outline = silhouette(rng, tw, th)
         tex_list.append((src, tex, outline))
 
     # ---- background and clutter
@@ -840,7 +587,7 @@ def render_synthetic_image(params: SynthParams, index: int) -> SynthImage:
             dx, dy = int(rng.integers(0, max(1, w - dw))), int(rng.integers(0, max(1, h - dh)))
             if all(dx + dw < b[0] - 4 or dx > b[2] + 4 or dy + dh < b[1] - 4 or dy > b[3] + 4
                    for b in rp_boxes):
-                dtex = _procedural_texture(rng, dw, dh).astype(np.float32)
+                dtex = procedural_texture(rng, dw, dh).astype(np.float32)
                 img[dy:dy + dh, dx:dx + dw] = dtex[:min(dh, h - dy), :min(dw, w - dx)]
                 rp_boxes.append(np.array([dx, dy, dx + dw, dy + dh], float))
                 break
@@ -954,8 +701,8 @@ def render_synthetic_image(params: SynthParams, index: int) -> SynthImage:
             x1o, y1o = int(round(r0[2])), int(round(r0[3]))
             if x1o - x0o < 2 or y1o - y0o < 2:
                 continue
-            occ = _procedural_texture(rng, x1o - x0o, y1o - y0o).astype(np.float32)
-            occ = 0.35 * occ + 0.65 * np.array(_rand_colour(rng), np.float32)
+            occ = procedural_texture(rng, x1o - x0o, y1o - y0o).astype(np.float32)
+            occ = 0.35 * occ + 0.65 * np.array(rand_colour(rng), np.float32)
             img[y0o:y1o, x0o:x1o] = occ
             owner[y0o:y1o, x0o:x1o] = -2
     counts = np.bincount(owner[owner >= 0].ravel(), minlength=max(1, label))

@@ -14,7 +14,7 @@ rule generate_synthetic:
         vps=f"{RESULTS}/{SYNTHETIC_DIR}/vanishing_points.json",
         truth=f"{RESULTS}/{SYNTHETIC_DIR}/truth.json",
     input:
-        code("data/synth", "scene/symmetry", "layout"),
+        code("data/synth", "data/camera", "data/textures", "scene/symmetry", "layout"),
     params:
         synth=config["synthetic"],
     log:
