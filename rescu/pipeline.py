@@ -189,7 +189,8 @@ def read_prepared(png: str, meta_path: str) -> tuple[np.ndarray, dict[str, Any]]
 
 # --------------------------------------------------------------------------- features
 def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> Failure | None:
-    """SIFT features of the processed image to HDF5 (:func:`rescu.discovery.features.save_features`)."""
+    """SIFT features of the processed image to HDF5
+    (:func:`rescu.discovery.features.save_features`)."""
     from .discovery import features as F
     from .types import Features
 

@@ -1,4 +1,4 @@
-"""End-to-end fine-tuning of the stage-II backbone (rescu.extension.finetune), on a tiny image, CPU."""
+"""End-to-end fine-tuning of the stage-II backbone (rescu.extension.finetune), tiny image, CPU."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,14 +1,14 @@
 """Synthetic recurring-pattern benchmark with exact 3D ground truth.
 
 Each image shows 1 to ``max_rps`` recurring patterns (RPs). An RP is a set of textured
-instances (procedural shapes/stripes/glyphs or crops of photos shipped in
-scikit-image's package folder; :mod:`rescu.data.textures`) laid out on a 3D plane as a *row* or a *grid*, either
-equally spaced (3D translation symmetry; cross ratio of 4 consecutive instances = 4/3)
-or, as negatives, with clearly unequal spacing. The planes are rendered by a pinhole
-camera: a *frontal* subset (plane parallel to the image: row vanishing points at
-infinity) and a *projective* subset (plane tilted by 30-65 degrees: finite row VP,
-often outside the image). Non-recurring clutter, lighting gradients, noise and, in the
-*hard* images, partial occlusion and blur are added.
+instances (procedural shapes/stripes/glyphs or crops of photos shipped in scikit-image's
+package folder; :mod:`rescu.data.textures`) laid out on a 3D plane as a *row* or a *grid*,
+either equally spaced (3D translation symmetry; cross ratio of 4 consecutive instances =
+4/3) or, as negatives, with clearly unequal spacing. The planes are rendered by a pinhole
+camera: a *frontal* subset (plane parallel to the image: row vanishing points at infinity)
+and a *projective* subset (plane tilted by 30-65 degrees: finite row VP, often outside the
+image). Non-recurring clutter, lighting gradients, noise and, in the *hard* images, partial
+occlusion and blur are added.
 
 Geometry (:mod:`rescu.data.camera`; camera frame: x right, y down, z forward; pixels as
 in :mod:`rescu.types`):

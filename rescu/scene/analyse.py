@@ -124,8 +124,8 @@ def equal_rows(feature_points: np.ndarray | None, centres: np.ndarray,
                params: VPParams = VPParams()) -> list[bool] | None:
     """Per row, whether it passes the translation-symmetry test on its own.
 
-    The row test of the VP estimator (:data:`rescu.scene.vp.estimator.RowTest`): equally spaced rows
-    also constrain the VP by their spacing.
+    The row test of the VP estimator (:data:`rescu.scene.vp.estimator.RowTest`): equally
+    spaced rows also constrain the VP by their spacing.
 
     Parameters
     ----------
@@ -247,13 +247,13 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
               params: SceneParams) -> VanishingPoint | None:
     """The dominant VP: the VP shared by the most RP instances.
 
-    Every pattern with a VP seeds a group: its VP re-estimated with the other patterns
-    that share it (:func:`rescu.scene.vp.estimator.joint_vanishing_point`, the others tried in order of
-    decreasing VP support, i.e. number of inlier implicit lines, then count). The group
-    with the most instances in total gives the image VP; ties go to the group seeded by
-    the more dominant pattern (the dominant pattern first, then by count, score, order).
-    Without any sharing this is the dominant pattern's own VP whenever it has one; a
-    large spurious RP no longer outvotes several smaller RPs along one 3D direction.
+    Every pattern with a VP seeds a group: its VP re-estimated with the other patterns that
+    share it (:func:`rescu.scene.vp.estimator.joint_vanishing_point`, the others tried in
+    order of decreasing VP support, i.e. number of inlier implicit lines, then count). The
+    group with the most instances in total gives the image VP; ties go to the group seeded
+    by the more dominant pattern (the dominant pattern first, then by count, score, order).
+    Without any sharing this is the dominant pattern's own VP whenever it has one; a large
+    spurious RP no longer outvotes several smaller RPs along one 3D direction.
     """
     have = [i for i in range(len(patterns)) if patterns[i].vanishing_point is not None]
     if not have:

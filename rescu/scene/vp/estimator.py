@@ -47,9 +47,9 @@ def rp_vanishing_point(bboxes: np.ndarray, feature_points: np.ndarray | None,
     params : VPParams
     row_test : callable or None
         Which rows are equally spaced in 3D (:data:`RowTest`; the scene step passes the
-        translation-symmetry test, :func:`rescu.scene.analyse.equal_rows`): those rows
-        also constrain the VP by their spacing (:func:`rescu.scene.vp.refine.spacing_refine_vp`). None: no
-        row is.
+        translation-symmetry test, :func:`rescu.scene.analyse.equal_rows`): those rows also
+        constrain the VP by their spacing (:func:`rescu.scene.vp.refine.spacing_refine_vp`).
+        None: no row is.
 
     Returns
     -------

@@ -35,10 +35,11 @@ class Lines:
         The image points each line was fitted to (pixels), for the maximum-likelihood
         refinement (:func:`rescu.scene.vp.refine.ml_refine_vp`); None: unknown (e.g. LSD segments).
     positions : list of (K_l,) float arrays or None entries, or None
-        For a line fitted to the features of one visual word along an *equally spaced*
-        row: the ordinal of each point's instance in the row (0, 1, 2, ...; gaps where
-        the word is missing), used by the spacing model (:func:`rescu.scene.vp.refine.spacing_refine_vp`);
-        None where the row is not known to be equally spaced.
+        For a line fitted to the features of one visual word along an *equally spaced* row:
+        the ordinal of each point's instance in the row (0, 1, 2, ...; gaps where the word
+        is missing), used by the spacing model
+        (:func:`rescu.scene.vp.refine.spacing_refine_vp`); None where the row is not known
+        to be equally spaced.
     """
 
     midpoints: np.ndarray

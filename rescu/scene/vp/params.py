@@ -31,8 +31,8 @@ class VPParams:
         the residual of the finite fit underestimates it.
     infinity_noise_px : float
         Floor of the feature noise (pixels) in the point-level infinity test on feature
-        tracks (:func:`rescu.scene.vp.refine.ml_infinity_test`), which replaces the line-level test when the
-        lines carry their points.
+        tracks (:func:`rescu.scene.vp.refine.ml_infinity_test`), which replaces the
+        line-level test when the lines carry their points.
     row_tolerance : float
         An instance centre belongs to a row when it lies within this fraction of the
         instance's smaller box side from the row line.
@@ -49,21 +49,24 @@ class VPParams:
     lsd_max_segments : int
         Baseline: the longest this many segments are kept.
     ml_refine : bool
-        Finish the fit with the maximum-likelihood VP (:func:`rescu.scene.vp.refine.ml_refine_vp`) on the
-        feature tracks of the inlier lines, where the lines carry their points.
+        Finish the fit with the maximum-likelihood VP
+        (:func:`rescu.scene.vp.refine.ml_refine_vp`) on the feature tracks of the inlier
+        lines, where the lines carry their points.
     register_centres : bool
         Locate instances by their features (:func:`rescu.layout.registered_centres`) instead of
         their box centres for rows and the centre fallbacks, and leave duplicate
         instances (registered centres closer than half an instance) out of the rows.
     joint_alpha : float
-        Level of the likelihood-ratio test that merges another pattern's feature tracks
-        into the image VP of the dominant pattern (:func:`rescu.scene.vp.estimator.joint_vanishing_point`: the
-        patterns share the VP unless the joint fit is significantly worse); 0: the
-        image VP is the dominant pattern's own.
+        Level of the likelihood-ratio test that merges another pattern's feature tracks into
+        the image VP of the dominant pattern
+        (:func:`rescu.scene.vp.estimator.joint_vanishing_point`: the patterns share the VP
+        unless the joint fit is significantly worse); 0: the image VP is the dominant
+        pattern's own.
     spacing_alpha : float
         Level of the likelihood-ratio test that accepts the *spacing model* on rows that
-        pass the translation-symmetry test (:func:`rescu.scene.vp.refine.spacing_refine_vp`: equally spaced
-        3D points, so the image spacing along the row also locates the VP); 0: off.
+        pass the translation-symmetry test (:func:`rescu.scene.vp.refine.spacing_refine_vp`:
+        equally spaced 3D points, so the image spacing along the row also locates the VP);
+        0: off.
     seed : int
         Seed of the random pair sampling.
     """

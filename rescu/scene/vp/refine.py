@@ -166,13 +166,13 @@ def ml_infinity_test(points: Sequence[np.ndarray], v: np.ndarray, alpha: float,
                      noise_floor: float = 0.0) -> np.ndarray:
     """Replace a finite ML VP by the ML point at infinity when an F-test cannot tell them apart.
 
-    Point-level test on the feature tracks (same cost as :func:`ml_refine_vp`, all
-    points weighted equally): C = sum of squared orthogonal distances of the points to
-    their track's line through the VP; F = (C_inf - C_fin) / sigma^2 with
-    sigma^2 = max(C_fin / dof, noise_floor^2), dof = P - T - 2 (P points, T tracks:
-    one angle per track and two VP coordinates). Snap when F is below the
-    (1 - alpha) quantile of F(1, dof) (of chi^2(1) when sigma^2 is the floor). Unlike the
-    line-level test (:func:`rescu.scene.vp.ransac._maybe_infinity`, dof = T - 2) it keeps the power of all
+    Point-level test on the feature tracks (same cost as :func:`ml_refine_vp`, all points
+    weighted equally): C = sum of squared orthogonal distances of the points to their
+    track's line through the VP; F = (C_inf - C_fin) / sigma^2 with sigma^2 = max(C_fin /
+    dof, noise_floor^2), dof = P - T - 2 (P points, T tracks: one angle per track and two VP
+    coordinates). Snap when F is below the (1 - alpha) quantile of F(1, dof) (of chi^2(1)
+    when sigma^2 is the floor). Unlike the line-level test
+    (:func:`rescu.scene.vp.ransac._maybe_infinity`, dof = T - 2) it keeps the power of all
     the points, so a single row of five tracks is not pushed to infinity.
 
     Parameters
