@@ -23,7 +23,7 @@ def run_dataset(ap: argparse.ArgumentParser, a: argparse.Namespace
     """``(config, dataset folder)`` of ``a.dataset`` as the run saw them; a dataset that is
     not in the config is a usage error."""
     from rescu.config import load_config
-    from rescu.datasets import dataset_root
+    from rescu.data.datasets import dataset_root
 
     cfg = load_config(a.config)
     if a.dataset not in cfg["datasets"]:

@@ -1,9 +1,13 @@
 """RESCU: recurrence-based 3D scene understanding from a single image.
 
-Stage I (RESCU-I) discovers recurring patterns (RPs) from SIFT features with a
-unit-recurring-pattern search; stage II (RESCU-II) extends each RP with region proposals
-and a per-image classifier; the scene module turns RPs into vanishing points, 3D
-translation symmetry and counts; the caption module says so in words.
+The subpackages follow the data: ``discovery`` (stage I, RESCU-I: recurring patterns
+(RPs) from SIFT features with a unit-recurring-pattern search) -> ``extension`` (stage
+II, RESCU-II: each RP extended with region proposals and a per-image classifier) ->
+``scene`` (vanishing points, 3D translation symmetry, completion and counts) ->
+``captions`` (the same in words); ``evaluation`` scores them over datasets and ``data``
+makes the synthetic benchmark. Beneath them all: ``types``, ``params``, ``io`` and
+``layout`` (row geometry); on top: ``pipeline`` (one step per file), ``api``
+(:func:`discover`), ``cli`` (the ``rescu`` command) and ``config``.
 """
 
 import logging as _logging

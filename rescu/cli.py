@@ -173,9 +173,64 @@ def cmd_discover(args: argparse.Namespace) -> int:
     return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
-def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate_predictions_cli
+def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float = 0.5,
+                             out_dir: Path | None = None) -> int:
+    """``rescu evaluate``: print the metrics of one prediction folder; return an exit code.
 
+    Uses ``annotations.json`` (RP metrics and counting) and/or ``vanishing_points.json``
+    (VP success rates) of ``dataset_dir``; a missing prediction counts as no detection.
+    Writes per-image scores and tables to ``out_dir`` when given. Returns 0, or 2 when
+    the dataset has no ground truth.
+    """
+    from .evaluation.core import (evaluate_rp_dataset, frame_markdown, summary_markdown,
+                                  summary_table, write_tsv)
+    from .evaluation.counting import counting_table
+    from .evaluation.vpd import vp_frame, vp_markdown, vp_success_table
+    from .io import InputError, read_json
+
+    dataset_dir, pred_dir = Path(dataset_dir), Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise InputError(f"{pred_dir}: prediction folder not found")
+    has_rp = (dataset_dir / "annotations.json").is_file()
+    has_vp = (dataset_dir / "vanishing_points.json").is_file()
+    if not (has_rp or has_vp):
+        raise InputError(f"{dataset_dir}: no annotations.json or vanishing_points.json")
+    stems = {p.stem for p in pred_dir.glob("*.json")}
+    if not stems:
+        raise InputError(f"{pred_dir}: no prediction files (<image stem>.json) in folder")
+    images = set()
+    for name in ("annotations.json", "vanishing_points.json"):
+        if (dataset_dir / name).is_file():
+            d = read_json(dataset_dir / name)
+            images |= {Path(str(im.get("file_name", ""))).stem
+                       for im in (d.get("images") or []) if isinstance(im, dict)}
+    if images and not stems & images:
+        example = sorted(images)[0]
+        raise InputError(f"{pred_dir}: none of its {len(stems)} JSON file(s) is named after an "
+                         f"image of {dataset_dir} (expected e.g. {example}.json)")
+    method = pred_dir.name or "predictions"
+    if has_rp:
+        scores = evaluate_rp_dataset(dataset_dir, {method: pred_dir}, h)
+        summary = summary_table(scores)
+        print(summary_markdown(summary, title=f"RP discovery (IOD h = {h})"))
+        counting = counting_table(dataset_dir, {method: pred_dir}, h)
+        print("\n## Counting\n\n" + frame_markdown(counting))
+        if out_dir is not None:
+            write_tsv(scores, Path(out_dir) / "rp_scores.tsv")
+            write_tsv(summary, Path(out_dir) / "rp_discovery.tsv")
+            write_tsv(counting, Path(out_dir) / "counting.tsv")
+    if has_vp:
+        frame = vp_frame(dataset_dir, {method: pred_dir})
+        if len(frame):
+            success = vp_success_table(frame)
+            print("\n" + vp_markdown(success))
+            if out_dir is not None:
+                write_tsv(frame, Path(out_dir) / "vpd_errors.tsv")
+                write_tsv(success, Path(out_dir) / "vpd.tsv")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
     return evaluate_predictions_cli(Path(args.dataset_dir), Path(args.pred_dir), h=args.h,
                                     out_dir=Path(args.out) if args.out else None)
 

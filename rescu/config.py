@@ -135,16 +135,16 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     stage-II variants). With ``stage2`` the backbone's weights must be on disk. Raises
     ValueError / :class:`InputError` naming the section and key; returns nothing.
     """
-    from .caption import CaptionParams
-    from .completion import CompletionParams
-    from .evaluation import EvaluationParams
-    from .features import FeatureParams
-    from .grasp import GraspParams
+    from .captions.caption import CaptionParams
+    from .scene.completion import CompletionParams
+    from .evaluation.core import EvaluationParams
+    from .discovery.features import FeatureParams
+    from .discovery.grasp import GraspParams
     from .pipeline import ablation_overrides
-    from .scene import SceneParams
-    from .stage1 import Stage1Params
-    from .stage2 import Stage2Params, is_predict_only
-    from .synth import SynthParams
+    from .scene.analyse import SceneParams
+    from .discovery.stage1 import Stage1Params
+    from .extension.stage2 import Stage2Params, is_predict_only
+    from .data.synth import SynthParams
 
     def build(section: str, make: Any) -> Any:
         try:
@@ -212,7 +212,7 @@ def check_backbone_weights(stage2: dict[str, Any]) -> str:
             raise InputError(f"stage2.weights_path = {str(path)!r}: efficientnet-lite0 "
                              f"weights file not found")
         return str(path)
-    from .backbone import densenet_weight_candidates
+    from .extension.backbone import densenet_weight_candidates
 
     cands = densenet_weight_candidates(path)
     for c in cands:

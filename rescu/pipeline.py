@@ -189,8 +189,9 @@ def read_prepared(png: str, meta_path: str) -> tuple[np.ndarray, dict[str, Any]]
 
 # --------------------------------------------------------------------------- features
 def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> Failure | None:
-    """SIFT features of the processed image to HDF5 (:func:`rescu.features.save_features`)."""
-    from . import features as F
+    """SIFT features of the processed image to HDF5
+    (:func:`rescu.discovery.features.save_features`)."""
+    from .discovery import features as F
     from .types import Features
 
     meta = io.read_json(meta_path)
@@ -217,15 +218,15 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
     matrices (feature indices) to HDF5.
     """
-    from . import features as F
-    from . import stage1 as S
+    from .discovery import features as F
+    from .discovery import stage1 as S
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         feats = F.load_features(features_h5)
         if method == "grasp":
-            from . import grasp as G
+            from .discovery import grasp as G
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
@@ -272,8 +273,8 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     ``out_jsons`` maps each variant name to its per-image result JSON (method
     ``rescu-i[<variant>]``). Features are loaded once.
     """
-    from . import features as F
-    from . import stage1 as S
+    from .discovery import features as F
+    from .discovery import stage1 as S
 
     meta = io.read_json(meta_path)
     overrides = {name: ablation_overrides(v) for name, v in variants.items()}
@@ -300,7 +301,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
 def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
                     params: dict[str, Any]) -> Failure | None:
     """Proposals and pooled backbone features of one image to HDF5."""
-    from . import stage2 as S2
+    from .extension import stage2 as S2
 
     meta = io.read_json(meta_path)
 
@@ -320,7 +321,7 @@ def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
 def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
                  params: dict[str, Any]) -> Failure | None:
     """Train the per-image head on cached features; save the checkpoint."""
-    from . import stage2 as S2
+    from .extension import stage2 as S2
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
@@ -337,7 +338,7 @@ def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
 def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,
                    meta_path: str, params: dict[str, Any]) -> Failure | None:
     """RESCU-II instances: stage-I instances plus the head's positive proposals."""
-    from . import stage2 as S2
+    from .extension import stage2 as S2
 
     meta = io.read_json(meta_path)
     ckpt = S2.load_checkpoint(ckpt_path)
@@ -367,11 +368,11 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
     """RESCU-II once per prediction-only variant, from the run's own features and head.
 
     Each variant is a mapping of ``stage2`` keys that act only in prediction
-    (:func:`rescu.stage2.is_predict_only`; a ValueError names any other) overriding
+    (:func:`rescu.extension.stage2.is_predict_only`; a ValueError names any other) overriding
     ``params``; ``out_jsons`` maps each variant to its per-image JSON (method
     ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
     """
-    from . import stage2 as S2
+    from .extension import stage2 as S2
 
     meta = io.read_json(meta_path)
     plist = {}
@@ -413,7 +414,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     ``out_jsons`` maps each variant to its per-image result JSON (method
     ``rescu-ii[<variant>]``).
     """
-    from . import stage2 as S2
+    from .extension import stage2 as S2
 
     meta = io.read_json(meta_path)
     s1 = io.read_result(stage1_json)
@@ -448,7 +449,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 def _scene_params(section: dict[str, Any]) -> Any:
     """SceneParams from the config's ``scene`` section (``source`` picks the input file
     of the scene step and is not a SceneParams field)."""
-    from . import scene as SC
+    from .scene import analyse as SC
 
     return SC.SceneParams.from_dict({k: v for k, v in section.items()
                                      if k not in ("source", "completion")})
@@ -459,15 +460,15 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
     """Row completion, vanishing points, translation symmetry, counts; rectified views.
 
     ``params`` is the config's ``scene`` section; its ``completion`` entry
-    (:class:`rescu.completion.CompletionParams`, absent = defaults) fills the missing
-    instances of equally spaced rows first (:func:`rescu.completion.complete_rows`).
+    (:class:`rescu.scene.completion.CompletionParams`, absent = defaults) fills the missing
+    instances of equally spaced rows first (:func:`rescu.scene.completion.complete_rows`).
     ``out_rectified_dir`` receives ``rp<id>.png`` for every pattern that has a VP (the
     folder may be empty).
     """
     import cv2
 
-    from . import completion as CO
-    from . import scene as SC
+    from .scene import completion as CO
+    from .scene import analyse as SC
 
     meta = io.read_json(meta_path)
     Path(out_rectified_dir).mkdir(parents=True, exist_ok=True)
@@ -500,14 +501,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
     """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
-    from . import vp as V
+    from .scene.vp.lsd import line_vanishing_point
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
         p = _scene_params(params)
-        vp = V.line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
+        vp = line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp
         io.write_json(out_json, res)
@@ -522,7 +523,7 @@ def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> 
 def caption(png: str, meta_path: str, in_json: str, out_json: str,
             params: dict[str, Any]) -> Failure | None:
     """Base and enhanced caption into the final per-image JSON."""
-    from . import caption as C
+    from .captions import caption as C
 
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)

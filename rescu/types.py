@@ -114,7 +114,7 @@ class Instance:
 
     ``source`` is ``"stage1"`` (found by RESCU-I / GRASP), ``"stage2"`` (added by
     RESCU-II) or ``"completion"`` (filled into an equally spaced row by the scene step,
-    :mod:`rescu.completion`). ``score`` is a confidence in [0, 1].
+    :mod:`rescu.scene.completion`). ``score`` is a confidence in [0, 1].
     """
 
     bbox: BBox

@@ -1,4 +1,4 @@
-"""Tests of rescu.backbone: frozen backbones, RoI pooling, missing-weights error."""
+"""Tests of rescu.extension.backbone: frozen backbones, RoI pooling, missing-weights error."""
 
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rescu.backbone import BackboneWeightsError, FrozenBackbone, pool_boxes  # noqa: E402
+from rescu.extension.backbone import BackboneWeightsError, FrozenBackbone, pool_boxes  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_roi_align_without_torchvision_package_is_torchvisions_kernel():
     import torch
     from torchvision.ops import roi_align
 
-    from rescu.backbone import _roi_align
+    from rescu.extension.backbone import _roi_align
 
     g = torch.Generator().manual_seed(0)
     fmap = torch.rand(1, 16, 20, 30, generator=g)
@@ -82,7 +82,7 @@ def test_pool_boxes_does_not_import_torchvision():
     import sys
 
     code = ("import numpy as np, torch, sys\n"
-            "from rescu.backbone import pool_boxes\n"
+            "from rescu.extension.backbone import pool_boxes\n"
             "f = pool_boxes(torch.rand(1, 8, 10, 10), np.array([[0, 0, 40, 40.]]), (160, 160))\n"
             "assert f.shape == (1, 32)\n"
             "print('torchvision' in sys.modules)\n")

@@ -1,4 +1,4 @@
-"""Captions and the enhancement grammar (rescu.caption)."""
+"""Captions and the enhancement grammar (rescu.captions.caption)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rescu import caption as C
+from rescu.captions import caption as C
+from rescu.captions import grammar as G
 from rescu.io import InputError
-from rescu.types import (ImageResult, Instance, Pattern, TranslationSymmetry,
-                         VanishingPoint)
+from rescu.types import ImageResult, Instance, Pattern, TranslationSymmetry, VanishingPoint
 
 RGB = np.zeros((40, 60, 3), np.uint8)
 
@@ -164,7 +164,7 @@ def test_ing_compound_scene_sentence_uses_head_noun() -> None:
                                     (21, "21"), (30, "30")])
 def test_number_words_and_digits(n: int, word: str) -> None:
     assert enh("A group of cups.", n) == f"{word} similar cups."
-    assert C.count_word(n).capitalize() == word
+    assert G.count_word(n).capitalize() == word
 
 
 def test_count_one_or_no_pattern_leaves_caption_unchanged() -> None:
@@ -243,12 +243,12 @@ def test_grounding_gives_dominant_no_noun_skips_scene_sentence() -> None:
 
 
 def test_pluralize_and_is_plural() -> None:
-    assert C.pluralize("City") == "Cities"
-    assert C.pluralize("bottles") == "bottles"
-    assert C.pluralize("glass") == "glasses"
-    assert C.is_plural("people") and not C.is_plural("bus")
+    assert G.pluralize("City") == "Cities"
+    assert G.pluralize("bottles") == "bottles"
+    assert G.pluralize("glass") == "glasses"
+    assert G.is_plural("people") and not G.is_plural("bus")
     with pytest.raises(ValueError):
-        C.count_word(-1)
+        G.count_word(-1)
 
 
 def test_enhance_rejects_non_string() -> None:

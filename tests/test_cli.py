@@ -72,7 +72,7 @@ def test_python_api(tmp_path):
 
 
 def test_evaluate_ground_truth_as_predictions_gives_one(tmp_path):
-    from rescu.synth import SynthParams, generate_dataset
+    from rescu.data.synth import SynthParams, generate_dataset
     from rescu.types import ImageResult, Instance, Pattern
 
     ds = tmp_path / "ds"

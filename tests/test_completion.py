@@ -1,4 +1,4 @@
-"""Tests of rescu.completion (row completion from 3D equal spacing)."""
+"""Tests of rescu.scene.completion (row completion from 3D equal spacing)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rescu import completion as CO
+from rescu.scene import completion as CO
 from rescu.types import ImageResult, Instance, Pattern
 
 SIDE = 40  # object side, pixels (canvas)

@@ -1,12 +1,12 @@
-"""Tests of rescu.counting: counts, dominant RP, count errors."""
+"""Tests of rescu.scene.counting: counts, dominant RP, count errors."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from rescu import counting as C
-from rescu.metrics import score_image
+from rescu.scene import counting as C
+from rescu.evaluation.metrics import score_image
 from rescu.types import Instance, Pattern
 
 

@@ -13,11 +13,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rescu import evaluation as E
+from rescu.evaluation import core as E
+from rescu.evaluation import counting as EC
+from rescu.evaluation import diagnostics as ED
+from rescu.evaluation import failures as EF
+from rescu.evaluation import plots as EP
+from rescu.evaluation import ts as ET
+from rescu.evaluation import vpd as EV
 from rescu.io import load_coco_rps, write_json
-from rescu.metrics import METRICS
-from rescu.types import (ImageResult, Instance, Pattern, TranslationSymmetry,
-                         VanishingPoint)
+from rescu.evaluation.metrics import METRICS
+from rescu.types import ImageResult, Instance, Pattern, TranslationSymmetry, VanishingPoint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -228,7 +233,7 @@ def test_curves_monotone_and_png(tiny) -> None:
         assert np.all(np.diff(v) <= 1e-12)
         # jitter 4 px on 20 px boxes: IOD = 16*16/400 = 0.64
         assert v[5] == 1.0 and v[6] == 0.0
-    E.plot_metric_curves(c, tmp / "fig" / "curves.png", title="tiny")
+    EP.plot_metric_curves(c, tmp / "fig" / "curves.png", title="tiny")
     assert (tmp / "fig" / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -257,7 +262,7 @@ def test_counting_table(tiny) -> None:
     ds, preds, tmp = tiny
     more = write_preds(tmp / "p_more", "more", count_delta=1)  # one extra far instance
     less = write_preds(tmp / "p_less", "less", count_delta=-1)
-    t = E.counting_table(ds, {"gt": preds["gt"], "more": more, "less": less}).set_index("method")
+    t = EC.counting_table(ds, {"gt": preds["gt"], "more": more, "less": less}).set_index("method")
     assert t.loc["gt", "n_matched"] == 3
     assert t.loc["gt", "count_mae"] == 0.0 and t.loc["gt", "exact_rate"] == 1.0
     assert t.loc["gt", "dominant_exact_rate"] == 1.0 and t.loc["gt", "n_dominant"] == 2
@@ -266,7 +271,7 @@ def test_counting_table(tiny) -> None:
     assert t.loc["less", "n_matched"] == 3 and t.loc["less", "count_mae"] == 1.0
     assert t.loc["gt", "instance_precision_pooled"] == 1.0
     assert t.loc["more", "instance_precision_pooled"] == pytest.approx(12 / 15)
-    cf = E.count_frame(ds, {"gt": preds["gt"]})
+    cf = EC.count_frame(ds, {"gt": preds["gt"]})
     assert sorted(cf["gt_count"].tolist()) == [3, 4, 5] and cf["counted"].all()
 
 
@@ -275,21 +280,21 @@ def test_counting_table_counts_each_gt_rp_once(tiny) -> None:
     per-detected-RP columns show both parts."""
     ds, _, tmp = tiny
     split = write_preds(tmp / "p_split", "split", split=True)  # 5 -> 3 + 2, 4 -> 2 + 2
-    t = E.counting_table(ds, {"split": split}).set_index("method").loc["split"]
+    t = EC.counting_table(ds, {"split": split}).set_index("method").loc["split"]
     assert t["n_matched"] == 3 and t["n_matched_rps"] == 5
     assert t["exact_rate"] == pytest.approx(1 / 3)  # only the RP of 3 is exact
     assert t["count_mae"] == pytest.approx((2 + 2 + 0) / 3)
     assert t["exact_rate_all_rps"] == pytest.approx(1 / 5)
     assert t["count_mae_all_rps"] == pytest.approx((2 + 3 + 2 + 2 + 0) / 5)
-    cf = E.count_frame(ds, {"split": split})
+    cf = EC.count_frame(ds, {"split": split})
     counted = cf[cf["counted"]].sort_values("gt_count")
     assert counted["det_count"].tolist() == [3, 2, 3]
 
 
 def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
     ds, preds, tmp = tiny
-    assert E.count_errors(ds, preds["gt"]).empty
-    less = E.count_errors(ds, write_preds(tmp / "p_less", "less", count_delta=-1))
+    assert ED.count_errors(ds, preds["gt"]).empty
+    less = ED.count_errors(ds, write_preds(tmp / "p_less", "less", count_delta=-1))
     assert sorted(less["gt_count"].unique().tolist()) == [3, 4, 5]
     assert (less["det_count"] == less["gt_count"] - 1).all()
     missed = less[less["kind"] == "missed"]
@@ -298,7 +303,7 @@ def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
     for _, r in missed.iterrows():
         rps = dict((len(b), b) for _, b, _ in SCENE[r["image"]])
         assert [r["x"], r["y"], r["w"], r["h"]] == rps[r["gt_count"]][-1]
-    more = E.count_errors(ds, write_preds(tmp / "p_more", "more", count_delta=1))
+    more = ED.count_errors(ds, write_preds(tmp / "p_more", "more", count_delta=1))
     extra = more[more["kind"] == "extra"]
     assert len(extra) == 3 and (extra["source"] == "stage1").all()
     assert not (more["kind"] == "missed").any()
@@ -309,17 +314,17 @@ def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
 def test_truth_instance_at_finds_the_record_centred_in_the_box() -> None:
     recs = [{"center": [10.0, 10.0], "row": 0}, {"center": [40.0, 10.0], "row": 1},
             {"row": 2}, "not a record"]
-    assert E.truth_instance_at(recs, (32.0, 2.0, 16.0, 16.0))["row"] == 1
-    assert E.truth_instance_at(recs, (0.0, 0.0, 20.0, 20.0))["row"] == 0
+    assert ED.truth_instance_at(recs, (32.0, 2.0, 16.0, 16.0))["row"] == 1
+    assert ED.truth_instance_at(recs, (0.0, 0.0, 20.0, 20.0))["row"] == 0
     # centre (19, 19), 12.7 px from (10, 10): beyond half the larger side (8 px)
-    assert E.truth_instance_at(recs, (11.0, 11.0, 16.0, 16.0)) is None
-    assert E.truth_instance_at([], (0.0, 0.0, 5.0, 5.0)) is None
+    assert ED.truth_instance_at(recs, (11.0, 11.0, 16.0, 16.0)) is None
+    assert ED.truth_instance_at([], (0.0, 0.0, 5.0, 5.0)) is None
 
 
 def test_vp_tables(tiny) -> None:
     ds, preds, tmp = tiny
     shifted = write_preds(tmp / "p_vps", "shift", vp_shift=7.0)
-    f = E.vp_frame(ds, {"gt": preds["gt"], "shift": shifted, "jitter": preds["jitter"]})
+    f = EV.vp_frame(ds, {"gt": preds["gt"], "shift": shifted, "jitter": preds["jitter"]})
     assert "images/d.png" not in set(f["image"])  # no GT VP: left out
     g = f[f["method"] == "gt"]
     # JSON keeps 9 decimals of the unit homogeneous vector: ~1e-4 px at 1000 px
@@ -330,31 +335,31 @@ def test_vp_tables(tiny) -> None:
     j = f[f["method"] == "jitter"].set_index("image")
     assert j.loc["images/b.png", "vp_missing"] and math.isinf(j.loc["images/b.png",
                                                                     "point_error_px"])
-    s = E.vp_success_table(f, px_thresholds=(5, 10), deg_thresholds=(1, 20))
+    s = EV.vp_success_table(f, px_thresholds=(5, 10), deg_thresholds=(1, 20))
     pt = s[s["kind"] == "point_px"].set_index(["method", "threshold"])["success_rate"]
     assert pt[("gt", 5.0)] == 1.0 and pt[("shift", 5.0)] == 0.0 and pt[("shift", 10.0)] == 1.0
     assert pt[("jitter", 10.0)] == pytest.approx(2 / 3)
-    sig = E.vp_significance(f)
+    sig = EV.vp_significance(f)
     assert len(sig) == 2 * 3 and sig["p_value"].between(0, 1).all()
-    md = E.vp_markdown(s)
+    md = EV.vp_markdown(s)
     assert "≤ 5 px" in md and "| shift | 0.00 | 1.00 |" in md
     # with the errors: what they mean, once per dataset
     assert f.set_index("image")["n_gt_vps"].to_dict() == {
         "images/a.png": 2, "images/b.png": 1, "images/c.png": 1}
-    md = E.vp_markdown(s, errors=f)
+    md = EV.vp_markdown(s, errors=f)
     assert md.count("3 images, 1-2 GT VPs per image; errors are to the closest GT VP. "
                     "Angle errors with f = (w + h) / 4") == 1
     assert "jitter" in md and "(1 without a VP)" in md
-    one = E.vp_markdown(s, errors=f.assign(n_gt_vps=1))
+    one = EV.vp_markdown(s, errors=f.assign(n_gt_vps=1))
     assert "1 GT VP per image. " in one and "closest" not in one
-    E.plot_vp_curves(s, tmp / "vp.png")
+    EP.plot_vp_curves(s, tmp / "vp.png")
     assert (tmp / "vp.png").stat().st_size > 1000
 
 
 def test_ts_sweep_rates(tiny) -> None:
     ds, preds, _ = tiny
-    fr = E.ts_frame(ds, {"gt": preds["gt"], "jitter": preds["jitter"]})
-    sw = E.ts_sweep(fr, t_values=(0.1, 0.3)).set_index(["method", "t"])
+    fr = ET.ts_frame(ds, {"gt": preds["gt"], "jitter": preds["jitter"]})
+    sw = ET.ts_sweep(fr, t_values=(0.1, 0.3)).set_index(["method", "t"])
     # a: CR 4/3 and 1.6, b: 4/3, c: no pattern -> 2 of 3 images
     assert sw.loc[("gt", 0.1), "sr_ts"] == pytest.approx(2 / 3)
     assert sw.loc[("gt", 0.1), "tpr"] == 1.0 and sw.loc[("gt", 0.1), "fpr"] == 0.0
@@ -364,10 +369,10 @@ def test_ts_sweep_rates(tiny) -> None:
     # jitter: no pattern is accepted -> no known truth; b missing
     assert math.isnan(sw.loc[("jitter", 0.1), "tpr"])
     assert sw.loc[("jitter", 0.1), "sr_ts"] == pytest.approx(1 / 3)
-    dom = E.ts_sweep(fr, t_values=(0.1,), which="dominant").set_index("method")
+    dom = ET.ts_sweep(fr, t_values=(0.1,), which="dominant").set_index("method")
     assert dom.loc["gt", "sr_ts"] == pytest.approx(2 / 3)
     with pytest.raises(ValueError, match="which"):
-        E.ts_sweep(fr, which="all")
+        ET.ts_sweep(fr, which="all")
 
 
 def test_collect_failures(tmp_path: Path) -> None:
@@ -380,17 +385,17 @@ def test_collect_failures(tmp_path: Path) -> None:
                                                  "dataset": "other"}))
     (d / "z.failed.json").write_text("{broken")
     (d / "ignored.json").write_text("{}")
-    df = E.collect_failures(tmp_path / "failures")
+    df = EF.collect_failures(tmp_path / "failures")
     assert df[["dataset", "image", "stage"]].values.tolist() == [
         ["chess", "images/x.jpg", "stage1"], ["other", "images/y.jpg", "vp"],
         ["chess", "z", "unreadable"]]
     E.write_tsv(df, tmp_path / "f.tsv")
     assert E.read_tsv(tmp_path / "f.tsv")["message"].tolist()[0] == "no SIFT"
-    md = E.failures_markdown(df)
+    md = EF.failures_markdown(df)
     assert "a\\|b c" in md
-    assert E.failures_markdown(df.iloc[:0]) == "No failures.\n"
+    assert EF.failures_markdown(df.iloc[:0]) == "No failures.\n"
     with pytest.raises(Exception, match="not found"):
-        E.collect_failures(tmp_path / "nothing")
+        EF.collect_failures(tmp_path / "nothing")
 
 
 def test_params_from_dict() -> None:
@@ -439,7 +444,7 @@ def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> No
     inst_rp = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])   # positions in rp_index
     gts = [GroundTruthRP("row", [tuple(b) for b in left + right], {}),
            GroundTruthRP("other", [tuple(b) for b in other], {})]
-    rows = E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, gts)
+    rows = ED.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, gts)
     got = {(r["a"], r["b"]): r for r in rows}
     assert set(got) == {(0, 2), (0, 3), (2, 3)}
     assert got[(0, 2)]["same"] and got[(0, 2)]["merge"]
@@ -448,10 +453,10 @@ def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> No
         assert not got[k]["same"] and not got[k]["merge"]
         assert got[k]["gt_b"] == 1
     # an RP matching no GT RP is labelled -1
-    only_row = {(r["a"], r["b"]): r for r in E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp,
+    only_row = {(r["a"], r["b"]): r for r in ED.merge_pair_rows(res, [0, 2, 3], feats, inst_rp,
                                                                  gts[:1])}
     assert only_row[(0, 3)]["gt_b"] == -1 and only_row[(0, 2)]["same"]
     # without ground truth every label is -1 and no pair is "same"
-    assert not any(r["same"] for r in E.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, []))
+    assert not any(r["same"] for r in ED.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, []))
     with pytest.raises(ValueError, match="inst_feats"):
-        E.merge_pair_rows(res, [0, 2, 3], feats[:5], inst_rp, gts)
+        ED.merge_pair_rows(res, [0, 2, 3], feats[:5], inst_rp, gts)

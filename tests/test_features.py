@@ -1,9 +1,9 @@
-"""Tests of SIFT feature extraction and storage (rescu.features)."""
+"""Tests of SIFT feature extraction and storage (rescu.discovery.features)."""
 
 import numpy as np
 import pytest
 
-from rescu.features import FeatureParams, extract_features, load_features, save_features
+from rescu.discovery.features import FeatureParams, extract_features, load_features, save_features
 
 
 def _image(seed=0, h=120, w=160):
@@ -74,7 +74,7 @@ def test_upsampling_keeps_original_pixels_consistent():
 
 def test_empty_features_round_trip(tmp_path):
     """A uniform image has no features; they save and load as an empty set."""
-    from rescu.features import load_features, save_features
+    from rescu.discovery.features import load_features, save_features
     from rescu.types import Features
 
     save_features(tmp_path / "f.h5", Features.empty((320, 240), 0.5))

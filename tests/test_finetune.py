@@ -1,4 +1,4 @@
-"""End-to-end fine-tuning of the stage-II backbone (rescu.finetune), on a tiny image, CPU."""
+"""End-to-end fine-tuning of the stage-II backbone (rescu.extension.finetune), tiny image, CPU."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rescu import backbone as B  # noqa: E402
-from rescu.finetune import finetune_backbone  # noqa: E402
+from rescu.extension import backbone as B  # noqa: E402
+from rescu.extension.finetune import finetune_backbone  # noqa: E402
 
 
 def _scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

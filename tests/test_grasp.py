@@ -1,4 +1,4 @@
-"""Tests of the GRASP baseline (rescu.grasp)."""
+"""Tests of the GRASP baseline (rescu.discovery.grasp)."""
 
 import sys
 from pathlib import Path
@@ -8,10 +8,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_stage1 import make_scene  # noqa: E402
 
-from rescu.features import extract_features  # noqa: E402
-from rescu.grasp import GraspParams, discover_grasp  # noqa: E402
-from rescu.metrics import score_image  # noqa: E402
-from rescu.stage1 import rps_to_patterns  # noqa: E402
+from rescu.discovery.features import extract_features  # noqa: E402
+from rescu.discovery.grasp import GraspParams, discover_grasp  # noqa: E402
+from rescu.evaluation.metrics import score_image  # noqa: E402
+from rescu.discovery.stage1 import rps_to_patterns  # noqa: E402
 from rescu.types import Features  # noqa: E402
 
 P = GraspParams(iterations=2, max_steps=15, max_candidates=15, max_patterns=1)

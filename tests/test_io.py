@@ -189,7 +189,7 @@ def test_command_line_overrides_get_yaml_types_back():
 
 
 def test_run_datasets_selects_and_names_unknown_datasets(tmp_path):
-    from rescu.datasets import build_image_table, selected_datasets
+    from rescu.data.datasets import build_image_table, selected_datasets
 
     cfg = load_config()
     assert selected_datasets(cfg) is None

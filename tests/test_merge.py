@@ -1,10 +1,10 @@
-"""Tests of rescu.merge: merging recurring patterns split by stage I."""
+"""Tests of rescu.extension.merge: merging recurring patterns split by stage I."""
 
 import numpy as np
 import pytest
 
-from rescu.merge import MergeParams, line_residual, merge_split_patterns, pair_evidence
-from rescu.stage2 import Stage2Params, predict_stage2
+from rescu.extension.merge import MergeParams, line_residual, merge_split_patterns, pair_evidence
+from rescu.extension.stage2 import Stage2Params, predict_stage2
 from rescu.types import ImageResult, Instance, Pattern
 
 D = 16

@@ -1,4 +1,4 @@
-"""IOD metrics (rescu.metrics): exact values on tiny inputs and property tests."""
+"""IOD metrics (rescu.evaluation.metrics): exact values on tiny inputs and property tests."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rescu.metrics import (METRICS, iod_matrix, iou_matrix, match_boxes, score_image,
-                           summarise)
+from rescu.evaluation.metrics import (METRICS, iod_matrix, iou_matrix, match_boxes, score_image,
+                                      summarise)
 
 
 def row(n: int, x0: float = 0.0, y0: float = 0.0, size: float = 10.0, gap: float = 20.0):

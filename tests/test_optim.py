@@ -1,11 +1,11 @@
-"""rescu.optim.Adam: bit-identical to torch.optim.Adam's defaults on CPU."""
+"""rescu.extension.optim.Adam: bit-identical to torch.optim.Adam's defaults on CPU."""
 
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from rescu.optim import Adam  # noqa: E402
+from rescu.extension.optim import Adam  # noqa: E402
 
 
 def _train(make_opt, steps: int = 60) -> list:

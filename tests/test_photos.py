@@ -1,4 +1,4 @@
-"""Tests of rescu.photos (package photos exported as a dataset)."""
+"""Tests of rescu.data.photos (package photos exported as a dataset)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from rescu.io import load_image
-from rescu.photos import PACKAGE_PHOTOS, PHOTO_NOTES, export_package_photos, package_photo_dir
+from rescu.data.photos import PACKAGE_PHOTOS, PHOTO_NOTES, export_package_photos, package_photo_dir
 
 
 def test_export_all_photos(tmp_path: Path) -> None:

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from rescu import pipeline, stage1
+from rescu import pipeline
+from rescu.discovery import stage1
 
 
 def test_ablation_variant_list_and_mapping() -> None:

@@ -1,11 +1,11 @@
-"""Tests of rescu.proposals: EdgeBoxes on computed edges and instance-scale windows."""
+"""Tests of rescu.extension.proposals: EdgeBoxes on computed edges and instance-scale windows."""
 
 import numpy as np
 import pytest
 
-from rescu.metrics import iod_matrix
-from rescu.proposals import (ProposalParams, edge_and_orientation, edgeboxes_proposals,
-                             instance_scale_proposals, lattice_proposals, propose)
+from rescu.evaluation.metrics import iod_matrix
+from rescu.extension.proposals import (ProposalParams, edge_and_orientation, edgeboxes_proposals,
+                                       instance_scale_proposals, lattice_proposals, propose)
 
 
 def _squares_image(n=5, sz=24, gap=16, h=80, seed=0):

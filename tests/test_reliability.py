@@ -215,7 +215,7 @@ def _stage2(w, cfg):
 def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, fn):
     """A stage-II exception: the RESCU-II JSON is stage I's result (method rescu-ii) with a
     degraded failure record, and scene and caption still run on it."""
-    from rescu import stage2
+    from rescu.extension import stage2
     from rescu.config import load_config
 
     cfg = load_config()
@@ -238,14 +238,14 @@ def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, fn):
     assert final["method"] == "rescu-ii" and final["failure"] == ii["failure"]
     assert len(final["patterns"]) == len(s1["patterns"]) and final["caption"]["enhanced"]
     # the failures table still counts the image, with the patterns it kept
-    from rescu.tables import result_rows
+    from rescu.evaluation.tables import result_rows
 
     caps, fails = result_rows({"mine": [w("final.json")]})
     assert list(fails["stage"]) == [step] and int(caps["n_patterns"][0]) == len(s1["patterns"])
 
 
 def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
-    from rescu import stage2
+    from rescu.extension import stage2
     from rescu.config import load_config
 
     cfg = load_config()
@@ -275,8 +275,8 @@ def test_scene_failure_keeps_its_input_and_the_first_record(tmp_path, monkeypatc
     """scene fails on a result that stage II already degraded: the scene JSON keeps the
     input's patterns; the record names scene, keeps degraded_to rescu-i and the stage-II
     record under "upstream"; caption runs."""
-    from rescu import scene as SC
-    from rescu import stage2
+    from rescu.scene import analyse as SC
+    from rescu.extension import stage2
     from rescu.config import load_config
 
     cfg = load_config()

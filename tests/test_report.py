@@ -17,10 +17,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from rescu import evaluation as E
-from rescu import report as R
+from rescu.evaluation import core as E
+from rescu.evaluation import vpd as EV
+from rescu.evaluation import report as R
+from rescu.evaluation import report_tables as RT
 
-METRICS = list(R.RP_METRICS)
+METRICS = list(RT.RP_METRICS)
 CHROMIUM = shutil.which("chromium") or R.find_chromium()
 
 
@@ -74,8 +76,8 @@ def fake_results(root: Path, paper: bool = True) -> tuple[Path, dict[str, list[s
     E.write_tsv(scores, t / "rp_scores.tsv")
     errors = vp_errors()
     E.write_tsv(errors, t / "vpd_errors.tsv")
-    E.write_tsv(E.vp_success_table(errors), t / "vpd.tsv")
-    E.write_tsv(E.vp_significance(errors), t / "vpd_tests.tsv")
+    E.write_tsv(EV.vp_success_table(errors), t / "vpd.tsv")
+    E.write_tsv(EV.vp_significance(errors), t / "vpd_tests.tsv")
     ts = []
     for sweep, ts_ in (("fine", np.round(np.arange(1, 16) * 0.01, 2)),
                        ("coarse", np.round(np.arange(1, 21) * 0.05, 2))):
@@ -134,7 +136,7 @@ def fake_results(root: Path, paper: bool = True) -> tuple[Path, dict[str, list[s
         E.write_tsv(s2, t / "stage2_ablation.tsv")
     (t / "summary.md").write_text(
         "# RESCU 0.1.0: tables\n\nStage-II backbone: **efficientnet-lite0** (frozen, "
-        "ImageNet weights). Metrics: IOD protocol of `rescu.metrics`; mean ± std over "
+        "ImageNet weights). Metrics: IOD protocol of `rescu.evaluation.metrics`; mean ± std over "
         "images; bold = best.\n")
     for ds in ("synthetic", "cmp_facade"):
         write_png(fig / f"rp_curves_{ds}.png", 1920, 408)
@@ -160,26 +162,26 @@ def visible_text(page: str) -> str:
 
 # ----------------------------------------------------------------------------- building blocks
 def test_human_names():
-    assert R.human_name("instance_precision_mean") == "Instance precision (mean)"
-    assert R.human_name("instance_precision_std") == "Instance precision (std)"
-    assert R.human_name("rp_recall_p_vs_best") == "RP recall, p vs best"
-    assert R.human_name("count_mae") == "Count error (MAE)"
-    assert R.human_name("n_images") == "Images"
-    assert R.human_name("n_widgets") == "Number of widgets"   # a column not named yet
-    assert R.human_name("sr_ts_at_max") == "SR TS at max"
-    assert R.human_name("≤ 5 px") == "≤ 5 px"                 # already human
+    assert RT.human_name("instance_precision_mean") == "Instance precision (mean)"
+    assert RT.human_name("instance_precision_std") == "Instance precision (std)"
+    assert RT.human_name("rp_recall_p_vs_best") == "RP recall, p vs best"
+    assert RT.human_name("count_mae") == "Count error (MAE)"
+    assert RT.human_name("n_images") == "Images"
+    assert RT.human_name("n_widgets") == "Number of widgets"   # a column not named yet
+    assert RT.human_name("sr_ts_at_max") == "SR TS at max"
+    assert RT.human_name("≤ 5 px") == "≤ 5 px"                 # already human
 
 
 def test_md_inline_leaves_no_markdown():
-    s = R.md_inline("backbone: **efficientnet-lite0** of `rescu.metrics`, _not_ <b>")
-    assert s == ("backbone: <b>efficientnet-lite0</b> of <code>rescu.metrics</code>, "
+    s = RT.md_inline("backbone: **efficientnet-lite0** of `rescu.evaluation.metrics`, _not_ <b>")
+    assert s == ("backbone: <b>efficientnet-lite0</b> of <code>rescu.evaluation.metrics</code>, "
                  "<i>not</i> &lt;b&gt;")
-    assert "**" not in R.md_inline("a ** b **c")
+    assert "**" not in RT.md_inline("a ** b **c")
 
 
 def test_rp_headline_rows_cells_and_bold():
     summary = E.summary_table(rp_scores(), METRICS)
-    t = R.rp_headline(summary, "synthetic")
+    t = RT.rp_headline(summary, "synthetic")
     assert list(t.cells["method"]) == ["RESCU-II", "RESCU-I", "GRASP"]
     assert list(t.cells.columns) == ["method", *METRICS, "n_images"]
     row = summary[(summary["dataset"] == "synthetic") & (summary["subset"] == "all")
@@ -191,7 +193,7 @@ def test_rp_headline_rows_cells_and_bold():
     page = t.to_html()
     assert page.count("<b>") == 4 and "table class=\"t headline\"" in page
     assert ">Instance P<" in page and ">RP R<" in page and ">Images<" in page
-    assert R.rp_headline(summary, "york_urban") is None
+    assert RT.rp_headline(summary, "york_urban") is None
 
 
 def test_ties_are_all_bold_and_italics_mark_no_significant_difference():
@@ -199,20 +201,20 @@ def test_ties_are_all_bold_and_italics_mark_no_significant_difference():
                        "method": ["A", "B", "C"], "n_images": [5, 5, 5],
                        "rp_recall_mean": [0.9, 0.9004, 0.5], "rp_recall_std": [0.1, 0.1, 0.2],
                        "rp_recall_p_vs_best": [np.nan, 0.8, 0.01]})
-    t = R.summary_cells(df, ["method"], metrics=["rp_recall"], alpha=0.05)
+    t = RT.summary_cells(df, ["method"], metrics=["rp_recall"], alpha=0.05)
     assert list(t.bold["rp_recall"]) == [True, True, False]
     assert list(t.italic["rp_recall"]) == [False, False, False]
     df.loc[2, "rp_recall_p_vs_best"] = 0.3
-    t = R.summary_cells(df, ["method"], metrics=["rp_recall"], alpha=0.05)
+    t = RT.summary_cells(df, ["method"], metrics=["rp_recall"], alpha=0.05)
     assert list(t.italic["rp_recall"]) == [False, False, True]
     # a rate read back as an integer column still shows two decimals
-    assert R.mean_std(1, 0) == "1.00 ± 0.00" and R.mean_std(np.nan, 0.1) == "–"
+    assert RT.mean_std(1, 0) == "1.00 ± 0.00" and RT.mean_std(np.nan, 0.1) == "–"
 
 
 def test_vp_and_found_headlines():
     errors = vp_errors()
-    success = E.vp_success_table(errors)
-    t = R.vp_headline(success, "york_urban", errors)
+    success = EV.vp_success_table(errors)
+    t = RT.vp_headline(success, "york_urban", errors)
     assert list(t.cells["method"]) == ["RESCU (AC)", "LSD lines"]
     assert {"VP within 5 px", "VP within 5°", "Median angle error (°)"} <= set(t.cells.columns)
     assert t.cells.iloc[0]["VP within 5 px"] == "0.20"   # 1 of 5 images within 5 px
@@ -220,7 +222,7 @@ def test_vp_and_found_headlines():
         not t.bold.iloc[1]["Median angle error (°)"]  # lower is better
     caps = pd.DataFrame({"dataset": ["photos"] * 3, "n_patterns": [0, 2, 3],
                          "dominant_count": [0, 6, 8]})
-    t = R.found_headline(caps, "photos")
+    t = RT.found_headline(caps, "photos")
     assert t.cells.iloc[0].to_dict() == {"Images": "3", "With a pattern": "2",
                                          "Patterns per image (median)": "2.0",
                                          "Dominant count (median)": "7.0"}
@@ -228,8 +230,8 @@ def test_vp_and_found_headlines():
 
 def test_long_tables_are_compact():
     errors = vp_errors()
-    success = E.vp_success_table(errors)     # 2 methods x 2 kinds x 7 thresholds
-    t = R.vp_compact(success, "synthetic", errors)
+    success = EV.vp_success_table(errors)     # 2 methods x 2 kinds x 7 thresholds
+    t = RT.vp_compact(success, "synthetic", errors)
     assert len(t.cells) == 2
     assert [c for c in t.cells.columns if c.startswith("≤")] == \
         ["≤ 5 px", "≤ 30 px", "≤ 100 px", "≤ 1°", "≤ 5°", "≤ 20°"]
@@ -239,7 +241,7 @@ def test_long_tables_are_compact():
     rows = [{"dataset": "d", "method": "RESCU-II", "t": t_, "sr_ts": t_, "n_images": 3,
              "sr_ts_flag": 0.5, "tpr": np.nan, "n_equal": 0, "fpr": np.nan, "n_unequal": 0,
              "sweep": s} for s in ("fine", "coarse") for t_ in (0.01, 0.05, 0.1, 0.15)]
-    t = R.ts_compact(pd.DataFrame(rows))
+    t = RT.ts_compact(pd.DataFrame(rows))
     assert len(t.cells) == 1
     assert list(t.cells.columns) == ["dataset", "method", "Flagged as TS", "SR_ts at t = 0.05",
                                      "SR_ts at t = 0.1", "n_images"]   # no TPR/FPR: no truth

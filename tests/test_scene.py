@@ -1,4 +1,4 @@
-"""Tests of rescu.scene: analyse_scene, SceneParams, rectify_pattern."""
+"""Tests of rescu.scene.analyse: analyse_scene, SceneParams, rectify_pattern."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from rescu import scene as SC
-from rescu import vp as V
+from rescu.scene import analyse as SC
+from rescu.scene.vp.errors import vector_error
 from rescu.types import ImageResult, Instance, Pattern, VanishingPoint
 
 WORDS = np.array([[0, 0], [0.6, 0], [0.6, 0.6], [0, 0.6], [0.3, 0.3], [0.18, 0.42]])
@@ -92,7 +92,7 @@ def test_perspective_grid_vp_rows_towards_vp_and_input_unchanged():
     assert json.dumps(r.to_json(), sort_keys=True) == before
     p = out.patterns[0]
     gt = H_PERSP @ [1.0, 0, 0]
-    assert V.vector_error(p.vanishing_point.homogeneous, gt, (640, 480)) < 1.0
+    assert vector_error(p.vanishing_point.homogeneous, gt, (640, 480)) < 1.0
     assert p.translation_symmetry.detected
     assert sorted(sorted(r_) for r_ in p.extra["rows"]) == [list(range(6 * j, 6 * j + 6))
                                                             for j in range(3)]
@@ -224,7 +224,7 @@ def test_image_vp_joins_patterns_that_share_the_dominant_vp():
     own = out.patterns[0].vanishing_point
     assert out.vanishing_point.support == own.support + out.patterns[1].vanishing_point.support
     gt = H_PERSP @ np.array([1.0, 0, 0])
-    assert V.vector_error(out.vanishing_point.homogeneous, gt, (640, 480)) < 0.5
+    assert vector_error(out.vanishing_point.homogeneous, gt, (640, 480)) < 0.5
     # joint estimation off: the dominant pattern's own VP
     p = SC.SceneParams.from_dict({"vp": {"joint_alpha": 0}})
     out = SC.analyse_scene(result(a, b, c), p)

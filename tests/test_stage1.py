@@ -1,4 +1,4 @@
-"""Tests of RESCU-I (rescu.stage1, rescu.search) on small synthetic scenes."""
+"""Tests of RESCU-I (rescu.discovery.stage1, rescu.discovery.search) on small synthetic scenes."""
 
 from pathlib import Path
 
@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from rescu.features import extract_features
-from rescu.metrics import iod_matrix, score_image
-from rescu.stage1 import (Stage1Output, Stage1Params, discover, load_rps, rps_to_patterns,
-                          save_rps)
+from rescu.discovery.features import extract_features
+from rescu.evaluation.metrics import iod_matrix, score_image
+from rescu.discovery.stage1 import (Stage1Output, Stage1Params, discover, load_rps,
+                                    rps_to_patterns, save_rps)
 from rescu.types import Features
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -96,7 +96,7 @@ def test_no_recurrence_under_the_adaptive_grid_falls_back_to_the_fixed_parameter
 
 
 def test_a_failed_probe_is_retried_with_more_initials_before_the_fallback(monkeypatch):
-    import rescu.stage1 as S
+    import rescu.discovery.stage1 as S
     img, _ = make_scene()
     f = extract_features(img)
     calls = []
@@ -127,7 +127,7 @@ def test_grid_without_a_valid_probe_uses_the_fixed_parameters_not_the_tightest()
     best-supported initial URPs of every grid point (5 of them in the retry) prune to no
     valid RP. The tightest grid point (P_d 0.1, P_s 0.1) then found nothing; the fixed
     parameters find the rows."""
-    from rescu.synth import SynthParams, render_synthetic_image
+    from rescu.data.synth import SynthParams, render_synthetic_image
     scene = render_synthetic_image(SynthParams(seed=7), 19)
     f = extract_features(scene.rgb)
     out = discover(f, Stage1Params())
@@ -204,7 +204,7 @@ def test_runs_on_a_real_facade():
 
 
 def test_layout_spread_rejects_collinear_instances():
-    from rescu.stage1 import layout_spread
+    from rescu.discovery.stage1 import layout_spread
     # two instances whose words all lie on one horizontal line (pieces of an edge)
     xy = np.array([[0, 0], [10, 0], [20, 0], [30, 0], [40, 0], [50, 0]], float)
     om = np.array([[0, 3], [1, 4], [2, 5]])
@@ -217,7 +217,7 @@ def test_layout_spread_rejects_collinear_instances():
 
 
 def test_instance_extents_reach_half_the_spacing():
-    from rescu.stage1 import instance_boxes, instance_extents
+    from rescu.discovery.stage1 import instance_boxes, instance_extents
     # three instances 100 px apart, each a 20 x 20 feature hull with keypoint size 4
     base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]
     xy = np.vstack([base + [100 * j, 0] for j in range(3)]).astype(np.float32)
@@ -235,7 +235,7 @@ def test_instance_extents_reach_half_the_spacing():
 
 
 def test_drop_duplicate_instances_keeps_one_instance_per_object():
-    from rescu.stage1 import drop_duplicate_instances
+    from rescu.discovery.stage1 import drop_duplicate_instances
     # instances 0 and 2: 20 x 20 hulls 100 px apart; instance 1: words 0 and 1 again on
     # object 0 (a part of it found as a second instance), fewer words
     base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]
@@ -272,7 +272,7 @@ def test_grid_reuses_searches_and_matches_fixed_choice():
 
 
 def _ctx_table(seed: int = 0):
-    from rescu.stage1 import _context, precompute_urps
+    from rescu.discovery.stage1 import _context, precompute_urps
     img, _ = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
     f = extract_features(img)
     ctx, diag = _context(f, Stage1Params())
@@ -280,7 +280,7 @@ def _ctx_table(seed: int = 0):
 
 
 def test_seed_ranking_matches_reference_and_seed_only_breaks_ties():
-    from rescu.urp import Gates
+    from rescu.discovery.urp import Gates
     f, ctx, diag, t = _ctx_table()
     for g in (Gates(0.2 * diag, 0.5, 180.0), Gates(0.1 * diag, 0.1, 30.0)):
         ok = (t.dist <= g.max_dist) & (t.size_diff <= g.max_size_diff) & \
@@ -306,9 +306,9 @@ def test_seed_ranking_matches_reference_and_seed_only_breaks_ties():
 
 
 def test_batched_columns_equal_single_builds_and_shared_prune_parts():
-    from rescu.search import (_build_column, _build_columns, matrix_objective,
-                              objective_parts, prune, search)
-    from rescu.urp import Gates, objective
+    from rescu.discovery.search import (_build_column, _build_columns, matrix_objective,
+                                        objective_parts, prune, search)
+    from rescu.discovery.urp import Gates, objective
     f, ctx, diag, t = _ctx_table()
     g = Gates(0.2 * diag, 0.5, 180.0)
     avail = np.ones(len(f), bool)
@@ -352,7 +352,7 @@ def test_seed_parameter_is_deterministic_and_keeps_the_row():
 
 
 def test_seeds_limit_one_is_the_head_of_the_ranking():
-    from rescu.urp import Gates
+    from rescu.discovery.urp import Gates
     for seed in (0, 5):
         f, ctx, diag, t = _ctx_table(seed)
         for g in (Gates(0.2 * diag, 0.5, 180.0), Gates(0.1 * diag, 0.1, 30.0),

@@ -1,4 +1,4 @@
-"""Tests of rescu.stage2 (RESCU-II) on tiny synthetic images."""
+"""Tests of rescu.extension.stage2 (RESCU-II) on tiny synthetic images."""
 
 import numpy as np
 import pytest
@@ -6,12 +6,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from rescu import io  # noqa: E402
-from rescu.metrics import iod_matrix  # noqa: E402
-from rescu.stage2 import (Stage2Params, cluster_centres, compute_stage2_features,  # noqa: E402
-                          dbscan_labels,
-                          finetune_record, impute_half, visible_half_features,
-                          load_checkpoint, occlude_instances, predict_stage2,
-                          save_checkpoint, score_features, select_examples, train_heads)
+from rescu.evaluation.metrics import iod_matrix  # noqa: E402
+from rescu.extension.stage2 import (Stage2Params, cluster_centres,  # noqa: E402
+                                    compute_stage2_features, dbscan_labels, finetune_record,
+                                    impute_half, visible_half_features, load_checkpoint,
+                                    occlude_instances, predict_stage2, save_checkpoint,
+                                    score_features, select_examples, train_heads)
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
 FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
@@ -232,7 +232,7 @@ def test_lattice_only_needs_lattice_windows(six):
 
 
 def test_spacing_suppression():
-    from rescu.stage2 import _suppress
+    from rescu.extension.stage2 import _suppress
 
     own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
     cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)

@@ -1,4 +1,4 @@
-"""Tests of rescu.symmetry: cross ratio, translation symmetry, rectifying homography."""
+"""Tests of rescu.scene.symmetry: cross ratio, translation symmetry, rectifying homography."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from rescu import symmetry as S
+from rescu.scene import symmetry as S
 
 
 def apply(h: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of the synthetic recurring-pattern benchmark (rescu.synth)."""
+"""Tests of the synthetic recurring-pattern benchmark (rescu.data.synth)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from rescu.io import load_coco_rps, load_image, load_vanishing_points
-from rescu.synth import (SynthParams, camera_matrix, cross_ratio, generate_dataset,
-                         plane_homography, project_points, render_synthetic_image,
-                         rotation_matrix, row_vanishing_point, synthetic_image_names)
+from rescu.data.camera import (camera_matrix, plane_homography, project_points, rotation_matrix,
+                               row_vanishing_point)
+from rescu.data.synth import (SynthParams, generate_dataset, render_synthetic_image,
+                              synthetic_image_names)
 
 SMALL = dict(sizes=[[640, 480]], n_images=4)
 
@@ -81,11 +82,6 @@ def test_row_vanishing_point_frontal_is_at_infinity() -> None:
     vp, d = row_vanishing_point(K, rotation_matrix((0, 0, 1), 0.2))
     assert vp[2] == 0.0 and abs(np.linalg.norm(vp) - 1) < 1e-12
     np.testing.assert_allclose(vp, [math.cos(0.2), math.sin(0.2), 0], atol=1e-12)
-
-
-def test_cross_ratio_helper() -> None:
-    assert cross_ratio(np.array([0.0, 1, 2, 3])) == pytest.approx(4 / 3)
-    assert cross_ratio(np.array([[0, 0], [1, 1], [2, 2], [3, 3.0]])) == pytest.approx(4 / 3)
 
 
 # ----------------------------------------------------------------------------- dataset

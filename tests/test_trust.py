@@ -168,7 +168,7 @@ def test_out_that_is_a_file_or_cannot_be_created(photos, tmp_path):
 
 
 def test_evaluate_empty_or_bad_predictions(tmp_path):
-    from rescu.synth import SynthParams, generate_dataset
+    from rescu.data.synth import SynthParams, generate_dataset
 
     ds = tmp_path / "ds"
     generate_dataset(ds, SynthParams.from_dict({"n_images": 1, "sizes": [[480, 360]]}))

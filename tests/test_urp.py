@@ -1,9 +1,10 @@
-"""Tests of the URP affinity (rescu.urp)."""
+"""Tests of the URP affinity (rescu.discovery.urp)."""
 
 import numpy as np
 import pytest
 
-from rescu.urp import Gates, match_candidates, objective, root_sift, urp_affinity, wrap_deg
+from rescu.discovery.urp import (Gates, match_candidates, objective, root_sift, urp_affinity,
+                                 wrap_deg)
 
 
 def _quad(ds=1.0, dtheta=0.0, base_angle=(10.0, 200.0)):
@@ -139,7 +140,7 @@ def test_match_candidates_equals_brute_force_reference():
 
 
 def test_affinity_parts_gate_like_urp_affinity_and_pairs_cache():
-    from rescu.urp import pairs
+    from rescu.discovery.urp import pairs
     rng = np.random.default_rng(1)
     xy = rng.random((30, 2)) * 300
     s = rng.random(30) * 10 + 2

@@ -245,9 +245,9 @@ def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
     sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
     import stage2_misses as SM
 
-    from rescu.evaluation import load_predictions
+    from rescu.evaluation.core import load_predictions
     from rescu.io import load_coco_rps
-    from rescu.metrics import iod_matrix
+    from rescu.evaluation.metrics import iod_matrix
 
     work, _ = finished_run
     res = work / "results"
@@ -308,7 +308,7 @@ def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_ru
     import vp_ac_sweep as AS
 
     from rescu.config import load_config
-    from rescu.evaluation import vp_frame
+    from rescu.evaluation.vpd import vp_frame
 
     work, cfg_path = finished_run
     res = work / "results"

@@ -30,11 +30,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from rescu.features import FeatureParams, extract_features  # noqa: E402
-from rescu.grasp import GraspParams, discover_grasp  # noqa: E402
-from rescu.search import search  # noqa: E402
-from rescu.stage1 import Stage1Params, _context, discover, precompute_urps  # noqa: E402
-from rescu.urp import Gates  # noqa: E402
+from rescu.discovery.features import FeatureParams, extract_features  # noqa: E402
+from rescu.discovery.grasp import GraspParams, discover_grasp  # noqa: E402
+from rescu.discovery.search import search  # noqa: E402
+from rescu.discovery.stage1 import Stage1Params, _context, discover, precompute_urps  # noqa: E402
+from rescu.discovery.urp import Gates  # noqa: E402
 
 cv2.setNumThreads(1)
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"

@@ -36,9 +36,9 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(a.threads)
-    from rescu import backbone as B
-    from rescu import proposals as PR
-    from rescu import stage2 as S2
+    from rescu.extension import backbone as B
+    from rescu.extension import proposals as PR
+    from rescu.extension import stage2 as S2
     from rescu.types import ImageResult, Instance, Pattern
 
     p = S2.Stage2Params.from_dict(json.loads(a.params))

@@ -49,14 +49,15 @@ shutil.copy(snakemake.input[0], snakemake.output[0])
 """
 
 STEP_IMPORTS = {
-    "prepare / features": "from rescu import pipeline, io, features",
-    "stage I": "from rescu import pipeline, stage1",
-    "GRASP": "from rescu import pipeline, grasp",
-    "stage II (torch)": "from rescu import pipeline, stage2, backbone; import torch",
-    "scene": "from rescu import pipeline, scene, completion",
-    "caption": "from rescu import pipeline, caption",
+    "prepare / features": "from rescu import pipeline, io; from rescu.discovery import features",
+    "stage I": "from rescu import pipeline; from rescu.discovery import stage1",
+    "GRASP": "from rescu import pipeline; from rescu.discovery import grasp",
+    "stage II (torch)": ("from rescu import pipeline; "
+                         "from rescu.extension import stage2, backbone; import torch"),
+    "scene": "from rescu import pipeline; from rescu.scene import analyse, completion",
+    "caption": "from rescu import pipeline; from rescu.captions import caption",
     "overlay": "from rescu import pipeline, visualize",
-    "tables": "from rescu import tables, evaluation",
+    "tables": "from rescu.evaluation import tables, core",
 }
 
 

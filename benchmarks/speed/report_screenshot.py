@@ -14,8 +14,8 @@ import argparse
 import json
 import sys
 
-from rescu.report import (chromium_layout, chromium_screenshot, find_chromium,
-                          first_screen_problems)
+from rescu.evaluation.report import (chromium_layout, chromium_screenshot, find_chromium,
+                                     first_screen_problems)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -53,7 +53,10 @@ def _one(job: tuple[str, str, str, str, dict[str, Any]]) -> tuple[str, str]:
 def scores(data: Path, preds: dict[str, Path], images: list[str], ts_t: float
            ) -> list[dict[str, Any]]:
     """One row per method: counting, completion, TS and VP figures on ``images``."""
-    from rescu.evaluation import counting_table, load_predictions, ts_frame, ts_sweep, vp_frame
+    from rescu.evaluation.counting import counting_table
+    from rescu.evaluation.core import load_predictions
+    from rescu.evaluation.ts import ts_frame, ts_sweep
+    from rescu.evaluation.vpd import vp_frame
 
     ct = counting_table(data, preds, images=images).set_index("method")
     have_truth = (data / "truth.json").exists()
@@ -84,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     from _cli import (claim_variant_folder, images_with, parse_sets, run_dataset, run_jobs,
                       run_parser)
 
-    from rescu.completion import CompletionParams
+    from rescu.scene.completion import CompletionParams
 
     ap = run_parser(__doc__)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",

@@ -30,7 +30,8 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     from _cli import print_rows, run_dataset, run_parser
 
-    from rescu.evaluation import count_errors, counting_table
+    from rescu.evaluation.diagnostics import count_errors
+    from rescu.evaluation.counting import counting_table
 
     ap = run_parser(__doc__)
     ap.add_argument("--method", default="final", help="per-image JSON folder to evaluate")

@@ -41,9 +41,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from _cli import run_dataset, run_parser
 
-    from rescu.evaluation import merge_pair_rows
+    from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
-    from rescu.stage2 import Stage2Params
+    from rescu.extension.stage2 import Stage2Params
 
     ap = run_parser(__doc__)
     ap.add_argument("--iod", type=float, default=0.5,

@@ -46,7 +46,7 @@ CAUSES = ("rp not found", "no lattice window", "window p < 0.8", "window p 0.8 -
 def _occluded(truth: dict[str, Any], box: Any) -> float | None:
     """Occluded fraction of the synthetic truth instance centred in ``box`` (None: no
     truth record there)."""
-    from rescu.evaluation import truth_instance_at
+    from rescu.evaluation.diagnostics import truth_instance_at
 
     for p in truth.get("patterns") or []:
         t = truth_instance_at(p.get("instances") or [], box)
@@ -64,10 +64,10 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
     import pandas as pd
 
     from rescu import io
-    from rescu import stage2 as S2
-    from rescu.evaluation import load_predictions, load_truth
+    from rescu.extension import stage2 as S2
+    from rescu.evaluation.core import load_predictions, load_truth
     from rescu.io import load_coco_rps
-    from rescu.metrics import iod_matrix
+    from rescu.evaluation.metrics import iod_matrix
 
     params = S2.Stage2Params.from_dict(stage2)
     gate = params.lattice_score_threshold

@@ -92,7 +92,7 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
                 or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
-            from rescu.stage2 import finetune_record
+            from rescu.extension.stage2 import finetune_record
 
             feats, _ = io.read_h5(h5)
             epochs = (finetune_record(feats) or {}).get("epochs")
@@ -102,9 +102,9 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
 def main(argv: list[str] | None = None) -> int:
     from _cli import claim_variant_folder, images_with, run_dataset, run_jobs, run_parser
 
-    from rescu.evaluation import (evaluate_rp_dataset, frame_markdown, significance_table,
-                                  summary_markdown, summary_table)
-    from rescu.stage2 import Stage2Params, is_predict_only
+    from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
+                                       summary_markdown, summary_table)
+    from rescu.extension.stage2 import Stage2Params, is_predict_only
 
     ap = run_parser(__doc__)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",

@@ -38,10 +38,11 @@ def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
     from rescu import io, pipeline
-    from rescu import stage2 as S2
+    from rescu.extension import stage2 as S2
     from rescu.config import load_config
-    from rescu.datasets import dataset_root
-    from rescu.evaluation import count_frame, evaluate_rp_dataset
+    from rescu.data.datasets import dataset_root
+    from rescu.evaluation.counting import count_frame
+    from rescu.evaluation.core import evaluate_rp_dataset
 
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawTextHelpFormatter)

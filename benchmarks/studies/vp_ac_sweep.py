@@ -71,12 +71,13 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
     """
     import cv2
 
-    from rescu import completion as CO
+    from rescu.scene import completion as CO
     from rescu import io
-    from rescu import scene as SC
-    from rescu import vp as V
-    from rescu.datasets import dataset_root
-    from rescu.evaluation import load_vanishing_points
+    from rescu.scene import analyse as SC
+    from rescu.scene.vp.errors import closest_gt_error
+    from rescu.scene.vp.lsd import line_vanishing_point
+    from rescu.data.datasets import dataset_root
+    from rescu.io import load_vanishing_points
     from rescu.pipeline import _scene_params, read_prepared
 
     base = _scene_params(cfg["scene"])
@@ -105,7 +106,7 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
             def err(vp: Any) -> float:
                 if vp is None:
                     return float("inf")
-                return V.closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
+                return closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
                                           (w, h), focal, pp)
 
             failed = bool(res.extra.get("failure"))
@@ -126,7 +127,7 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
                             done, dataclasses.replace(base, vp=vpp)).vanishing_point)
                         rows.append({**key, "method": "RESCU", "err": err(vp)})
                         if lsd:
-                            lv = None if failed else V.line_vanishing_point(
+                            lv = None if failed else line_vanishing_point(
                                 rgb, vpp, scale_factor=sf)
                             rows.append({**key, "method": "LSD lines", "err": err(lv)})
     return pd.DataFrame(rows, columns=["dataset", "image", "budget", "seed", "ac", "method",
@@ -137,12 +138,12 @@ def summarise(df: pd.DataFrame, deg: Sequence[float]) -> pd.DataFrame:
     """Per dataset x method x budget x AC: success rate at each threshold in ``deg`` and
     the median error (degrees), each averaged over the seeds, and the paired Wilcoxon
     p-value of AC on against off over all images x seeds (:func:`rescu.vp.paired_test`)."""
-    from rescu import vp as V
+    from rescu.evaluation.vpd import paired_test
 
     out = []
     for (dsn, m, b), g in df.groupby(["dataset", "method", "budget"], sort=False):
         piv = g.pivot_table(index=["image", "seed"], columns="ac", values="err")
-        p = V.paired_test(piv[True].to_numpy(), piv[False].to_numpy())
+        p = paired_test(piv[True].to_numpy(), piv[False].to_numpy())
         for ac in (True, False):
             ga = g[g["ac"] == ac]
             r: dict[str, Any] = {"dataset": dsn, "method": m, "budget": b,

@@ -5,7 +5,7 @@ rule caption:
     input:
         **prepared(),
         result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
-        code=code("caption"),
+        code=code("captions/caption", "captions/grammar"),
     output:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
     params:

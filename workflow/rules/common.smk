@@ -3,9 +3,9 @@
 import sys
 from pathlib import Path
 
-from rescu.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
-from rescu.stage2 import is_predict_only
-from rescu.synth import synthetic_image_names
+from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
+from rescu.extension.stage2 import is_predict_only
+from rescu.data.synth import synthetic_image_names
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
@@ -24,14 +24,21 @@ DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m,
 
 
 def code(*modules):
-    """The rescu/ source files a rule depends on (a code change reruns the rule)."""
+    """The rescu/ source files a rule depends on (a code change reruns the rule).
+
+    Each module is a path under rescu/ without ``.py`` ("scene/symmetry"); a package
+    ("scene/vp") stands for all its ``.py`` files."""
     base = ["types", "io", "params", "pipeline"]
-    return [str(BASEDIR / "rescu" / f"{m}.py") for m in dict.fromkeys(base + list(modules))]
+    out = []
+    for m in dict.fromkeys(base + list(modules)):
+        path = BASEDIR / "rescu" / m
+        out += sorted(map(str, path.glob("*.py"))) if path.is_dir() else [f"{path}.py"]
+    return out
 
 
 def stage2_upstream():
     """The ``stage2`` keys of the features and training steps: all but those that act
-    only in prediction (:func:`rescu.stage2.is_predict_only`), so that a change of a
+    only in prediction (:func:`rescu.extension.stage2.is_predict_only`), so that a change of a
     prediction gate reruns prediction only."""
     return {k: v for k, v in config["stage2"].items() if not is_predict_only(k)}
 

@@ -14,7 +14,7 @@ rule generate_synthetic:
         vps=f"{RESULTS}/{SYNTHETIC_DIR}/vanishing_points.json",
         truth=f"{RESULTS}/{SYNTHETIC_DIR}/truth.json",
     input:
-        code("synth"),
+        code("data/synth", "data/camera", "data/textures", "scene/symmetry", "layout"),
     params:
         synth=config["synthetic"],
     log:
@@ -31,7 +31,7 @@ rule export_photos:
             f"{RESULTS}/{PHOTOS_DIR}/images/{{name}}", name=config["package_photos"]["names"]
         ),
     input:
-        code("photos"),
+        code("data/photos"),
     params:
         names=config["package_photos"]["names"],
     log:

@@ -1,7 +1,9 @@
 # Evaluation: the paper's tables (TSV + Markdown) and curves (PNG) over all datasets.
 TABLES = f"{RESULTS}/tables"
 FIGURES = f"{RESULTS}/figures"
-EVAL_CODE = code("evaluation", "counting", "metrics", "tables", "vp")
+EVAL_CODE = code("evaluation/core", "evaluation/counting", "evaluation/vpd", "evaluation/ts",
+                 "evaluation/plots", "evaluation/metrics", "evaluation/tables", "scene/counting",
+                 "scene/symmetry", "scene/vp", "layout")
 
 
 def dataset_params(names):
@@ -10,7 +12,7 @@ def dataset_params(names):
 
 def vp_methods():
     """VPD table rows: method name -> per-image folder (the no-AC variant with ``paper``)."""
-    from rescu.tables import VP_METHODS
+    from rescu.evaluation.tables import VP_METHODS
 
     return {k: v for k, v in VP_METHODS.items() if PAPER or v != "scene-noac"}
 

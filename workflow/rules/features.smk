@@ -4,7 +4,7 @@
 rule features:
     input:
         **prepared(),
-        code=code("features"),
+        code=code("discovery/features"),
     output:
         h5=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
     params:

@@ -16,7 +16,8 @@ rule scene:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene", "vp", "symmetry", "counting", "completion"),
+        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry", "scene/counting",
+                  "scene/completion"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
         rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
@@ -34,7 +35,8 @@ rule scene_no_ac:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene", "vp", "symmetry", "counting", "completion"),
+        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry", "scene/counting",
+                  "scene/completion"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
         rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
@@ -51,7 +53,7 @@ rule scene_no_ac:
 rule line_vp:
     input:
         **prepared(),
-        code=code("scene", "vp", "symmetry"),
+        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry"),
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:

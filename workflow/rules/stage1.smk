@@ -7,7 +7,8 @@ rule rescu_i:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("features", "urp", "search", "stage1", "metrics", "vp"),
+        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
+                  "evaluation/metrics", "layout"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.rp.h5",
@@ -25,7 +26,8 @@ rule grasp:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("features", "urp", "search", "stage1", "grasp", "metrics", "vp"),
+        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
+                  "discovery/grasp", "evaluation/metrics", "layout"),
     output:
         json=f"{RESULTS}/{{dataset}}/grasp/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/grasp/{{image}}.rp.h5",
@@ -43,7 +45,8 @@ rule ablation:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("features", "urp", "search", "stage1", "metrics", "vp"),
+        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
+                  "evaluation/metrics", "layout"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/ablation/{{variant}}/{{{{image}}}}.json",

@@ -6,7 +6,8 @@ rule stage2_features:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone", "finetune", "metrics"),
+        code=code("extension/stage2", "extension/head", "extension/proposals",
+                  "extension/backbone", "extension/finetune", "evaluation/metrics"),
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
@@ -27,7 +28,7 @@ rule stage2_train:
     input:
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "metrics"),
+        code=code("extension/stage2", "extension/head", "evaluation/metrics"),
     output:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
@@ -48,7 +49,7 @@ rule stage2_predict:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("stage2", "merge", "metrics"),
+        code=code("extension/stage2", "extension/head", "extension/merge", "evaluation/metrics"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
@@ -72,7 +73,8 @@ if stage2_predict_variants():
             ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
             meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-            code=code("stage2", "merge", "metrics"),
+            code=code("extension/stage2", "extension/head", "extension/merge",
+                      "evaluation/metrics"),
         output:
             expand(
                 f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
@@ -95,7 +97,9 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("stage2", "proposals", "backbone", "finetune", "merge", "metrics"),
+        code=code("extension/stage2", "extension/head", "extension/proposals",
+                  "extension/backbone", "extension/finetune", "extension/merge",
+                  "evaluation/metrics"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",

@@ -1,7 +1,7 @@
 """Snakemake adapter: copy the package-shipped photos into the photos dataset."""
 from pathlib import Path
 
-from rescu.photos import export_package_photos
+from rescu.data.photos import export_package_photos
 from rescu.pipeline import setup_logging
 
 setup_logging(snakemake.log[0])

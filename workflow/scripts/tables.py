@@ -1,6 +1,6 @@
-"""Snakemake adapter: the evaluation tables (rescu.tables), one function per rule."""
-from rescu import tables as T
-from rescu.evaluation import EvaluationParams, write_markdown, write_tsv
+"""Snakemake adapter: the evaluation tables (rescu.evaluation.tables), one function per rule."""
+from rescu.evaluation import tables as T
+from rescu.evaluation.core import EvaluationParams, write_markdown, write_tsv
 from rescu.pipeline import setup_logging
 
 setup_logging(snakemake.log[0])

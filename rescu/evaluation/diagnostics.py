@@ -1,0 +1,179 @@
+"""Diagnostics the benchmarks print, no table of a run: why counts are wrong, which truth
+instance a box is, and whether stage II's split-RP merge is right on an image.
+
+They live in the library (not beside ``benchmarks/``) so that a benchmark script imports
+them as ``rescu.evaluation.diagnostics`` from wherever it lies, without a path of its
+own; the evaluation tables never import this module.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..io import GroundTruthRP
+from ..types import ImageResult
+from .core import _load
+from .counting import _score_counting
+from .metrics import match_boxes, score_image
+
+if TYPE_CHECKING:     # imported where used: the evaluation rules never read stage II's code
+    from ..extension.merge import MergeParams
+
+
+def truth_instance_at(instances: Iterable[Mapping[str, Any]], box: Sequence[float]
+                      ) -> Mapping[str, Any] | None:
+    """The synthetic truth record (``truth.json``: ``center``, ``row``, ``col``,
+    ``occluded_fraction``, ...) of the instance in ``box``.
+
+    Parameters
+    ----------
+    instances : iterable of dict
+        Truth instance records; ``center`` is ``[x, y]`` in pixels.
+    box : sequence of 4 float
+        ``(x, y, w, h)`` in pixels.
+
+    Returns
+    -------
+    dict or None
+        The first record whose centre lies within half the box's larger side of the box
+        centre; None when none does (or ``box`` / a record has no finite centre).
+    """
+    b = np.asarray(box, float).reshape(4)
+    c = b[:2] + b[2:] / 2
+    for t in instances:
+        if not isinstance(t, Mapping):
+            continue
+        tc = np.asarray(t.get("center", [np.nan, np.nan]), float).reshape(-1)[:2]
+        if np.linalg.norm(tc - c) <= 0.5 * max(b[2], b[3]):
+            return t
+    return None
+
+
+def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
+                 min_rp_precision: float = 0.5,
+                 images: Iterable[str] | None = None) -> pd.DataFrame:
+    """Why counts are wrong: the instances of every miscounted ground-truth RP.
+
+    For each GT RP counted by a detected RP (as in :func:`count_frame`: the accepted
+    detected RP with the most instances) whose count differs from the GT count, one row
+    per GT instance (``kind`` "matched" or "missed", IOD > ``h`` one-to-one matching
+    against that detected RP) and one per detected instance matching none of them
+    (``kind`` "extra", with its ``source``: stage1 / stage2 / completion).
+
+    Returns
+    -------
+    DataFrame
+        ``image, gt_rp, pattern, det_count, gt_count, kind, x, y, w, h`` (box, pixels),
+        ``source`` (extra rows), and where the dataset has ``truth.json`` (synthetic
+        benchmark) ``row, col, occluded_fraction, blur_sigma, equal_spacing`` of the GT
+        instance / RP. Empty when every count is exact.
+    """
+    ds = _load(dataset_dir, {"pred": pred_dir}, images)
+    preds = ds.preds["pred"]
+    rows: list[dict[str, Any]] = []
+    for f, gts in ds.gt.items():
+        res = preds[f]
+        if res is None:
+            continue
+        _, counted = _score_counting(res, gts, h, min_rp_precision)
+        truth = ds.truth.get(f, {})
+        tpat = truth.get("patterns") or []
+        for g, i in sorted(counted.items()):
+            gt_boxes = np.asarray(gts[g].boxes, float).reshape(-1, 4)
+            pat = res.patterns[i]
+            if pat.count == len(gt_boxes):
+                continue
+            det = np.array([ins.bbox for ins in pat.instances], float).reshape(-1, 4)
+            pairs = match_boxes(det, gt_boxes, h)
+            hit_g, hit_d = {b for _, b in pairs}, {a for a, _ in pairs}
+            # the truth record of this GT RP: same category name (synthetic: unique)
+            tp = [q for q in tpat if isinstance(q, dict) and q.get("category") == gts[g].category]
+            tp0 = tp[0] if len(tp) == 1 else {}
+            base = {"image": f, "gt_rp": int(g), "pattern": int(i),
+                    "det_count": int(pat.count), "gt_count": int(len(gt_boxes))}
+            for j, b in enumerate(gt_boxes):
+                r = dict(base, kind="matched" if j in hit_g else "missed",
+                         x=b[0], y=b[1], w=b[2], h=b[3], source=None)
+                t = truth_instance_at(tp0.get("instances") or [], b)
+                if t is not None:
+                    r.update(row=t.get("row"), col=t.get("col"),
+                             occluded_fraction=t.get("occluded_fraction"))
+                if truth:
+                    r.update(blur_sigma=truth.get("blur_sigma"),
+                             equal_spacing=tp0.get("equal_spacing"))
+                rows.append(r)
+            for a, ins in enumerate(pat.instances):
+                if a not in hit_d:
+                    b = det[a]
+                    rows.append(dict(base, kind="extra", x=b[0], y=b[1], w=b[2], h=b[3],
+                                     source=ins.source))
+    cols = ["image", "gt_rp", "pattern", "det_count", "gt_count", "kind", "x", "y", "w",
+            "h", "source", "row", "col", "occluded_fraction", "blur_sigma", "equal_spacing"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
+                    inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
+                    params: MergeParams | None = None, h: float = 0.5,
+                    min_rp_precision: float = 0.5
+                    ) -> list[dict[str, Any]]:
+    """Is RESCU-II's split-RP merge right on one image? The merge evidence of every pair
+    of the RPs stage II works on, labelled by the ground truth.
+
+    Parameters
+    ----------
+    stage1 : ImageResult
+        The RESCU-I result (its instance boxes are the evidence's boxes).
+    rp_index : sequence of int
+        Positions in ``stage1.patterns`` of the RPs stage II works on (``rp_index`` of
+        the stage-II features file).
+    inst_feats : (N, D) float
+        Backbone feature of every stage-I instance (``instance_features``).
+    inst_rp : (N,) int
+        Position in ``rp_index`` of each instance's RP (``instance_rp``).
+    gt_rps : sequence of GroundTruthRP
+        The image's ground truth (may be empty: every label is then -1).
+    params : MergeParams, optional
+        The merge's tunables; default ``MergeParams()``.
+    h, min_rp_precision : float
+        The RP-level matching of :func:`rescu.evaluation.metrics.score_image` that assigns each RP
+        to a GT RP (IOD threshold; smallest precision of an accepted RP).
+
+    Returns
+    -------
+    list of dict
+        One per pair with evidence (both RPs have two or more instances with features):
+        ``a, b`` (pattern positions), ``gt_a, gt_b`` (the assigned GT RP index, -1 for
+        none), ``same`` (both assigned to the same GT RP), and the ``merge, ratio, s_ab,
+        s_aa, s_bb, size_ratio, conflicts, line_residual`` of
+        :func:`rescu.extension.merge.pair_evidence`. The pipeline's merge
+        also sees the stage-II instances in the conflict and line tests, so its decision
+        can differ in those (never in the appearance test).
+    """
+    from ..extension.merge import MergeParams, pair_evidence
+
+    params = params if params is not None else MergeParams()
+    f = np.asarray(inst_feats, np.float64)
+    irp = np.asarray(inst_rp).reshape(-1)
+    if f.ndim != 2 or len(f) != len(irp):
+        raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
+                         f"got {f.shape}")
+    boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
+             for pi in rp_index]
+    assigned = score_image(boxes, [g.boxes for g in gt_rps], h, min_rp_precision).rp_assignment
+    label = [-1 if g is None else int(g) for g in assigned]
+    rows = []
+    for x in range(len(rp_index)):
+        for y in range(x + 1, len(rp_index)):
+            ev = pair_evidence(f[irp == x], f[irp == y], boxes[x], boxes[y], params)
+            if np.isnan(ev["ratio"]):       # an RP with fewer than 2 featured instances
+                continue
+            rows.append({"a": int(rp_index[x]), "b": int(rp_index[y]), "gt_a": label[x],
+                         "gt_b": label[y], "same": bool(label[x] >= 0 and label[x] == label[y]),
+                         **{k: ev[k] for k in ("merge", "ratio", "s_ab", "s_aa", "s_bb",
+                                               "size_ratio", "conflicts", "line_residual")}})
+    return rows

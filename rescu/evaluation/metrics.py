@@ -1,0 +1,213 @@
+"""Evaluation of recurring-pattern discovery with intersection over detection (IOD).
+
+Protocol (the paper's, with the choices it leaves open stated here):
+
+* IOD(det, gt) = area(det ∩ gt) / area(det). A detected instance is *acceptable* for a
+  ground-truth instance when IOD > h (default h = 0.5).
+* Matching is one-to-one: pairs are taken greedily in order of decreasing IOD (ties:
+  larger IoU first, then lower indices), so one detection is never credited for two
+  ground-truth instances nor two detections for one.
+* Instance level (per image): all detected instances of all detected RPs are pooled
+  and matched against all ground-truth instances of all ground-truth RPs.
+  precision = matched detections / detections; recall = matched GT instances / GT
+  instances.
+* RP level (per image): for each detected RP, the instance-level precision against each
+  ground-truth RP alone is computed; the RP is assigned the GT RP with the highest one
+  (ties: higher recall). It is *accepted* when that precision is >= 0.5 and at least two
+  of its instances match (an RP is a recurrence). precision = accepted RPs / detected
+  RPs; recall = GT RPs covered by a one-to-one matching of detected RPs to GT RPs /
+  GT RPs, where a detected RP may be matched to any GT RP it would be accepted for
+  (maximum bipartite matching; so two detections of one GT RP count once, and the
+  recall does not depend on the order of the RPs when a detection is acceptable for
+  several GT RPs, e.g. overlapping boxes at a low h).
+* A ratio with a zero denominator is undefined (NaN) and left out of the mean over
+  images (e.g. precision of an image with no detection); the number of images that
+  entered each mean is reported beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..types import BBox
+
+
+def iod_matrix(det: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """IOD between every detected and ground-truth box.
+
+    Parameters
+    ----------
+    det : (D, 4) float
+        Detected boxes ``[x, y, w, h]``, pixels.
+    gt : (G, 4) float
+        Ground-truth boxes ``[x, y, w, h]``, pixels.
+
+    Returns
+    -------
+    (D, G) float
+        area(det ∩ gt) / area(det); 0 for a detection of zero area.
+    """
+    det = np.asarray(det, float).reshape(-1, 4)
+    gt = np.asarray(gt, float).reshape(-1, 4)
+    inter = _intersection(det, gt)
+    area = (det[:, 2] * det[:, 3])[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(area > 0, inter / np.where(area > 0, area, 1.0), 0.0)
+    return out
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU between every box of ``a`` (A, 4) and ``b`` (B, 4), ``[x, y, w, h]``."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    inter = _intersection(a, b)
+    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None, :] - inter
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
+def cover_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection over the smaller box's area between every box of ``a`` (A, 4) and
+    ``b`` (B, 4), ``[x, y, w, h]``: 1 when one box lies inside the other; (A, B)."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    inter = _intersection(a, b)
+    m = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(m > 0, inter / np.where(m > 0, m, 1.0), 0.0)
+
+
+def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
+    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
+    x1 = np.minimum(a[:, None, 0] + a[:, None, 2], b[None, :, 0] + b[None, :, 2])
+    y1 = np.minimum(a[:, None, 1] + a[:, None, 3], b[None, :, 1] + b[None, :, 3])
+    return np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+
+
+def match_boxes(det: np.ndarray, gt: np.ndarray, h: float = 0.5) -> list[tuple[int, int]]:
+    """One-to-one greedy matching of detections to ground truth with IOD > h.
+
+    Returns the matched ``(det_index, gt_index)`` pairs, in order of decreasing IOD.
+    """
+    det = np.asarray(det, float).reshape(-1, 4)
+    gt = np.asarray(gt, float).reshape(-1, 4)
+    if len(det) == 0 or len(gt) == 0:
+        return []
+    iod = iod_matrix(det, gt)
+    iou = iou_matrix(det, gt)
+    di, gi = np.nonzero(iod > h)
+    order = np.lexsort((gi, di, -iou[di, gi], -iod[di, gi]))
+    used_d: set[int] = set()
+    used_g: set[int] = set()
+    pairs = []
+    for k in order:
+        d, g = int(di[k]), int(gi[k])
+        if d in used_d or g in used_g:
+            continue
+        used_d.add(d)
+        used_g.add(g)
+        pairs.append((d, g))
+    return pairs
+
+
+def _max_bipartite_matching(adj: np.ndarray) -> int:
+    """Size of a maximum matching of a (D, G) bool biadjacency matrix."""
+    if adj.size == 0 or not adj.any():
+        return 0
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    match = maximum_bipartite_matching(csr_matrix(adj.astype(np.int8)), perm_type="column")
+    return int((match >= 0).sum())
+
+
+def _ratio(num: float, den: float) -> float:
+    return float(num) / float(den) if den > 0 else float("nan")
+
+
+@dataclass
+class ImageScores:
+    """Scores of one image (NaN where undefined)."""
+
+    instance_precision: float
+    instance_recall: float
+    rp_precision: float
+    rp_recall: float
+    n_det_instances: int
+    n_gt_instances: int
+    n_det_rps: int
+    n_gt_rps: int
+    rp_assignment: list[int | None]  # per detected RP: assigned GT RP index or None
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {k: v for k, v in self.__dict__.items() if k != "rp_assignment"}
+
+
+def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBox]],
+                h: float = 0.5, min_rp_precision: float = 0.5) -> ImageScores:
+    """Instance- and RP-level precision and recall of one image (see module docstring).
+
+    Parameters
+    ----------
+    det_rps : list of lists of ``[x, y, w, h]``
+        Detected RPs, each a list of instance boxes (pixels).
+    gt_rps : list of lists of ``[x, y, w, h]``
+        Ground-truth RPs (pixels).
+    h : float
+        IOD threshold.
+    min_rp_precision : float
+        A detected RP is accepted when its precision against its assigned GT RP is at
+        least this (and two or more of its instances match).
+    """
+    det_all = [b for rp in det_rps for b in rp]
+    gt_all = [b for rp in gt_rps for b in rp]
+    pairs = match_boxes(np.asarray(det_all, float), np.asarray(gt_all, float), h)
+    ip = _ratio(len(pairs), len(det_all))
+    ir = _ratio(len(pairs), len(gt_all))
+    assignment: list[int | None] = []
+    acceptable = np.zeros((len(det_rps), len(gt_rps)), bool)  # det RP i ok for GT RP g
+    n_accepted = 0
+    for i, rp in enumerate(det_rps):
+        best: tuple[float, float, int] | None = None
+        n_matched_best = 0
+        for g, gt in enumerate(gt_rps):
+            m = match_boxes(np.asarray(rp, float), np.asarray(gt, float), h)
+            p = _ratio(len(m), len(rp))
+            r = _ratio(len(m), len(gt))
+            if np.isnan(p):
+                continue
+            acceptable[i, g] = p >= min_rp_precision and len(m) >= 2
+            key = (p, r if not np.isnan(r) else 0.0, -g)
+            if best is None or key > best:
+                best, n_matched_best = key, len(m)
+        if best is not None and best[0] >= min_rp_precision and n_matched_best >= 2:
+            n_accepted += 1
+            assignment.append(-best[2])
+        else:
+            assignment.append(None)
+    n_recalled = _max_bipartite_matching(acceptable)
+    return ImageScores(
+        instance_precision=ip, instance_recall=ir,
+        rp_precision=_ratio(n_accepted, len(det_rps)),
+        rp_recall=_ratio(n_recalled, len(gt_rps)),
+        n_det_instances=len(det_all), n_gt_instances=len(gt_all),
+        n_det_rps=len(det_rps), n_gt_rps=len(gt_rps), rp_assignment=assignment)
+
+
+METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
+
+
+def summarise(scores: Sequence[ImageScores]) -> dict[str, float]:
+    """Mean, std and number of images with a defined value, for each of :data:`METRICS`."""
+    out: dict[str, float] = {"n_images": len(scores)}
+    for m in METRICS:
+        v = np.array([getattr(s, m) for s in scores], float)
+        v = v[~np.isnan(v)]
+        out[f"{m}_mean"] = float(v.mean()) if len(v) else float("nan")
+        out[f"{m}_std"] = float(v.std()) if len(v) else float("nan")
+        out[f"{m}_n"] = int(len(v))
+    return out

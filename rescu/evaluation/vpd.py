@@ -1,0 +1,195 @@
+"""Vanishing-point detection over a dataset: errors, success rates, paired tests.
+
+The prediction is the image-level ``vanishing_point``; it is compared with the *closest*
+ground-truth VP, separately for each error (:func:`rescu.scene.vp.errors.closest_gt_error`):
+the point error is the pixel distance between the dehomogenised points
+(:func:`rescu.scene.vp.errors.point_error`; infinite when exactly one lies at infinity),
+the angle error the angle between the back-projected 3D directions
+(:func:`rescu.scene.vp.errors.vector_error`; sign-free), with the true focal length and
+principal point where the dataset gives them, else ``f = (w + h) / 4`` and the image
+centre. A missing prediction has infinite errors (a failure at every threshold).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..io import load_vanishing_points
+from ..scene.vp.errors import closest_gt_error
+from .core import EvaluationParams, _check_pred_dirs, _paired, load_predictions, paired_wilcoxon
+
+
+def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
+             images: Iterable[str] | None = None) -> pd.DataFrame:
+    """VP errors per image x method against ``vanishing_points.json``.
+
+    Returns
+    -------
+    DataFrame
+        ``dataset, image, method, vp_missing, point_error_px, angle_error_deg,
+        focal_px, focal_source`` ("true" or "assumed": f = (w + h) / 4 and the image
+        centre), ``n_gt_vps`` (GT VPs of the image); errors to the closest GT VP (module
+        docstring), inf when missing.
+        Images without a GT VP are left out.
+    """
+    dataset_dir = Path(dataset_dir)
+    _check_pred_dirs(pred_dirs)
+    gt = load_vanishing_points(dataset_dir / "vanishing_points.json")
+    if images is not None:
+        keep = set(images)
+        gt = {f: v for f, v in gt.items() if f in keep}
+    rows = []
+    for method, d in pred_dirs.items():
+        preds = load_predictions(d, gt.keys())
+        for f, g in gt.items():
+            w, hgt = g["width"], g["height"]
+            true_f = g.get("focal_px") is not None
+            focal = float(g["focal_px"]) if true_f else (w + hgt) / 4.0
+            pp = (g["principal_point"] if g.get("principal_point") is not None
+                  else (w / 2.0, hgt / 2.0))
+            if not g["vanishing_points"]:
+                continue  # nothing to compare with (e.g. a frontal synthetic image)
+            res = preds[f]
+            vp = res.vanishing_point if res is not None else None
+            if vp is None:
+                pe = ae = float("inf")
+            else:
+                pe = closest_gt_error(vp.homogeneous, g["vanishing_points"], "point",
+                                      (w, hgt), focal, pp)
+                ae = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
+                                      (w, hgt), focal, pp)
+            rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
+                         "vp_missing": vp is None, "point_error_px": pe,
+                         "angle_error_deg": ae, "focal_px": focal,
+                         "focal_source": "true" if true_f else "assumed",
+                         "n_gt_vps": len(g["vanishing_points"])})
+    return pd.DataFrame(rows)
+
+
+def vp_success_table(frame: pd.DataFrame,
+                     px_thresholds: Sequence[float] = EvaluationParams.vp_px_thresholds,
+                     deg_thresholds: Sequence[float] = EvaluationParams.vp_deg_thresholds
+                     ) -> pd.DataFrame:
+    """Success rate (share of images with error <= threshold) per method.
+
+    Returns
+    -------
+    DataFrame
+        Long format ``dataset, method, kind ("point_px" | "angle_deg"), threshold,
+        success_rate, n_images``.
+    """
+    rows = []
+    for (dsn, method), g in frame.groupby(["dataset", "method"], sort=False):
+        for kind, col, ths in (("point_px", "point_error_px", px_thresholds),
+                               ("angle_deg", "angle_error_deg", deg_thresholds)):
+            e = g[col].to_numpy(float)
+            for t in ths:
+                rows.append({"dataset": dsn, "method": method, "kind": kind,
+                             "threshold": float(t),
+                             "success_rate": float(np.mean(e <= t)) if len(e) else float("nan"),
+                             "n_images": int(len(e))})
+    return pd.DataFrame(rows)
+
+
+def vp_significance(frame: pd.DataFrame) -> pd.DataFrame:
+    """Paired Wilcoxon p-values (:func:`paired_test`: a missing VP counts as an
+    error above every finite one) of the point and angle errors between method pairs."""
+    rows = []
+    for dsn, g in frame.groupby("dataset", sort=False):
+        methods = list(dict.fromkeys(g["method"]))
+        for col in ("point_error_px", "angle_error_deg"):
+            for i, ma in enumerate(methods):
+                for mb in methods[i + 1:]:
+                    a, b = _paired(g, col, ma, mb)
+                    rows.append({"dataset": dsn, "error": col, "method_a": ma,
+                                 "method_b": mb, "n_pairs": int(len(a)),
+                                 "median_a": float(np.median(a)) if len(a) else float("nan"),
+                                 "median_b": float(np.median(b)) if len(b) else float("nan"),
+                                 "p_value": paired_test(a, b) if len(a) else float("nan")})
+    return pd.DataFrame(rows, columns=["dataset", "error", "method_a", "method_b",
+                                       "n_pairs", "median_a", "median_b", "p_value"])
+
+
+def vp_markdown(success: pd.DataFrame, decimals: int = 2,
+                errors: pd.DataFrame | None = None) -> str:
+    """Markdown: per dataset and error kind, methods x thresholds of success rate.
+
+    With ``errors`` (:func:`vp_frame`), each dataset's first section opens with what its
+    errors mean: how many images, how many GT VPs each (errors are to the closest one),
+    which focal length the angle error used, and per method the median angle error and
+    the number of images without a VP.
+    """
+    lines = []
+    noted: set[str] = set()
+    for (dsn, kind), g in success.groupby(["dataset", "kind"], sort=False):
+        unit = "px" if kind == "point_px" else "°"
+        p = g.pivot(index="method", columns="threshold", values="success_rate")
+        p = p.reindex(list(dict.fromkeys(g["method"])))
+        lines += [f"## {dsn} — {'point error' if kind == 'point_px' else 'angle error'}", ""]
+        if errors is not None and dsn not in noted and len(errors):
+            e = errors[errors["dataset"] == dsn]
+            if len(e):
+                noted.add(dsn)
+                lines += [_vp_note(e), ""]
+        head = ["method"] + [f"≤ {t:g} {unit}" for t in p.columns]
+        lines.append("| " + " | ".join(head) + " |")
+        lines.append("|" + "|".join(["---"] + ["---:"] * len(p.columns)) + "|")
+        for m, r in p.iterrows():
+            lines.append("| " + " | ".join([str(m)] + [f"{v:.{decimals}f}" for v in r]) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _vp_note(e: pd.DataFrame) -> str:
+    """One dataset's sentence for :func:`vp_markdown` (``e``: its rows of :func:`vp_frame`)."""
+    per_image = e.drop_duplicates("image")
+    n_img = len(per_image)
+    k = per_image["n_gt_vps"]
+    if k.min() == k.max():
+        gts = f"{int(k.min())} GT VP{'s' if k.min() > 1 else ''} per image"
+    else:
+        gts = f"{int(k.min())}-{int(k.max())} GT VPs per image"
+    closest = "; errors are to the closest GT VP" if k.max() > 1 else ""
+    src = set(per_image["focal_source"])
+    focal = ("the true focal length and principal point" if src == {"true"} else
+             "f = (w + h) / 4 and the image centre (no focal length given)"
+             if src == {"assumed"} else "the true focal length where given, else "
+             "f = (w + h) / 4 and the image centre")
+    per_m = []
+    for m, gm in e.groupby("method", sort=False):
+        med = float(np.median(gm["angle_error_deg"]))
+        per_m.append(f"{m} {med:.2f}° ({int(gm['vp_missing'].sum())} without a VP)")
+    return (f"{n_img} images, {gts}{closest}. Angle errors with {focal}; a missing VP "
+            f"fails every threshold. Median angle error: {', '.join(per_m)}.")
+
+
+def paired_test(errors_a: Sequence[float], errors_b: Sequence[float]) -> float:
+    """Two-sided Wilcoxon signed-rank p-value between two methods' per-image VP errors.
+
+    Pairs where either error is NaN are left out; infinite errors (a missing VP) are
+    replaced by a value above every finite error (the test uses ranks only), then the
+    pairs go to :func:`rescu.evaluation.core.paired_wilcoxon`. Returns 1.0 when all the
+    paired differences are zero or no pair remains.
+
+    Parameters
+    ----------
+    errors_a, errors_b : (n,) float
+        The two methods' errors on the same images (pixels or degrees).
+    """
+    a = np.asarray(errors_a, float).reshape(-1)
+    b = np.asarray(errors_b, float).reshape(-1)
+    if a.shape != b.shape:
+        raise ValueError(f"errors_a and errors_b must have the same length, "
+                         f"got {a.shape} and {b.shape}")
+    ok = ~(np.isnan(a) | np.isnan(b))
+    a, b = a[ok], b[ok]
+    fin = np.concatenate([a[np.isfinite(a)], b[np.isfinite(b)]])
+    big = (float(np.abs(fin).max()) if len(fin) else 0.0) * 2 + 1.0
+    a = np.where(np.isinf(a), np.sign(a) * big, a)
+    b = np.where(np.isinf(b), np.sign(b) * big, b)
+    p, n = paired_wilcoxon(a, b)
+    return p if n and np.isfinite(p) else 1.0

@@ -1,0 +1,111 @@
+"""Counting: instances per recurring pattern, the dominant RP, and count errors.
+
+* The count of an RP is its number of instances.
+* The *dominant* RP of an image is the one with the most instances; ties go to the
+  higher score, then to the lower pattern index (so the choice is deterministic).
+* Count errors are measured on *matched* RPs: :func:`count_pairs` turns the assignment
+  of detected RPs to ground-truth RPs (``rescu.evaluation.metrics.score_image(...).rp_assignment``)
+  into ``(predicted, ground-truth)`` count pairs, one per ground-truth RP that some
+  detected RP is assigned to; when several detected RPs are assigned to the same
+  ground-truth RP the one with the most instances is taken (ties: the first).
+  Unmatched RPs enter the RP-level precision/recall, not the count error.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ..types import Pattern
+
+
+def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:
+    """Number of instances of each pattern."""
+    return [p.count for p in patterns]
+
+
+def dominant_pattern(patterns: Sequence[Pattern]) -> int | None:
+    """Index (position in ``patterns``) of the dominant RP, None when there is none.
+
+    The dominant RP has the most instances; ties: higher score, then lower index.
+    Patterns with no instance are never dominant.
+    """
+    best: tuple[int, float, int] | None = None
+    for i, p in enumerate(patterns):
+        if p.count == 0:
+            continue
+        key = (p.count, float(p.score), -i)
+        if best is None or key > best:
+            best = key
+    return None if best is None else -best[2]
+
+
+def count_pairs(det_counts: Sequence[int], gt_counts: Sequence[int],
+                assignment: Sequence[int | None]) -> list[tuple[int, int]]:
+    """``(predicted count, ground-truth count)`` pairs of one image's matched RPs.
+
+    Parameters
+    ----------
+    det_counts : (D,) int
+        Instances of each detected RP.
+    gt_counts : (G,) int
+        Instances of each ground-truth RP.
+    assignment : (D,) int or None
+        Ground-truth RP index assigned to each detected RP (None: unmatched).
+
+    Returns
+    -------
+    list of (int, int)
+        One pair per matched ground-truth RP, in ground-truth order (see module docstring).
+    """
+    for d, g in enumerate(assignment):
+        if g is not None and not 0 <= g < len(gt_counts):
+            raise ValueError(f"assignment[{d}] = {g} is not a ground-truth RP index "
+                             f"(0..{len(gt_counts) - 1})")
+    best = counting_patterns(det_counts, assignment)
+    return [(int(det_counts[best[g]]), int(gt_counts[g])) for g in sorted(best)]
+
+
+def counting_patterns(det_counts: Sequence[int], assignment: Sequence[int | None]
+                      ) -> dict[int, int]:
+    """The detected RP that counts each matched ground-truth RP.
+
+    Parameters
+    ----------
+    det_counts : (D,) int
+        Instances of each detected RP.
+    assignment : (D,) int or None
+        Ground-truth RP index assigned to each detected RP (None: unmatched).
+
+    Returns
+    -------
+    dict
+        ``{ground-truth RP index: detected RP index}``: of the detected RPs assigned to a
+        ground-truth RP, the one with the most instances (ties: the first).
+    """
+    if len(assignment) != len(det_counts):
+        raise ValueError(f"assignment must have one entry per detected RP "
+                         f"({len(det_counts)}), got {len(assignment)}")
+    best: dict[int, int] = {}
+    for d, g in enumerate(assignment):
+        if g is not None and (g not in best or det_counts[d] > det_counts[best[g]]):
+            best[g] = d
+    return best
+
+
+def count_errors(pairs: Sequence[tuple[int, int]]) -> dict[str, float]:
+    """Mean absolute count error and exact-count rate over ``(pred, gt)`` pairs.
+
+    Returns ``{"count_mae", "count_exact_rate", "count_mean_relative_error", "n_pairs"}``;
+    the rates are NaN when there is no pair. The relative error is ``|pred - gt| / gt``.
+    """
+    a = np.asarray(pairs, float).reshape(-1, 2)
+    n = len(a)
+    if n == 0:
+        return {"count_mae": float("nan"), "count_exact_rate": float("nan"),
+                "count_mean_relative_error": float("nan"), "n_pairs": 0}
+    err = np.abs(a[:, 0] - a[:, 1])
+    return {"count_mae": float(err.mean()), "count_exact_rate": float((err == 0).mean()),
+            "count_mean_relative_error": float((err / np.maximum(a[:, 1], 1)).mean()),
+            "n_pairs": n}

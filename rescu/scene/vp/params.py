@@ -1,0 +1,116 @@
+"""Parameters of vanishing-point detection: :class:`VPParams` (config section ``scene.vp``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from ...params import params_from_dict
+
+
+@dataclass(frozen=True)
+class VPParams:
+    """Parameters of vanishing-point detection (RP-based and line baseline).
+
+    Attributes
+    ----------
+    ransac_iterations : int
+        Line pairs hypothesised (all pairs when there are fewer).
+    inlier_angle_deg : float
+        A line supports a VP when its angle to the direction towards the VP is below this.
+    ac_threshold_deg : float
+        Angular constraint: pairs of lines closer to parallel than this hypothesise no VP.
+    min_lines : int
+        Fewest lines (and fewest inliers) for a VP.
+    infinity_alpha : float
+        Level of the F-test that snaps a VP to infinity when the data cannot tell it
+        from a point at infinity; 0 disables snapping.
+    infinity_noise_deg : float
+        Floor of the per-line angular noise in that F-test (degrees): the noise of the
+        lines of one instance is correlated (instance deformation, localisation), so
+        the residual of the finite fit underestimates it.
+    infinity_noise_px : float
+        Floor of the feature noise (pixels) in the point-level infinity test on feature
+        tracks (:func:`rescu.scene.vp.refine.ml_infinity_test`), which replaces the
+        line-level test when the lines carry their points.
+    row_tolerance : float
+        An instance centre belongs to a row when it lies within this fraction of the
+        instance's smaller box side from the row line.
+    min_row_instances : int
+        Fewest instances in a row (a pattern of exactly 2 instances is one row).
+    max_line_residual : float
+        An implicit line whose RMS residual exceeds this fraction of the median instance
+        size is dropped (feature mismatch).
+    precision_floor_px : float
+        Implicit lines are weighted in the refinement by their inverse angular variance
+        (spread^2 / max(residual, this)^2); 0 weighs all lines equally.
+    lsd_min_length : float
+        Baseline: shortest LSD segment kept, as a fraction of the image diagonal.
+    lsd_max_segments : int
+        Baseline: the longest this many segments are kept.
+    ml_refine : bool
+        Finish the fit with the maximum-likelihood VP
+        (:func:`rescu.scene.vp.refine.ml_refine_vp`) on the feature tracks of the inlier
+        lines, where the lines carry their points.
+    register_centres : bool
+        Locate instances by their features (:func:`rescu.layout.registered_centres`) instead of
+        their box centres for rows and the centre fallbacks, and leave duplicate
+        instances (registered centres closer than half an instance) out of the rows.
+    joint_alpha : float
+        Level of the likelihood-ratio test that merges another pattern's feature tracks into
+        the image VP of the dominant pattern
+        (:func:`rescu.scene.vp.estimator.joint_vanishing_point`: the patterns share the VP
+        unless the joint fit is significantly worse); 0: the image VP is the dominant
+        pattern's own.
+    spacing_alpha : float
+        Level of the likelihood-ratio test that accepts the *spacing model* on rows that
+        pass the translation-symmetry test (:func:`rescu.scene.vp.refine.spacing_refine_vp`:
+        equally spaced 3D points, so the image spacing along the row also locates the VP);
+        0: off.
+    seed : int
+        Seed of the random pair sampling.
+    """
+
+    ransac_iterations: int = 1000
+    inlier_angle_deg: float = 1.5
+    ac_threshold_deg: float = 2.0
+    min_lines: int = 3
+    infinity_alpha: float = 0.01
+    infinity_noise_deg: float = 0.5
+    infinity_noise_px: float = 0.25
+    row_tolerance: float = 0.25
+    min_row_instances: int = 3
+    max_line_residual: float = 0.15
+    precision_floor_px: float = 1.0
+    lsd_min_length: float = 0.025
+    lsd_max_segments: int = 1500
+    ml_refine: bool = True
+    register_centres: bool = True
+    joint_alpha: float = 0.01
+    spacing_alpha: float = 0.01
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.ransac_iterations < 1:
+            raise ValueError("VPParams.ransac_iterations must be >= 1")
+        if not 0 < self.inlier_angle_deg < 90:
+            raise ValueError("VPParams.inlier_angle_deg must be in (0, 90)")
+        if not 0 <= self.ac_threshold_deg < 90:
+            raise ValueError("VPParams.ac_threshold_deg must be in [0, 90)")
+        if self.min_lines < 2:
+            raise ValueError("VPParams.min_lines must be >= 2")
+        if not 0 <= self.infinity_alpha < 1:
+            raise ValueError("VPParams.infinity_alpha must be in [0, 1)")
+        if self.infinity_noise_px < 0:
+            raise ValueError("VPParams.infinity_noise_px must be >= 0")
+        if not 0 <= self.joint_alpha < 1:
+            raise ValueError("VPParams.joint_alpha must be in [0, 1)")
+        if not 0 <= self.spacing_alpha < 1:
+            raise ValueError("VPParams.spacing_alpha must be in [0, 1)")
+        if self.min_row_instances < 2:
+            raise ValueError("VPParams.min_row_instances must be >= 2")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "VPParams":
+        """Build from a mapping; unknown keys raise ValueError naming them."""
+        return params_from_dict(cls, d)
