@@ -5,7 +5,7 @@ rule caption:
     input:
         **prepared(),
         result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
-        code=code("captions/caption", "captions/grammar"),
+        code=step_code("caption"),
     output:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
     params:
@@ -22,7 +22,7 @@ rule overlay:
     input:
         **prepared(),
         result=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
-        code=code("visualize"),
+        code=step_code("overlay"),
     output:
         png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
     log:

@@ -6,6 +6,7 @@ from pathlib import Path
 from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
 from rescu.extension.stage2 import is_predict_only
 from rescu.data.synth import synthetic_image_names
+from rescu.imports import step_dependencies
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
@@ -23,17 +24,47 @@ wildcard_constraints:
 DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m, file=sys.stderr))
 
 
-def code(*modules):
-    """The rescu/ source files a rule depends on (a code change reruns the rule).
+CODE_DIR = f"{RESULTS}/.code"
+_STEP_CODE = {}  # workflow script name -> the rescu/ files it runs
 
-    Each module is a path under rescu/ without ``.py`` ("scene/symmetry"); a package
-    ("scene/vp") stands for all its ``.py`` files."""
-    base = ["types", "io", "params", "pipeline"]
-    out = []
-    for m in dict.fromkeys(base + list(modules)):
-        path = BASEDIR / "rescu" / m
-        out += sorted(map(str, path.glob("*.py"))) if path.is_dir() else [f"{path}.py"]
-    return out
+
+def step_code(script):
+    """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file
+    standing for every rescu/ source file the script runs (the script's imports and those
+    inside the pipeline functions it calls, closed over the package's imports:
+    :func:`rescu.imports.step_dependencies`). Editing one of them reruns the stamp rule
+    below and then the rules that read the stamp. One stamp instead of the files
+    themselves keeps Snakemake from checking a dozen source files for every waiting job
+    whenever it schedules."""
+    path = BASEDIR / "workflow" / "scripts" / f"{script}.py"
+    if not path.is_file():
+        raise ValueError(f"step_code: no workflow script {path}")
+    _STEP_CODE[script] = [str(p) for p in step_dependencies(path)]
+    return [f"{CODE_DIR}/{script}.txt"]
+
+
+rule code_stamp:
+    # the library files one workflow script runs, with their SHA-256 (regenerated when
+    # any of them changes; cheap, so it runs in the main process)
+    input:
+        lambda wildcards: _STEP_CODE[wildcards.script],
+    output:
+        f"{CODE_DIR}/{{script}}.txt",
+    wildcard_constraints:
+        script=r"[a-z0-9_]+",
+    run:
+        import hashlib
+        import os
+
+        lines = [f"{hashlib.sha256(Path(f).read_bytes()).hexdigest()}  "
+                 f"{os.path.relpath(f, BASEDIR)}\n" for f in input]
+        tmp = output[0] + ".tmp"
+        Path(tmp).write_text("".join(lines))
+        os.replace(tmp, output[0])
+
+
+localrules:
+    code_stamp,
 
 
 def stage2_upstream():

@@ -14,7 +14,7 @@ rule generate_synthetic:
         vps=f"{RESULTS}/{SYNTHETIC_DIR}/vanishing_points.json",
         truth=f"{RESULTS}/{SYNTHETIC_DIR}/truth.json",
     input:
-        code("data/synth", "data/camera", "data/textures", "scene/symmetry", "layout"),
+        step_code("generate_synthetic"),
     params:
         synth=config["synthetic"],
     log:
@@ -31,7 +31,7 @@ rule export_photos:
             f"{RESULTS}/{PHOTOS_DIR}/images/{{name}}", name=config["package_photos"]["names"]
         ),
     input:
-        code("data/photos"),
+        step_code("export_photos"),
     params:
         names=config["package_photos"]["names"],
     log:
@@ -45,7 +45,7 @@ rule export_photos:
 rule prepare:
     input:
         image=source_image,
-        code=code(),
+        code=step_code("prepare"),
     output:
         png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",

@@ -1,9 +1,7 @@
 # Evaluation: the paper's tables (TSV + Markdown) and curves (PNG) over all datasets.
 TABLES = f"{RESULTS}/tables"
 FIGURES = f"{RESULTS}/figures"
-EVAL_CODE = code("evaluation/core", "evaluation/counting", "evaluation/vpd", "evaluation/ts",
-                 "evaluation/plots", "evaluation/metrics", "evaluation/tables", "scene/counting",
-                 "scene/symmetry", "scene/vp", "layout")
+EVAL_CODE = step_code("tables")
 
 
 def dataset_params(names):

@@ -4,7 +4,7 @@
 rule features:
     input:
         **prepared(),
-        code=code("discovery/features"),
+        code=step_code("features"),
     output:
         h5=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
     params:

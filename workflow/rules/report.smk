@@ -23,7 +23,7 @@ rule report:
         finals=sample_files(f"{RESULTS}/{{dataset}}/final/{{image}}.json"),
         rectified=sample_files(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
         summary=f"{TABLES}/summary.md",
-        code=code("evaluation/report", "evaluation/report_tables", "evaluation/tables"),
+        code=step_code("report"),
     output:
         html=report(
             f"{RESULTS}/report/index.html",

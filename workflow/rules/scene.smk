@@ -16,8 +16,7 @@ rule scene:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry", "scene/counting",
-                  "scene/completion"),
+        code=step_code("scene"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
         rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
@@ -35,8 +34,7 @@ rule scene_no_ac:
     input:
         **prepared(),
         result=scene_source,
-        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry", "scene/counting",
-                  "scene/completion"),
+        code=step_code("scene"),
     output:
         json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
         rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
@@ -53,7 +51,7 @@ rule scene_no_ac:
 rule line_vp:
     input:
         **prepared(),
-        code=code("scene/analyse", "layout", "scene/vp", "scene/symmetry"),
+        code=step_code("line_vp"),
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:

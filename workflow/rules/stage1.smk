@@ -7,8 +7,7 @@ rule rescu_i:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
-                  "evaluation/metrics", "layout"),
+        code=step_code("stage1"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.rp.h5",
@@ -26,8 +25,7 @@ rule grasp:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
-                  "discovery/grasp", "evaluation/metrics", "layout"),
+        code=step_code("grasp"),
     output:
         json=f"{RESULTS}/{{dataset}}/grasp/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/grasp/{{image}}.rp.h5",
@@ -45,8 +43,7 @@ rule ablation:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("discovery/features", "discovery/urp", "discovery/search", "discovery/stage1",
-                  "evaluation/metrics", "layout"),
+        code=step_code("ablation"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/ablation/{{variant}}/{{{{image}}}}.json",

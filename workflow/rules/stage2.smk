@@ -6,8 +6,7 @@ rule stage2_features:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "extension/proposals",
-                  "extension/backbone", "extension/finetune", "evaluation/metrics"),
+        code=step_code("stage2_features"),
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
@@ -28,7 +27,7 @@ rule stage2_train:
     input:
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "evaluation/metrics"),
+        code=step_code("stage2_train"),
     output:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
@@ -49,7 +48,7 @@ rule stage2_predict:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("extension/stage2", "extension/head", "extension/merge", "evaluation/metrics"),
+        code=step_code("stage2_predict"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
@@ -73,8 +72,7 @@ if stage2_predict_variants():
             ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
             meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-            code=code("extension/stage2", "extension/head", "extension/merge",
-                      "evaluation/metrics"),
+            code=step_code("stage2_predict_ablation"),
         output:
             expand(
                 f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
@@ -97,9 +95,7 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "extension/proposals",
-                  "extension/backbone", "extension/finetune", "extension/merge",
-                  "evaluation/metrics"),
+        code=step_code("stage2_ablation"),
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",

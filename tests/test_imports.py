@@ -1,0 +1,39 @@
+"""rescu.imports: the package's import graph, and the library files each workflow step
+runs (the rules' code dependencies)."""
+
+from pathlib import Path
+
+import pytest
+
+from rescu.imports import import_closure, step_dependencies
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPTS = REPO / "workflow" / "scripts"
+
+
+def _names(files):
+    return {str(p.relative_to(REPO / "rescu")) for p in files}
+
+
+def test_closure_follows_imports_at_any_depth():
+    names = _names(import_closure(["rescu.scene.analyse"]))
+    assert {"scene/analyse.py", "scene/symmetry.py", "layout.py", "types.py"} <= names
+    assert not any(n.startswith(("discovery/", "extension/")) for n in names), names
+    with pytest.raises(KeyError, match="rescu.nope"):
+        import_closure(["rescu.nope"])
+
+
+def test_each_step_depends_on_its_own_modules_only():
+    dep = {s.stem: _names(step_dependencies(s)) for s in SCRIPTS.glob("*.py")}
+    assert {"pipeline.py", "scene/analyse.py", "scene/completion.py",
+            "scene/symmetry.py"} <= dep["scene"]
+    assert not any(n.startswith(("discovery/", "extension/")) for n in dep["scene"])
+    assert {"discovery/stage1.py", "discovery/search.py", "discovery/urp.py"} <= dep["stage1"]
+    assert not any(n.startswith(("scene/", "extension/")) for n in dep["stage1"])
+    assert "discovery/features.py" in dep["features"]
+    assert not any(n.startswith("extension/") for n in dep["features"] | dep["caption"])
+    assert "extension/backbone.py" in dep["stage2_features"]
+    assert "captions/caption.py" in dep["caption"]
+    assert "data/synth.py" in dep["generate_synthetic"]
+    for stem, files in dep.items():
+        assert "pipeline.py" in files, stem  # every adapter logs through the pipeline
