@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
 from ..types import ImageResult
 from .metrics import METRICS, score_image
 
@@ -49,6 +49,9 @@ METRIC_LABELS = {"instance_precision": "Instance P", "instance_recall": "Instanc
 
 
 # ----------------------------------------------------------------------------- params
+_D = config_defaults("evaluation")
+
+
 @dataclass(frozen=True)
 class EvaluationParams:
     """Parameters of the evaluation.
@@ -75,16 +78,16 @@ class EvaluationParams:
         Decimals in Markdown tables.
     """
 
-    iod_h: float = 0.5
-    min_rp_precision: float = 0.5
-    h_curve: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-    significance_alpha: float = 0.05
-    vp_px_thresholds: tuple[float, ...] = (5, 10, 20, 30, 50, 75, 100)
-    vp_deg_thresholds: tuple[float, ...] = (1, 2, 3, 5, 10, 15, 20)
-    ts_t_fine: tuple[float, ...] = tuple(round(0.01 * k, 2) for k in range(1, 16))
-    ts_t_coarse: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(1, 21))
-    ts_which: str = "any"
-    decimals: int = 2
+    iod_h: float = _D["iod_h"]
+    min_rp_precision: float = _D["min_rp_precision"]
+    h_curve: tuple[float, ...] = tuple(_D["h_curve"])
+    significance_alpha: float = _D["significance_alpha"]
+    vp_px_thresholds: tuple[float, ...] = tuple(_D["vp_px_thresholds"])
+    vp_deg_thresholds: tuple[float, ...] = tuple(_D["vp_deg_thresholds"])
+    ts_t_fine: tuple[float, ...] = tuple(_D["ts_t_fine"])
+    ts_t_coarse: tuple[float, ...] = tuple(_D["ts_t_coarse"])
+    ts_which: str = _D["ts_which"]
+    decimals: int = _D["decimals"]
 
     def __post_init__(self) -> None:
         if not 0.0 < self.iod_h < 1.0:

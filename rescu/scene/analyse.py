@@ -43,7 +43,10 @@ from .vp.geometry import INFINITY_EPS
 from .vp.lines import Lines, pattern_lines
 from .vp.params import VPParams
 from ..types import ImageResult, Pattern, VanishingPoint
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
+
+
+_D = config_defaults("scene")
 
 
 @dataclass(frozen=True)
@@ -69,9 +72,9 @@ class SceneParams:
 
     vp: VPParams = field(default_factory=VPParams)
     symmetry: S.SymmetryParams = field(default_factory=S.SymmetryParams)
-    rectify_max_side: int = 1024
-    rectify_padding: float = 0.1
-    rectify_min_w: float = 0.1
+    rectify_max_side: int = _D["rectify_max_side"]
+    rectify_padding: float = _D["rectify_padding"]
+    rectify_min_w: float = _D["rectify_min_w"]
 
     def __post_init__(self) -> None:
         if self.rectify_max_side < 8:
