@@ -446,15 +446,6 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 
 
 # --------------------------------------------------------------------------- scene
-def _scene_params(section: dict[str, Any]) -> Any:
-    """SceneParams from the config's ``scene`` section (``source`` picks the input file
-    of the scene step and is not a SceneParams field)."""
-    from .scene import analyse as SC
-
-    return SC.SceneParams.from_dict({k: v for k, v in section.items()
-                                     if k not in ("source", "completion")})
-
-
 def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
           params: dict[str, Any]) -> Failure | None:
     """Row completion, vanishing points, translation symmetry, counts; rectified views.
@@ -475,7 +466,7 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = _scene_params(params)
+        p = SC.SceneParams.from_config(params)
         cp = CO.CompletionParams.from_dict(params.get("completion") or {})
         rgb, _ = read_prepared(png, meta_path)
         completed = CO.complete_rows(src, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cp,
@@ -501,13 +492,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
     """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
+    from .scene import analyse as SC
     from .scene.vp.lsd import line_vanishing_point
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
-        p = _scene_params(params)
+        p = SC.SceneParams.from_config(params)
         vp = line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp

@@ -90,6 +90,12 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
         ``scale`` (K,) pixels (keypoint diameter),
         ``angle`` (K,) degrees, ``response`` (K,), ``descriptors`` (K, 128) float32,
         sorted by decreasing response. A uniform image gives ``Features.empty``.
+
+    >>> from rescu.data.synth import example_image
+    >>> img, _ = example_image()                  # 432 x 144 px: below upsample_below
+    >>> f = extract_features(img)
+    >>> f.image_size, f.scale_factor, len(f) > 100
+    ((864, 288), 2.0, True)
     """
     import cv2
 

@@ -714,6 +714,14 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     Stage1Output
         ``rps`` best first. An image with fewer than 4 features or without recurrence
         gives ``rps == []``, ``objective == 0`` and the fixed parameters as ``chosen``.
+
+    >>> from rescu.data.synth import example_image
+    >>> from rescu.discovery.features import extract_features
+    >>> img, truth = example_image()              # one row of 5 copies
+    >>> f = extract_features(img)
+    >>> out = discover(f, Stage1Params(adaptive=()))   # fixed P_d, P_s, P_theta: fast
+    >>> [p.count for p in rps_to_patterns(f, out.rps)][:1]
+    [5]
     """
     params = params or Stage1Params()
     if not isinstance(features, Features):

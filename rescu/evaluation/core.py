@@ -37,7 +37,7 @@ import pandas as pd
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
 from ..params import checked_mapping, config_defaults
 from ..types import ImageResult
-from .metrics import METRICS, score_image
+from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
 
 ABLATION_ROWS = ("none", "P_d", "P_s", "P_theta", "P_d+P_s", "P_d+P_theta",
@@ -223,7 +223,7 @@ def _score_frame(ds: _Dataset, h: float, min_rp_precision: float) -> pd.DataFram
 
 # ----------------------------------------------------------------------------- RP tables
 def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                        h: float = 0.5, min_rp_precision: float = 0.5,
+                        h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Per image x method: the 4 IOD metrics, counts and subset columns.
 
@@ -244,6 +244,30 @@ def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | P
         Columns ``dataset, image, method, subset, hard, prediction_missing``, the
         metrics of :data:`rescu.evaluation.metrics.METRICS` (NaN where undefined),
         ``n_det_instances, n_gt_instances, n_det_rps, n_gt_rps, gt_categories``.
+
+    Examples
+    --------
+    A one-image dataset (a tiny synthetic photo and its COCO boxes) scored against
+    stage I's result:
+
+    >>> import json, tempfile, cv2
+    >>> from pathlib import Path
+    >>> from rescu import discover, example_image
+    >>> img, truth = example_image()
+    >>> data = Path(tempfile.mkdtemp())
+    >>> (data / "images").mkdir()
+    >>> cv2.imwrite(str(data / "images" / "row.png"), img[:, :, ::-1])
+    True
+    >>> coco = {"images": [{"id": 1, "file_name": "images/row.png"}],
+    ...         "categories": [{"id": 1, "name": "square"}],
+    ...         "annotations": [{"id": i, "image_id": 1, "category_id": 1, "bbox": list(b)}
+    ...                         for i, b in enumerate(truth)]}
+    >>> _ = (data / "annotations.json").write_text(json.dumps(coco))
+    >>> _ = discover(data / "images" / "row.png", data / "rescu-i", method="rescu-i")
+    >>> scores = evaluate_rp_dataset(data, {"rescu-i": data / "rescu-i"})
+    >>> row = scores.iloc[0]
+    >>> row.method, float(row.instance_recall), float(row.rp_recall), int(row.n_gt_instances)
+    ('rescu-i', 1.0, 1.0, 5)
     """
     if not 0.0 < h < 1.0:
         raise ValueError(f"h must be in (0, 1), got {h}")
@@ -460,7 +484,7 @@ def write_markdown(text: str, path: str | Path) -> None:
 # ----------------------------------------------------------------------------- curves
 def metric_curves(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                   hs: Sequence[float] = EvaluationParams.h_curve,
-                  min_rp_precision: float = 0.5,
+                  min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Every metric vs the IOD threshold h, per method.
 
@@ -490,7 +514,7 @@ def metric_curves(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 
 # ----------------------------------------------------------------------------- ablation
 def ablation_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                   h: float = 0.5, min_rp_precision: float = 0.5,
+                   h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Stage-I ablation: one row per variant x the 4 metrics.
 

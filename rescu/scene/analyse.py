@@ -99,6 +99,21 @@ class SceneParams:
         d["symmetry"] = S.SymmetryParams.from_dict(d.get("symmetry"))
         return cls(**d)
 
+    @classmethod
+    def from_config(cls, section: dict[str, Any] | None) -> "SceneParams":
+        """Build from the configuration's whole ``scene`` section: its ``source`` (which
+        instances the scene step reads) and ``completion``
+        (:class:`rescu.scene.completion.CompletionParams`) belong to the pipeline's step
+        and are left out; every other key goes to :meth:`from_dict`.
+
+        >>> from rescu.params import config_defaults
+        >>> p = SceneParams.from_config(config_defaults("scene"))
+        >>> p.vp.ransac_iterations, p.symmetry.threshold
+        (1000, 0.06)
+        """
+        return cls.from_dict({k: v for k, v in (section or {}).items()
+                              if k not in ("source", "completion")})
+
 
 def _boxes(p: Pattern) -> np.ndarray:
     return np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
