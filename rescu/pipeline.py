@@ -219,7 +219,7 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     matrices (feature indices) to HDF5.
     """
     from .discovery import features as F
-    from .discovery import stage1 as S
+    from .discovery import stage1 as S1
 
     meta = io.read_json(meta_path)
 
@@ -230,10 +230,10 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
-            out = S.discover(feats, S.Stage1Params.from_dict(params))
-        S.save_rps(out_h5, out)
+            out = S1.discover(feats, S1.Stage1Params.from_dict(params))
+        S1.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
-        res.patterns = S.rps_to_patterns(feats, out.rps)
+        res.patterns = S1.rps_to_patterns(feats, out.rps)
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -274,7 +274,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     ``rescu-i[<variant>]``). Features are loaded once.
     """
     from .discovery import features as F
-    from .discovery import stage1 as S
+    from .discovery import stage1 as S1
 
     meta = io.read_json(meta_path)
     overrides = {name: ablation_overrides(v) for name, v in variants.items()}
@@ -282,10 +282,10 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     def run() -> None:
         feats = F.load_features(features_h5)
         for name, over in overrides.items():
-            p = S.Stage1Params.from_dict({**params, **over})
-            o = S.discover(feats, p)
+            p = S1.Stage1Params.from_dict({**params, **over})
+            o = S1.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
-            res.patterns = S.rps_to_patterns(feats, o.rps)
+            res.patterns = S1.rps_to_patterns(feats, o.rps)
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)
@@ -515,17 +515,17 @@ def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> 
 def caption(png: str, meta_path: str, in_json: str, out_json: str,
             params: dict[str, Any]) -> Failure | None:
     """Base and enhanced caption into the final per-image JSON."""
-    from .captions import caption as C
+    from .captions import caption as CAP
 
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = C.CaptionParams.from_dict(params)
-        captioner = C.make_captioner(p, log=log.warning)
+        p = CAP.CaptionParams.from_dict(params)
+        captioner = CAP.make_captioner(p, log=log.warning)
         rgb, _ = read_prepared(png, meta_path)
         res = ImageResult.from_json(src.to_json())
-        res.caption = C.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
+        res.caption = CAP.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
         io.write_json(out_json, res)
 
     upstream = _blocking(src.extra.get("failure"))

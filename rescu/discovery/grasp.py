@@ -34,14 +34,14 @@ from scipy.spatial import cKDTree
 from ..params import config_defaults, params_from_dict
 from .stage1 import Stage1Output
 from ..types import Features, RPMatrix
-from .urp import AffinityParams, Gates, MatchParams, match_candidates, objective, root_sift
+from .urp import AffinityMatchGroups, Gates, match_candidates, objective, root_sift
 
 
 _D = config_defaults("grasp")
 
 
 @dataclass(frozen=True)
-class GraspParams:
+class GraspParams(AffinityMatchGroups):
     """Parameters of the GRASP baseline.
 
     Attributes
@@ -90,16 +90,6 @@ class GraspParams:
     box_grow: float = _D["box_grow"]
     max_keypoints: int = _D["max_keypoints"]
     seed: int = _D["seed"]
-
-    @property
-    def affinity(self) -> AffinityParams:
-        """``sigma_s``, ``sigma_theta``, ``orientation_mode`` as an AffinityParams."""
-        return AffinityParams(self.sigma_s, self.sigma_theta, self.orientation_mode)
-
-    @property
-    def match(self) -> MatchParams:
-        """``match_k``, ``match_max_dist``, ``match_min_sep`` as a MatchParams."""
-        return MatchParams(self.match_k, self.match_max_dist, self.match_min_sep)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GraspParams":

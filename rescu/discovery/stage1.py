@@ -64,7 +64,7 @@ from ..layout import registered_centres
 from ..evaluation.metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from ..types import Features, Instance, Pattern, RPMatrix
-from .urp import (AffinityParams, Gates, MatchParams, match_candidates, root_sift, urp_affinity,
+from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift, urp_affinity,
                   urp_terms)
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
@@ -74,7 +74,7 @@ _D = config_defaults("stage1")
 
 
 @dataclass(frozen=True)
-class Stage1Params:
+class Stage1Params(AffinityMatchGroups):
     """Parameters of RESCU-I (see module docstring).
 
     Attributes
@@ -214,16 +214,6 @@ class Stage1Params:
     def from_dict(cls, d: dict[str, Any]) -> "Stage1Params":
         """Build from a mapping; raises ValueError naming any unknown key."""
         return params_from_dict(cls, d)
-
-    @property
-    def affinity(self) -> AffinityParams:
-        """``sigma_s``, ``sigma_theta``, ``orientation_mode`` as an AffinityParams."""
-        return AffinityParams(self.sigma_s, self.sigma_theta, self.orientation_mode)
-
-    @property
-    def match(self) -> MatchParams:
-        """``match_k``, ``match_max_dist``, ``match_min_sep`` as a MatchParams."""
-        return MatchParams(self.match_k, self.match_max_dist, self.match_min_sep)
 
     def grid(self) -> list[dict[str, float]]:
         """The parameter sets of the adaptive grid (one set when ``adaptive`` is empty)."""

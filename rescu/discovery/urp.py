@@ -94,6 +94,30 @@ class MatchParams:
     min_sep: float = _D["match_min_sep"]
 
 
+class AffinityMatchGroups:
+    """Mixin of a parameter dataclass with the flat fields ``sigma_s``, ``sigma_theta``,
+    ``orientation_mode`` and ``match_k``, ``match_max_dist``, ``match_min_sep`` (as the
+    configuration spells them): the two groups as :class:`AffinityParams` and
+    :class:`MatchParams`."""
+
+    sigma_s: float
+    sigma_theta: float
+    orientation_mode: str
+    match_k: int
+    match_max_dist: float
+    match_min_sep: float
+
+    @property
+    def affinity(self) -> AffinityParams:
+        """``sigma_s``, ``sigma_theta``, ``orientation_mode`` as an AffinityParams."""
+        return AffinityParams(self.sigma_s, self.sigma_theta, self.orientation_mode)
+
+    @property
+    def match(self) -> MatchParams:
+        """``match_k``, ``match_max_dist``, ``match_min_sep`` as a MatchParams."""
+        return MatchParams(self.match_k, self.match_max_dist, self.match_min_sep)
+
+
 def wrap_deg(a: np.ndarray) -> np.ndarray:
     """Wrap angles (degrees) into ``(-180, 180]``."""
     a = np.asarray(a, np.float64)

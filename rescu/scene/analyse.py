@@ -36,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .. import layout as L
-from . import counting as C
+from . import counting as CNT
 from . import symmetry as S
 from .vp.estimator import joint_vanishing_point, rp_vanishing_point
 from .vp.geometry import INFINITY_EPS
@@ -230,7 +230,7 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     size = (int(result.width), int(result.height))
     res.patterns = [analyse_pattern(p, size, params) for p in result.patterns]
     res.extra = copy.deepcopy(result.extra)
-    dom = C.dominant_pattern(res.patterns)
+    dom = CNT.dominant_pattern(res.patterns)
     res.dominant_pattern = None if dom is None else int(res.patterns[dom].id)
     res.vanishing_point = None
     if dom is not None:
