@@ -45,7 +45,7 @@ _EXPORTS = {
     "rps_to_patterns": "discovery.stage1",
     "score_image": "evaluation.metrics",        # evaluation: one image, a dataset folder
     "evaluate_rp_dataset": "evaluation.core",
-    "example_image": "data.synth",              # a tiny synthetic photo for examples
+    "example_image": "data.example",            # a tiny synthetic photo for examples
 }
 
 __all__ = ["__version__", *_EXPORTS]

@@ -70,7 +70,7 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     On a tiny synthetic photo (one row of 5 copies), stage I only:
 
     >>> import tempfile, cv2
-    >>> from rescu.data.synth import example_image
+    >>> from rescu.data.example import example_image
     >>> img, truth = example_image()
     >>> photo = f"{tempfile.mkdtemp()}/row.png"
     >>> cv2.imwrite(photo, img[:, :, ::-1])

@@ -5,7 +5,7 @@ import importlib
 
 import pytest
 
-MODULES = ["rescu", "rescu.api", "rescu.config", "rescu.data.synth", "rescu.discovery.features",
+MODULES = ["rescu", "rescu.api", "rescu.config", "rescu.data.example", "rescu.discovery.features",
            "rescu.discovery.stage1", "rescu.evaluation.core",
            "rescu.evaluation.metrics", "rescu.scene.analyse"]
 

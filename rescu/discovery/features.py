@@ -91,7 +91,7 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
         ``angle`` (K,) degrees, ``response`` (K,), ``descriptors`` (K, 128) float32,
         sorted by decreasing response. A uniform image gives ``Features.empty``.
 
-    >>> from rescu.data.synth import example_image
+    >>> from rescu.data.example import example_image
     >>> img, _ = example_image()                  # 432 x 144 px: below upsample_below
     >>> f = extract_features(img)
     >>> f.image_size, f.scale_factor, len(f) > 100

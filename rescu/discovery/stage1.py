@@ -315,13 +315,6 @@ def search_context(features: Features, params: Stage1Params) -> tuple[SearchCont
     Matches the candidate correspondences (``params.match``) and carries the search
     parameters of ``params``. Used by :func:`discover`; public for benchmarks and tests
     that time or probe one step.
-
-    >>> import numpy as np
-    >>> from rescu.types import Features
-    >>> f = Features.empty((100, 80))
-    >>> ctx, diag = search_context(f, Stage1Params())
-    >>> ctx.nbr.shape[0], round(diag, 1)
-    (0, 128.1)
     """
     xy = features.xy.astype(np.float64)
     nbr, _ = match_candidates(features.descriptors, features.xy, features.scale, params.match)
@@ -705,7 +698,7 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
         ``rps`` best first. An image with fewer than 4 features or without recurrence
         gives ``rps == []``, ``objective == 0`` and the fixed parameters as ``chosen``.
 
-    >>> from rescu.data.synth import example_image
+    >>> from rescu.data.example import example_image
     >>> from rescu.discovery.features import extract_features
     >>> img, truth = example_image()              # one row of 5 copies
     >>> f = extract_features(img)

@@ -168,7 +168,7 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
         A detected RP is accepted when its precision against its assigned GT RP is at
         least this (and two or more of its instances match).
 
-    >>> from rescu.data.synth import example_image
+    >>> from rescu.data.example import example_image
     >>> _, truth = example_image(n=4)                  # one RP of 4 instances
     >>> found = [[(x + 3, y, w, h) for x, y, w, h in truth[:3]]]  # 3 of them, shifted
     >>> s = score_image(found, [truth])
