@@ -64,6 +64,20 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     rescu.io.InputError
         ``method`` or ``config`` is invalid (the message names the key and its value),
         or ``out_dir`` is a file, or would overwrite ``image``.
+
+    Examples
+    --------
+    On a tiny synthetic photo (one row of 5 copies), stage I only:
+
+    >>> import tempfile, cv2
+    >>> from rescu.data.example import example_image
+    >>> img, truth = example_image()
+    >>> photo = f"{tempfile.mkdtemp()}/row.png"
+    >>> cv2.imwrite(photo, img[:, :, ::-1])
+    True
+    >>> result = discover(photo, method="rescu-i")
+    >>> "failure" in result.extra, result.patterns[0].count
+    (False, 5)
     """
     from .config import validate_config
 

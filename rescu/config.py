@@ -256,6 +256,15 @@ def validate_config(config: dict[str, Any], source: str = "config",
         layer that sets it, else to ``source``.
     stage2 : bool
         Also check what stage II needs (the backbone's weights).
+
+    >>> cfg = load_config(stage2=False)
+    >>> validate_config(cfg, stage2=False) is cfg
+    True
+    >>> validate_config({**cfg, "grasp": {**cfg["grasp"], "rcl_size": 0}}, "my.yaml",
+    ...                 stage2=False)
+    Traceback (most recent call last):
+    ...
+    rescu.io.InputError: my.yaml: grasp.rcl_size = 0: ...
     """
     errors = schema_errors(config)
     if errors:
@@ -285,6 +294,14 @@ def load_config(path: str | Path | None = None,
     :class:`InputError` naming where the bad value came from (the file, or ``--set``
     for ``overrides``), the key, its value and what is allowed. ``stage2=False`` skips
     the check of stage II's backbone weights (for runs that stop at stage I).
+
+    >>> cfg = load_config(overrides={"stage1": {"max_patterns": 2}}, stage2=False)
+    >>> cfg["stage1"]["max_patterns"], cfg["stage1"]["sigma_s"], cfg["image"]["max_side"]
+    (2, 0.2, 1600)
+    >>> load_config(overrides={"stage1": {"max_patterns": 0}}, stage2=False)
+    Traceback (most recent call last):
+    ...
+    rescu.io.InputError: --set: stage1.max_patterns = 0: ...
     """
     cfg = _read_yaml(DEFAULT_CONFIG)
     source = str(DEFAULT_CONFIG)

@@ -169,15 +169,23 @@ class LoadedImage:
     notes: list[str]
 
 
-def load_image(path: str | os.PathLike[str], max_side: int = 1600,
-               min_side: int = 16) -> LoadedImage:
+def load_image(path: str | os.PathLike[str], max_side: int | None = None,
+               min_side: int | None = None) -> LoadedImage:
     """Load a photo in displayed orientation as 8-bit RGB, downscaled to ``max_side``.
 
     Handles grayscale, RGBA (composited on white), 16-bit, palette and EXIF-rotated
     images. Raises :class:`InputError` naming the file for empty, truncated, unreadable
     or non-image files and images smaller than ``min_side`` pixels on a side.
+    ``max_side`` / ``min_side`` default to the configuration's ``image`` section.
     """
     from PIL import Image, ImageOps, UnidentifiedImageError
+
+    from .params import config_defaults
+
+    if max_side is None or min_side is None:
+        d = config_defaults("image")
+        max_side = d["max_side"] if max_side is None else max_side
+        min_side = d["min_side"] if min_side is None else min_side
 
     path = Path(path)
     if not path.exists():

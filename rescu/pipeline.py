@@ -219,7 +219,7 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     matrices (feature indices) to HDF5.
     """
     from .discovery import features as F
-    from .discovery import stage1 as S
+    from .discovery import stage1 as S1
 
     meta = io.read_json(meta_path)
 
@@ -230,10 +230,10 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
-            out = S.discover(feats, S.Stage1Params.from_dict(params))
-        S.save_rps(out_h5, out)
+            out = S1.discover(feats, S1.Stage1Params.from_dict(params))
+        S1.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
-        res.patterns = S.rps_to_patterns(feats, out.rps)
+        res.patterns = S1.rps_to_patterns(feats, out.rps)
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -274,7 +274,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     ``rescu-i[<variant>]``). Features are loaded once.
     """
     from .discovery import features as F
-    from .discovery import stage1 as S
+    from .discovery import stage1 as S1
 
     meta = io.read_json(meta_path)
     overrides = {name: ablation_overrides(v) for name, v in variants.items()}
@@ -282,10 +282,10 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     def run() -> None:
         feats = F.load_features(features_h5)
         for name, over in overrides.items():
-            p = S.Stage1Params.from_dict({**params, **over})
-            o = S.discover(feats, p)
+            p = S1.Stage1Params.from_dict({**params, **over})
+            o = S1.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
-            res.patterns = S.rps_to_patterns(feats, o.rps)
+            res.patterns = S1.rps_to_patterns(feats, o.rps)
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)
@@ -446,15 +446,6 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 
 
 # --------------------------------------------------------------------------- scene
-def _scene_params(section: dict[str, Any]) -> Any:
-    """SceneParams from the config's ``scene`` section (``source`` picks the input file
-    of the scene step and is not a SceneParams field)."""
-    from .scene import analyse as SC
-
-    return SC.SceneParams.from_dict({k: v for k, v in section.items()
-                                     if k not in ("source", "completion")})
-
-
 def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
           params: dict[str, Any]) -> Failure | None:
     """Row completion, vanishing points, translation symmetry, counts; rectified views.
@@ -475,7 +466,7 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = _scene_params(params)
+        p = SC.SceneParams.from_config(params)
         cp = CO.CompletionParams.from_dict(params.get("completion") or {})
         rgb, _ = read_prepared(png, meta_path)
         completed = CO.complete_rows(src, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cp,
@@ -501,13 +492,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
     """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
+    from .scene import analyse as SC
     from .scene.vp.lsd import line_vanishing_point
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
-        p = _scene_params(params)
+        p = SC.SceneParams.from_config(params)
         vp = line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp
@@ -523,17 +515,17 @@ def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> 
 def caption(png: str, meta_path: str, in_json: str, out_json: str,
             params: dict[str, Any]) -> Failure | None:
     """Base and enhanced caption into the final per-image JSON."""
-    from .captions import caption as C
+    from .captions import caption as CAP
 
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = C.CaptionParams.from_dict(params)
-        captioner = C.make_captioner(p, log=log.warning)
+        p = CAP.CaptionParams.from_dict(params)
+        captioner = CAP.make_captioner(p, log=log.warning)
         rgb, _ = read_prepared(png, meta_path)
         res = ImageResult.from_json(src.to_json())
-        res.caption = C.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
+        res.caption = CAP.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
         io.write_json(out_json, res)
 
     upstream = _blocking(src.extra.get("failure"))

@@ -26,7 +26,7 @@ def _wrap(text: str, width: int) -> list[str]:
 
 
 def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
-            max_side: int = 1024) -> np.ndarray:
+            picture_max_side: int = 1024) -> np.ndarray:
     """Draw ``result`` on the processed image.
 
     Parameters
@@ -36,7 +36,7 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     scale_factor : float
         processed = original * scale_factor; result boxes are in original pixels.
     result : ImageResult
-    max_side : int
+    picture_max_side : int
         The picture is resized so that its longer side is at most this, pixels.
 
     Returns
@@ -51,7 +51,7 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     img = np.ascontiguousarray(rgb.copy())
     h, w = img.shape[:2]
     s = float(scale_factor)
-    fit = min(1.0, max_side / max(h, w))
+    fit = min(1.0, picture_max_side / max(h, w))
     if fit < 1.0:
         img = cv2.resize(img, (round(w * fit), round(h * fit)), interpolation=cv2.INTER_AREA)
         s *= fit

@@ -5,6 +5,10 @@ import pytest
 
 from rescu.discovery.features import FeatureParams, extract_features, load_features, save_features
 
+# the shipped default upsamples images below 700 px; these tests use SIFT on the image as
+# given (FeatureParams' old default, upsample_below=0)
+SIFT = FeatureParams(upsample_below=0)
+
 
 def _image(seed=0, h=120, w=160):
     import cv2
@@ -14,7 +18,7 @@ def _image(seed=0, h=120, w=160):
 
 
 def test_extract_shapes_order_and_scale_factor():
-    f = extract_features(_image(), FeatureParams(n_features=50), scale_factor=0.5)
+    f = extract_features(_image(), FeatureParams(n_features=50, upsample_below=0), scale_factor=0.5)
     k = len(f)
     assert 0 < k <= 50
     assert f.xy.shape == (k, 2) and f.descriptors.shape == (k, 128)
@@ -25,10 +29,10 @@ def test_extract_shapes_order_and_scale_factor():
 
 
 def test_deterministic_and_uniform_image_is_empty():
-    a = extract_features(_image())
-    b = extract_features(_image())
+    a = extract_features(_image(), SIFT)
+    b = extract_features(_image(), SIFT)
     assert np.array_equal(a.xy, b.xy) and np.array_equal(a.descriptors, b.descriptors)
-    e = extract_features(np.full((64, 64, 3), 128, np.uint8))
+    e = extract_features(np.full((64, 64, 3), 128, np.uint8), SIFT)
     assert len(e) == 0 and e.image_size == (64, 64)
 
 
@@ -42,7 +46,7 @@ def test_bad_input_is_named():
 
 
 def test_save_load_roundtrip(tmp_path):
-    f = extract_features(_image(), scale_factor=0.25)
+    f = extract_features(_image(), SIFT, scale_factor=0.25)
     save_features(tmp_path / "f.h5", f)
     g = load_features(tmp_path / "f.h5")
     assert g.image_size == f.image_size and g.scale_factor == 0.25
@@ -55,7 +59,7 @@ def test_upsampling_keeps_original_pixels_consistent():
     p = FeatureParams(upsample_below=200, upsample_factor=2.0)
     f = extract_features(img, p, scale_factor=0.5)
     assert f.image_size == (320, 240) and f.scale_factor == 1.0   # 0.5 * 2
-    base = extract_features(img, FeatureParams(), scale_factor=0.5)
+    base = extract_features(img, SIFT, scale_factor=0.5)
     assert base.image_size == (160, 120) and base.scale_factor == 0.5
     assert len(f) > len(base)                         # small texture: more keypoints
     # every upsampled keypoint (in original pixels) lies in the original image

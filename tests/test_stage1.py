@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rescu.discovery.features import extract_features
+from rescu.discovery.features import FeatureParams, extract_features
 from rescu.evaluation.metrics import iod_matrix, score_image
 from rescu.discovery.stage1 import (Stage1Output, Stage1Params, discover, load_rps,
                                     rps_to_patterns, save_rps)
@@ -41,11 +41,14 @@ def make_scene(n: int = 5, rows=((90, 0),), size: int = 60, gap: int = 40, h: in
     return np.dstack([img] * 3), boxes
 
 
+# the shipped default upsamples images below 700 px; these tests were written for SIFT on
+# the image as given (FeatureParams' old default, upsample_below=0)
+SIFT = FeatureParams(upsample_below=0)
 FAST = Stage1Params(adaptive=())   # fixed parameters: fast
 
 
 def _run(img, params=FAST):
-    f = extract_features(img)
+    f = extract_features(img, SIFT)
     out = discover(f, params)
     return f, out, rps_to_patterns(f, out.rps)
 
@@ -90,7 +93,7 @@ def test_single_object_gives_no_rp():
 
 def test_no_recurrence_under_the_adaptive_grid_falls_back_to_the_fixed_parameters():
     img, _ = make_scene(n=1)
-    out = discover(extract_features(img), Stage1Params())
+    out = discover(extract_features(img, SIFT), Stage1Params())
     assert out.rps == [] and out.chosen_by == "fixed"
     assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
 
@@ -98,7 +101,7 @@ def test_no_recurrence_under_the_adaptive_grid_falls_back_to_the_fixed_parameter
 def test_a_failed_probe_is_retried_with_more_initials_before_the_fallback(monkeypatch):
     import rescu.discovery.stage1 as S
     img, _ = make_scene()
-    f = extract_features(img)
+    f = extract_features(img, SIFT)
     calls = []
     real = S.choose_parameters
 
@@ -129,7 +132,7 @@ def test_grid_without_a_valid_probe_uses_the_fixed_parameters_not_the_tightest()
     parameters find the rows."""
     from rescu.data.synth import SynthParams, render_synthetic_image
     scene = render_synthetic_image(SynthParams(seed=7), 19)
-    f = extract_features(scene.rgb)
+    f = extract_features(scene.rgb, SIFT)
     out = discover(f, Stage1Params())
     assert out.chosen_by == "fixed"
     assert out.chosen == {"P_d": 0.2, "P_s": 0.5, "P_theta": 30.0}
@@ -149,7 +152,7 @@ def test_empty_features_give_documented_empty_result():
 
 def test_deterministic():
     img, _ = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
-    f = extract_features(img)
+    f = extract_features(img, SIFT)
     a = discover(f, Stage1Params(adaptive=("P_d",)))
     b = discover(f, Stage1Params(adaptive=("P_d",)))
     assert len(a.rps) == len(b.rps) and a.chosen == b.chosen
@@ -168,7 +171,7 @@ def test_orientation_modes_find_the_row(mode):
 
 def test_original_pixels_and_save_load(tmp_path):
     img, gt = make_scene()
-    f = extract_features(img, scale_factor=0.5)   # processed = original * 0.5
+    f = extract_features(img, SIFT, scale_factor=0.5)   # processed = original * 0.5
     out = discover(f, FAST)
     pats = rps_to_patterns(f, out.rps)
     b = np.array([i.bbox for i in pats[0].instances])
@@ -196,7 +199,7 @@ def test_params_from_dict_and_grid():
 def test_runs_on_a_real_facade():
     from rescu.io import load_image
     img = load_image(sorted((SHARED / "cmp_facade" / "images").iterdir())[0], max_side=600)
-    f = extract_features(img.rgb, scale_factor=img.scale_factor)
+    f = extract_features(img.rgb, SIFT, scale_factor=img.scale_factor)
     out = discover(f, FAST)
     assert len(out.rps) >= 1
     for p in rps_to_patterns(f, out.rps):
@@ -261,7 +264,7 @@ def test_drop_duplicate_instances_keeps_one_instance_per_object():
 def test_grid_reuses_searches_and_matches_fixed_choice():
     """The chosen grid point's parameters, run as fixed parameters, give the same RPs."""
     img, gt = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
-    f = extract_features(img)
+    f = extract_features(img, SIFT)
     out = discover(f, Stage1Params())
     fixed = Stage1Params(adaptive=(), **out.chosen)
     out2 = discover(f, fixed)
@@ -272,10 +275,10 @@ def test_grid_reuses_searches_and_matches_fixed_choice():
 
 
 def _ctx_table(seed: int = 0):
-    from rescu.discovery.stage1 import _context, precompute_urps
+    from rescu.discovery.stage1 import precompute_urps, search_context
     img, _ = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
-    f = extract_features(img)
-    ctx, diag = _context(f, Stage1Params())
+    f = extract_features(img, SIFT)
+    ctx, diag = search_context(f, Stage1Params())
     return f, ctx, diag, precompute_urps(ctx, 0.2 * diag, 8, 0.15, seed)
 
 
@@ -343,7 +346,7 @@ def test_batched_columns_equal_single_builds_and_shared_prune_parts():
 
 def test_seed_parameter_is_deterministic_and_keeps_the_row():
     img, gt = make_scene()
-    f = extract_features(img)
+    f = extract_features(img, SIFT)
     a = discover(f, Stage1Params(adaptive=(), seed=3))
     b = discover(f, Stage1Params(adaptive=(), seed=3))
     assert [r.feature_index.tolist() for r in a.rps] == [r.feature_index.tolist() for r in b.rps]

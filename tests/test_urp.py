@@ -3,8 +3,12 @@
 import numpy as np
 import pytest
 
-from rescu.discovery.urp import (Gates, match_candidates, objective, root_sift, urp_affinity,
-                                 wrap_deg)
+from rescu.discovery.urp import (AffinityParams, Gates, MatchParams, match_candidates, objective,
+                                 root_sift, urp_affinity, wrap_deg)
+
+
+def _aff(mode: str) -> AffinityParams:
+    return AffinityParams(orientation_mode=mode)
 
 
 def _quad(ds=1.0, dtheta=0.0, base_angle=(10.0, 200.0)):
@@ -21,7 +25,7 @@ def _quad(ds=1.0, dtheta=0.0, base_angle=(10.0, 200.0)):
 @pytest.mark.parametrize("mode", ["wrapped", "relative", "paper"])
 def test_affinity_is_one_for_translated_copy(mode):
     xy, s, a, (f11, f12, f21, f22) = _quad()
-    u = urp_affinity(xy, s, a, f11, f12, f21, f22, orientation_mode=mode)
+    u = urp_affinity(xy, s, a, f11, f12, f21, f22, affinity=_aff(mode))
     assert u == pytest.approx(1.0, abs=1e-12)
 
 
@@ -47,25 +51,25 @@ def test_affinity_decreases_with_orientation_mismatch(mode):
     vals = []
     for dt in (0.0, 10.0, 45.0, 90.0):
         xy, s, a, f = _quad(dtheta=dt)
-        vals.append(float(urp_affinity(xy, s, a, *f, orientation_mode=mode)))
+        vals.append(float(urp_affinity(xy, s, a, *f, affinity=_aff(mode))))
     assert vals[0] == pytest.approx(1.0)
     assert all(x > y for x, y in zip(vals, vals[1:]))
 
 
 def test_relative_mode_ignores_common_rotation_but_not_inconsistent_rotation():
     xy, s, a, f = _quad(dtheta=60.0)
-    assert urp_affinity(xy, s, a, *f, orientation_mode="relative") == pytest.approx(1.0)
-    assert urp_affinity(xy, s, a, *f, orientation_mode="wrapped") < 0.9
+    assert urp_affinity(xy, s, a, *f, affinity=_aff("relative")) == pytest.approx(1.0)
+    assert urp_affinity(xy, s, a, *f, affinity=_aff("wrapped")) < 0.9
     a2 = a.copy()
     a2[3] = (a2[3] + 40.0) % 360.0  # word 2 rotates differently from word 1
-    assert urp_affinity(xy, s, a2, *f, orientation_mode="relative") < 0.99
+    assert urp_affinity(xy, s, a2, *f, affinity=_aff("relative")) < 0.99
 
 
 def test_wrapped_mode_handles_the_360_wrap_and_paper_mode_does_not():
     # orientations 359 deg and 1 deg are 2 degrees apart
     xy, s, a, f = _quad(dtheta=2.0, base_angle=(359.0, 359.0))
-    assert urp_affinity(xy, s, a, *f, orientation_mode="wrapped") > 0.999
-    assert urp_affinity(xy, s, a, *f, orientation_mode="paper") < 0.5
+    assert urp_affinity(xy, s, a, *f, affinity=_aff("wrapped")) > 0.999
+    assert urp_affinity(xy, s, a, *f, affinity=_aff("paper")) < 0.5
 
 
 def test_gates_zero_the_affinity():
@@ -79,7 +83,7 @@ def test_missing_entries_and_bad_mode():
     xy, s, a, f = _quad()
     assert urp_affinity(xy, s, a, -1, 1, 2, 3) == 0.0
     with pytest.raises(ValueError, match="orientation_mode"):
-        urp_affinity(xy, s, a, *f, orientation_mode="bogus")
+        urp_affinity(xy, s, a, *f, affinity=_aff("bogus"))
 
 
 def test_objective_of_perfect_3x3_matrix():
@@ -106,7 +110,7 @@ def test_match_candidates_excludes_self_and_far_descriptors():
     d = rng.random((4, 128)).astype(np.float32)
     d[1] = d[0]  # a copy of feature 0
     xy = np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 0.0], [150.0, 0.0]])
-    nbr, dist = match_candidates(d, xy, np.full(4, 5.0), k=2, max_dist=0.05)
+    nbr, dist = match_candidates(d, xy, np.full(4, 5.0), MatchParams(k=2, max_dist=0.05))
     assert nbr[0, 0] == 1 and nbr[1, 0] == 0
     assert nbr[2, 0] == -1 and np.isinf(dist[2, 0])
 
@@ -122,7 +126,7 @@ def test_match_candidates_equals_brute_force_reference():
     xy = rng.random((k_feat, 2)).astype(np.float32) * 200
     xy[11] = xy[0] + 1.0                              # an overlapping copy: excluded
     scale = (rng.random(k_feat) * 6 + 2).astype(np.float32)
-    nbr, dist = match_candidates(d, xy, scale, k=5, max_dist=0.3, min_sep=1.0, block=64)
+    nbr, dist = match_candidates(d, xy, scale, MatchParams(5, 0.3, 1.0), block=64)
     rs = root_sift(d)
     full = np.maximum(2.0 - 2.0 * (rs @ rs.T), 0.0)   # the same product as one block
     for i in range(k_feat):
@@ -135,7 +139,7 @@ def test_match_candidates_equals_brute_force_reference():
         assert np.allclose(dist[i, :len(cand)], np.sqrt(d2[cand]))
     assert 11 not in nbr[0].tolist() and nbr[0].tolist()[:4] == [10, 12, 13, 14]
     # smaller blocks: the same ranks for the exact copies (rows 0 and 10..19)
-    nb16, _ = match_candidates(d, xy, scale, k=5, max_dist=0.3, min_sep=1.0, block=16)
+    nb16, _ = match_candidates(d, xy, scale, MatchParams(5, 0.3, 1.0), block=16)
     assert np.array_equal(nb16[[0] + list(range(10, 20))], nbr[[0] + list(range(10, 20))])
 
 

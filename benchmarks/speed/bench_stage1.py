@@ -33,7 +33,8 @@ import numpy as np  # noqa: E402
 from rescu.discovery.features import FeatureParams, extract_features  # noqa: E402
 from rescu.discovery.grasp import GraspParams, discover_grasp  # noqa: E402
 from rescu.discovery.search import search  # noqa: E402
-from rescu.discovery.stage1 import Stage1Params, _context, discover, precompute_urps  # noqa: E402
+from rescu.discovery.stage1 import (Stage1Params, discover, precompute_urps,  # noqa: E402
+                                    search_context)
 from rescu.discovery.urp import Gates  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -99,11 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     one_mp = None
     for mp in a.megapixels:
         img = resize_to(base, mp)
-        f, t_sift, m_sift = measure(lambda: extract_features(img, FeatureParams()))
+        f, t_sift, m_sift = measure(lambda: extract_features(img, FeatureParams(upsample_below=0)))
         diag = float(np.hypot(*f.image_size))
 
         def aff():
-            ctx, d = _context(f, p)
+            ctx, d = search_context(f, p)
             return ctx, precompute_urps(ctx, 0.2 * d, p.spatial_k, p.pos_tol)
         (ctx, table), t_aff, m_aff = measure(aff)
         g = Gates(p.P_d * diag, p.P_s, p.P_theta)
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\ntime of discover (full grid) vs keypoints, ~1 MP image")
     ks, ts = [], []
     for n in (500, 1000, 2000, 4000):
-        f = extract_features(img, FeatureParams(n_features=n))
+        f = extract_features(img, FeatureParams(n_features=n, upsample_below=0))
         _, t, _ = measure(lambda: discover(f, p))
         ks.append(len(f))
         ts.append(t)
@@ -132,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         slope = np.polyfit(np.log(ks), np.log(ts), 1)[0]
         print(f"  fitted exponent a (t ~ K^a): {slope:.2f}")
     if not a.skip_grasp:
-        f = extract_features(img, FeatureParams(n_features=a.grasp_keypoints))
+        f = extract_features(img, FeatureParams(n_features=a.grasp_keypoints, upsample_below=0))
         print(f"\nGRASP vs RESCU-I at K={len(f)} (back to back, {a.repeats} repeats)")
         ratios = []
         for _ in range(a.repeats):

@@ -78,9 +78,9 @@ def sweep(results: Path, cfg: dict[str, Any], datasets: Sequence[str],
     from rescu.scene.vp.lsd import line_vanishing_point
     from rescu.data.datasets import dataset_root
     from rescu.io import load_vanishing_points
-    from rescu.pipeline import _scene_params, read_prepared
+    from rescu.pipeline import read_prepared
 
-    base = _scene_params(cfg["scene"])
+    base = SC.SceneParams.from_config(cfg["scene"])
     cp = CO.CompletionParams.from_dict(cfg["scene"].get("completion") or {})
     ac_on = float(base.vp.ac_threshold_deg)
     rows = []

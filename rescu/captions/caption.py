@@ -56,7 +56,7 @@ from typing import Any, Callable, Protocol, Sequence
 import numpy as np
 
 from ..io import InputError
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
 from ..types import BBox, ImageResult, Pattern
 from .grammar import (NounPhrase, capitalise, choose_phrase, noun_phrases, rewrite_phrase,
                       tokenize)
@@ -77,6 +77,9 @@ class CaptionMissing(KeyError):
 
 
 # ----------------------------------------------------------------------------- params
+_D = config_defaults("caption")
+
+
 @dataclass(frozen=True)
 class CaptionParams:
     """Parameters of captioning.
@@ -100,13 +103,13 @@ class CaptionParams:
         Seed of the caption generator (torch).
     """
 
-    captioner: str = "template"
-    model: str = "Salesforce/blip-image-captioning-base"
-    csv_path: str = ""
-    grounding_model: str = ""
-    grounding_coverage: float = 0.90
-    max_new_tokens: int = 30
-    seed: int = 0
+    captioner: str = _D["captioner"]
+    model: str = _D["model"]
+    csv_path: str = _D["csv_path"]
+    grounding_model: str = _D["grounding_model"]
+    grounding_coverage: float = _D["grounding_coverage"]
+    max_new_tokens: int = _D["max_new_tokens"]
+    seed: int = _D["seed"]
 
     def __post_init__(self) -> None:
         if self.captioner not in ("template", "transformers", "csv"):

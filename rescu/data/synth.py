@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ..params import params_from_dict
+from ..params import config_defaults, params_from_dict
 from ..scene.symmetry import CR_EQUAL_SPACING, row_cross_ratios
 from .camera import (camera_matrix, plane_homography, project_points, rotation_matrix,
                      row_vanishing_point)
@@ -81,46 +81,51 @@ def _range2(name: str, v: Any, lo: float | None = None, integer: bool = False
     return a, b
 
 
+_D = config_defaults("synthetic")
+
+
 @dataclass(frozen=True)
 class SynthParams:
     """Parameters of the synthetic benchmark (every tunable has a default).
 
-    Ranges are ``(min, max)`` pairs, drawn uniformly per image / pattern / instance.
+    Ranges are ``(min, max)`` pairs, drawn uniformly per image / pattern / instance. The
+    defaults, and what each field means, are the ``synthetic`` section of the shipped
+    configuration (``config/config.yaml``).
     """
 
-    n_images: int = 24                     # number of images
-    seed: int = 0                          # master seed; image i uses rng([seed, i])
-    sizes: tuple[tuple[int, int], ...] = ((640, 480), (800, 600), (1024, 768))  # (w, h) px
-    projective_fraction: float = 0.5       # share of images in the projective subset
-    min_rps: int = 1                       # RPs per image, at least
-    max_rps: int = 4                       # RPs per image, at most
-    grid_fraction: float = 0.4             # share of RPs laid out as grids (else rows)
-    unequal_fraction: float = 0.25         # share of RPs with clearly unequal spacing
-    unequal_min_change: float = 0.35       # consecutive spacings differ by >= this (relative)
-    hard_fraction: float = 0.3             # share of images with occlusion + blur
-    photo_fraction: float = 0.4            # share of RP textures that are photo crops
-    row_length: tuple[int, int] = (4, 8)   # instances per row layout
-    grid_rows: tuple[int, int] = (2, 3)    # rows of a grid layout
-    grid_cols: tuple[int, int] = (3, 6)    # columns of a grid layout
-    instance_px: tuple[float, float] = (40.0, 140.0)  # on-screen instance size, px
-    aspect: tuple[float, float] = (0.7, 1.4)          # instance width / height
-    gap: tuple[float, float] = (0.15, 0.8)            # free space between instances / size
-    focal: tuple[float, float] = (0.8, 1.5)           # focal length / image width
-    tilt_deg: tuple[float, float] = (30.0, 65.0)      # plane tilt, projective subset
-    frontal_roll_deg: float = 4.0          # max in-plane rotation, frontal subset
-    shared_plane_prob: float = 0.5         # projective: all RPs share one plane orientation
-    texture_px: int = 160                  # texture height before warping, px
-    colour_jitter: float = 0.06            # per-instance per-channel gain jitter
-    light_jitter: float = 0.12             # per-instance brightness jitter and ramp
-    deform: float = 0.03                   # per-instance affine deformation (scale/shear)
-    lighting_gradient: float = 0.25        # image-wide relative brightness ramp
-    noise_sigma: float = 2.0               # Gaussian noise, grey levels (all images)
-    blur_sigma: tuple[float, float] = (0.8, 1.8)      # Gaussian blur sigma px (hard images)
-    occluded_instances: tuple[int, int] = (2, 4)      # occluded instances per hard image
-    occlusion_fraction: tuple[float, float] = (0.2, 0.5)  # share of the box covered
-    n_blobs: tuple[int, int] = (4, 12)     # unique clutter blobs per image
-    n_lines: tuple[int, int] = (3, 10)     # clutter line segments per image
-    n_distractors: tuple[int, int] = (1, 4)  # unique (non-recurring) textured patches
+    n_images: int = _D["n_images"]
+    seed: int = _D["seed"]
+    sizes: tuple[tuple[int, int], ...] = tuple(_D["sizes"])
+    projective_fraction: float = _D["projective_fraction"]
+    min_rps: int = _D["min_rps"]
+    max_rps: int = _D["max_rps"]
+    grid_fraction: float = _D["grid_fraction"]
+    unequal_fraction: float = _D["unequal_fraction"]
+    unequal_min_change: float = _D["unequal_min_change"]
+    hard_fraction: float = _D["hard_fraction"]
+    photo_fraction: float = _D["photo_fraction"]
+    row_length: tuple[int, int] = tuple(_D["row_length"])
+    grid_rows: tuple[int, int] = tuple(_D["grid_rows"])
+    grid_cols: tuple[int, int] = tuple(_D["grid_cols"])
+    instance_px: tuple[float, float] = tuple(_D["instance_px"])
+    aspect: tuple[float, float] = tuple(_D["aspect"])
+    gap: tuple[float, float] = tuple(_D["gap"])
+    focal: tuple[float, float] = tuple(_D["focal"])
+    tilt_deg: tuple[float, float] = tuple(_D["tilt_deg"])
+    frontal_roll_deg: float = _D["frontal_roll_deg"]
+    shared_plane_prob: float = _D["shared_plane_prob"]
+    texture_px: int = _D["texture_px"]
+    colour_jitter: float = _D["colour_jitter"]
+    light_jitter: float = _D["light_jitter"]
+    deform: float = _D["deform"]
+    lighting_gradient: float = _D["lighting_gradient"]
+    noise_sigma: float = _D["noise_sigma"]
+    blur_sigma: tuple[float, float] = tuple(_D["blur_sigma"])
+    occluded_instances: tuple[int, int] = tuple(_D["occluded_instances"])
+    occlusion_fraction: tuple[float, float] = tuple(_D["occlusion_fraction"])
+    n_blobs: tuple[int, int] = tuple(_D["n_blobs"])
+    n_lines: tuple[int, int] = tuple(_D["n_lines"])
+    n_distractors: tuple[int, int] = tuple(_D["n_distractors"])
 
     def __post_init__(self) -> None:
         if int(self.n_images) != self.n_images or self.n_images < 0 or self.n_images > 10000:

@@ -15,7 +15,10 @@ import numpy as np
 
 from ..io import read_h5, write_h5
 from ..types import Features
-from ..params import params_from_dict
+from ..params import config_defaults, params_from_dict
+
+
+_D = config_defaults("features")
 
 
 @dataclass(frozen=True)
@@ -47,14 +50,14 @@ class FeatureParams:
         original pixels unchanged.
     """
 
-    n_features: int = 4000
-    contrast_threshold: float = 0.02
-    edge_threshold: float = 10.0
-    sigma: float = 1.6
-    n_octave_layers: int = 3
-    min_size: float = 3.0
-    upsample_below: int = 0
-    upsample_factor: float = 2.0
+    n_features: int = _D["n_features"]
+    contrast_threshold: float = _D["contrast_threshold"]
+    edge_threshold: float = _D["edge_threshold"]
+    sigma: float = _D["sigma"]
+    n_octave_layers: int = _D["n_octave_layers"]
+    min_size: float = _D["min_size"]
+    upsample_below: int = _D["upsample_below"]
+    upsample_factor: float = _D["upsample_factor"]
 
     def __post_init__(self) -> None:
         if self.upsample_factor < 1.0:
@@ -87,6 +90,12 @@ def extract_features(rgb: np.ndarray, params: FeatureParams | None = None,
         ``scale`` (K,) pixels (keypoint diameter),
         ``angle`` (K,) degrees, ``response`` (K,), ``descriptors`` (K, 128) float32,
         sorted by decreasing response. A uniform image gives ``Features.empty``.
+
+    >>> from rescu.data.example import example_image
+    >>> img, _ = example_image()                  # 432 x 144 px: below upsample_below
+    >>> f = extract_features(img)
+    >>> f.image_size, f.scale_factor, len(f) > 100
+    ((864, 288), 2.0, True)
     """
     import cv2
 

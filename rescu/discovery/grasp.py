@@ -31,14 +31,17 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..params import params_from_dict
+from ..params import config_defaults, params_from_dict
 from .stage1 import Stage1Output
 from ..types import Features, RPMatrix
-from .urp import Gates, match_candidates, objective, root_sift
+from .urp import AffinityMatchGroups, Gates, match_candidates, objective, root_sift
+
+
+_D = config_defaults("grasp")
 
 
 @dataclass(frozen=True)
-class GraspParams:
+class GraspParams(AffinityMatchGroups):
     """Parameters of the GRASP baseline.
 
     Attributes
@@ -67,26 +70,26 @@ class GraspParams:
         Random seed.
     """
 
-    iterations: int = 4
-    rcl_size: int = 3
-    max_candidates: int = 20
-    max_steps: int = 25
-    P_d: float = 0.2
-    P_s: float = 0.5
-    P_theta: float = 30.0
-    sigma_s: float = 0.2
-    sigma_theta: float = 0.2
-    orientation_mode: str = "wrapped"
-    match_k: int = 12
-    match_max_dist: float = 0.5
-    match_min_sep: float = 1.0
-    pos_tol: float = 0.15
-    max_patterns: int = 5
-    min_instances: int = 2
-    min_words: int = 4
-    box_grow: float = 0.5
-    max_keypoints: int = 1500
-    seed: int = 0
+    iterations: int = _D["iterations"]
+    rcl_size: int = _D["rcl_size"]
+    max_candidates: int = _D["max_candidates"]
+    max_steps: int = _D["max_steps"]
+    P_d: float = _D["P_d"]
+    P_s: float = _D["P_s"]
+    P_theta: float = _D["P_theta"]
+    sigma_s: float = _D["sigma_s"]
+    sigma_theta: float = _D["sigma_theta"]
+    orientation_mode: str = _D["orientation_mode"]
+    match_k: int = _D["match_k"]
+    match_max_dist: float = _D["match_max_dist"]
+    match_min_sep: float = _D["match_min_sep"]
+    pos_tol: float = _D["pos_tol"]
+    max_patterns: int = _D["max_patterns"]
+    min_instances: int = _D["min_instances"]
+    min_words: int = _D["min_words"]
+    box_grow: float = _D["box_grow"]
+    max_keypoints: int = _D["max_keypoints"]
+    seed: int = _D["seed"]
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GraspParams":
@@ -101,15 +104,15 @@ class _Grasp:
         self.s = features.scale.astype(np.float64)
         self.a = features.angle.astype(np.float64)
         self.rs = root_sift(features.descriptors)
+        self.affinity = p.affinity
         self.nbr, _ = match_candidates(features.descriptors, features.xy, features.scale,
-                                       p.match_k, p.match_max_dist, p.match_min_sep)
+                                       p.match)
         self.tree = cKDTree(self.xy)
         w, h = features.image_size
         self.gates = Gates(p.P_d * float(np.hypot(w, h)), p.P_s, p.P_theta)
 
     def U(self, om: np.ndarray) -> float:
-        return objective(self.xy, self.s, self.a, om, self.p.sigma_s, self.p.sigma_theta,
-                         self.p.orientation_mode, self.gates)
+        return objective(self.xy, self.s, self.a, om, self.affinity, self.gates)
 
     def desc_close(self, i: int, j: int) -> bool:
         d2 = 2.0 - 2.0 * float(self.rs[i] @ self.rs[j])

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .urp import AffinityParts, Gates, pairs, urp_affinity
+from .urp import AffinityParams, AffinityParts, Gates, pairs, urp_affinity
 
 
 @dataclass
@@ -53,6 +53,14 @@ class SearchContext:
     nbr : (K, k) int64
         Candidate correspondences (descriptor neighbours), -1 padded.
     tree : cKDTree over ``xy``.
+    affinity : AffinityParams
+    desc_max_dist, pos_tol, u_min, min_fill, max_overlap, row_expand, max_rows, max_cols,
+    max_iters
+        The search parameters of :class:`rescu.discovery.stage1.Stage1Params` of the same
+        names (``desc_max_dist`` is its ``match_max_dist``); no defaults here, the
+        caller (:func:`rescu.discovery.stage1.search_context`) passes them.
+    col_hypotheses, row_candidates, v_rows : int
+        Internal limits of one search step.
     """
 
     xy: np.ndarray
@@ -61,18 +69,16 @@ class SearchContext:
     rs: np.ndarray
     nbr: np.ndarray
     tree: cKDTree
-    sigma_s: float = 0.2
-    sigma_theta: float = 0.2
-    orientation_mode: str = "wrapped"
-    desc_max_dist: float = 0.5
-    pos_tol: float = 0.2
-    u_min: float = 0.5
-    min_fill: float = 0.5
-    max_overlap: float = 0.2
-    row_expand: float = 0.25
-    max_rows: int = 60
-    max_cols: int = 200
-    max_iters: int = 30
+    affinity: AffinityParams
+    desc_max_dist: float
+    pos_tol: float
+    u_min: float
+    min_fill: float
+    max_overlap: float
+    row_expand: float
+    max_rows: int
+    max_cols: int
+    max_iters: int
     col_hypotheses: int = 8
     row_candidates: int = 150
     v_rows: int = 8
@@ -81,14 +87,13 @@ class SearchContext:
     def u(self, f11: np.ndarray, f12: np.ndarray, f21: np.ndarray, f22: np.ndarray,
           gates: Gates) -> np.ndarray:
         return urp_affinity(self.xy, self.scale, self.angle, f11, f12, f21, f22,
-                            self.sigma_s, self.sigma_theta, self.orientation_mode, gates)
+                            self.affinity, gates)
 
     def parts(self, f11: np.ndarray, f12: np.ndarray, f21: np.ndarray,
               f22: np.ndarray) -> AffinityParts:
         """Ungated affinities with their gate quantities (gate them with ``.gated``)."""
         return urp_affinity(self.xy, self.scale, self.angle, f11, f12, f21, f22,
-                            self.sigma_s, self.sigma_theta, self.orientation_mode,
-                            return_parts=True)
+                            self.affinity, return_parts=True)
 
 
 def column_boxes(xy: np.ndarray, omega: np.ndarray) -> np.ndarray:

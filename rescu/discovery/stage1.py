@@ -58,19 +58,23 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..params import params_from_dict
+from ..params import config_defaults, params_from_dict
 from ..io import read_h5, write_h5
 from ..layout import registered_centres
 from ..evaluation.metrics import cover_matrix
 from .search import SearchContext, matrix_objective, objective_parts, prune, search
 from ..types import Features, Instance, Pattern, RPMatrix
-from .urp import Gates, root_sift, urp_affinity, urp_terms, match_candidates
+from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift, urp_affinity,
+                  urp_terms)
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
 
+_D = config_defaults("stage1")
+
+
 @dataclass(frozen=True)
-class Stage1Params:
+class Stage1Params(AffinityMatchGroups):
     """Parameters of RESCU-I (see module docstring).
 
     Attributes
@@ -144,42 +148,42 @@ class Stage1Params:
         random; the same seed gives the same output.
     """
 
-    sigma_s: float = 0.2
-    sigma_theta: float = 0.2
-    orientation_mode: str = "wrapped"
-    P_d: float = 0.2
-    P_s: float = 0.5
-    P_theta: float = 30.0
-    grid_P_d: tuple[float, ...] = (0.1, 0.15, 0.2)
-    grid_P_s: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5)
-    grid_P_theta: tuple[float, ...] = (30.0, 90.0, 180.0)
-    adaptive: tuple[str, ...] = ("P_d", "P_s", "P_theta")
-    max_patterns: int = 5
-    min_instances: int = 2
-    min_words: int = 4
-    min_objective: float = 0.0
-    min_spread: float = 0.15
-    n_initials: int = 40
-    initials_per_pattern: int = 3
-    grid_initials: int = 1
-    grid_retry_initials: int = 5
-    match_k: int = 12
-    match_max_dist: float = 0.5
-    match_min_sep: float = 1.0
-    spatial_k: int = 8
-    pos_tol: float = 0.15
-    u_min: float = 0.5
-    min_fill: float = 0.5
-    max_overlap: float = 0.1
-    row_expand: float = 0.25
-    max_rows: int = 60
-    max_cols: int = 200
-    max_iters: int = 30
-    box_grow: float = 0.5
-    extent_grow: float = 0.5
-    max_nested_cover: float = 0.5
-    min_centre_distance: float = 0.5
-    seed: int = 0
+    sigma_s: float = _D["sigma_s"]
+    sigma_theta: float = _D["sigma_theta"]
+    orientation_mode: str = _D["orientation_mode"]
+    P_d: float = _D["P_d"]
+    P_s: float = _D["P_s"]
+    P_theta: float = _D["P_theta"]
+    grid_P_d: tuple[float, ...] = tuple(_D["grid_P_d"])
+    grid_P_s: tuple[float, ...] = tuple(_D["grid_P_s"])
+    grid_P_theta: tuple[float, ...] = tuple(_D["grid_P_theta"])
+    adaptive: tuple[str, ...] = tuple(_D["adaptive"])
+    max_patterns: int = _D["max_patterns"]
+    min_instances: int = _D["min_instances"]
+    min_words: int = _D["min_words"]
+    min_objective: float = _D["min_objective"]
+    min_spread: float = _D["min_spread"]
+    n_initials: int = _D["n_initials"]
+    initials_per_pattern: int = _D["initials_per_pattern"]
+    grid_initials: int = _D["grid_initials"]
+    grid_retry_initials: int = _D["grid_retry_initials"]
+    match_k: int = _D["match_k"]
+    match_max_dist: float = _D["match_max_dist"]
+    match_min_sep: float = _D["match_min_sep"]
+    spatial_k: int = _D["spatial_k"]
+    pos_tol: float = _D["pos_tol"]
+    u_min: float = _D["u_min"]
+    min_fill: float = _D["min_fill"]
+    max_overlap: float = _D["max_overlap"]
+    row_expand: float = _D["row_expand"]
+    max_rows: int = _D["max_rows"]
+    max_cols: int = _D["max_cols"]
+    max_iters: int = _D["max_iters"]
+    box_grow: float = _D["box_grow"]
+    extent_grow: float = _D["extent_grow"]
+    max_nested_cover: float = _D["max_nested_cover"]
+    min_centre_distance: float = _D["min_centre_distance"]
+    seed: int = _D["seed"]
 
     def __post_init__(self) -> None:
         for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive"):
@@ -305,15 +309,19 @@ class URPTable:
         return self.abcd[best[order]]
 
 
-def _context(features: Features, params: Stage1Params) -> tuple[SearchContext, float]:
+def search_context(features: Features, params: Stage1Params) -> tuple[SearchContext, float]:
+    """The per-image :class:`SearchContext` of stage I and the image diagonal (pixels).
+
+    Matches the candidate correspondences (``params.match``) and carries the search
+    parameters of ``params``. Used by :func:`discover`; public for benchmarks and tests
+    that time or probe one step.
+    """
     xy = features.xy.astype(np.float64)
-    nbr, _ = match_candidates(features.descriptors, features.xy, features.scale,
-                              params.match_k, params.match_max_dist, params.match_min_sep)
+    nbr, _ = match_candidates(features.descriptors, features.xy, features.scale, params.match)
     ctx = SearchContext(
         xy=xy, scale=features.scale.astype(np.float64), angle=features.angle.astype(np.float64),
         rs=root_sift(features.descriptors), nbr=nbr, tree=cKDTree(xy),
-        sigma_s=params.sigma_s, sigma_theta=params.sigma_theta,
-        orientation_mode=params.orientation_mode, desc_max_dist=params.match_max_dist,
+        affinity=params.affinity, desc_max_dist=params.match_max_dist,
         pos_tol=params.pos_tol, u_min=params.u_min, min_fill=params.min_fill,
         max_overlap=params.max_overlap, row_expand=params.row_expand,
         max_rows=params.max_rows, max_cols=params.max_cols, max_iters=params.max_iters)
@@ -321,8 +329,8 @@ def _context(features: Features, params: Stage1Params) -> tuple[SearchContext, f
     return ctx, float(np.hypot(w, h))
 
 
-def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
-                    pos_tol: float = 0.15, seed: int = 0) -> URPTable:
+def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int,
+                    pos_tol: float, seed: int = 0) -> URPTable:
     """All initial URPs of the image (vectorised).
 
     Parameters
@@ -374,9 +382,8 @@ def precompute_urps(ctx: SearchContext, max_dist: float, spatial_k: int = 8,
     A, B, C, D = A[ok], B[ok], C[ok], dn[np.arange(len(jb)), jb][ok]
     if len(A) == 0:
         return empty
-    t = urp_terms(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.orientation_mode)
-    u = urp_affinity(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.sigma_s, ctx.sigma_theta,
-                     ctx.orientation_mode)
+    t = urp_terms(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.affinity.orientation_mode)
+    u = urp_affinity(ctx.xy, ctx.scale, ctx.angle, A, B, C, D, ctx.affinity)
     return URPTable(np.stack([A, B, C, D], 1).astype(np.int64), u,
                     np.maximum(t["d1"], t["d2"]), t["size_diff"], t["rot"], seed=seed)
 
@@ -690,6 +697,14 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     Stage1Output
         ``rps`` best first. An image with fewer than 4 features or without recurrence
         gives ``rps == []``, ``objective == 0`` and the fixed parameters as ``chosen``.
+
+    >>> from rescu.data.example import example_image
+    >>> from rescu.discovery.features import extract_features
+    >>> img, truth = example_image()              # one row of 5 copies
+    >>> f = extract_features(img)
+    >>> out = discover(f, Stage1Params(adaptive=()))   # fixed P_d, P_s, P_theta: fast
+    >>> [p.count for p in rps_to_patterns(f, out.rps)][:1]
+    [5]
     """
     params = params or Stage1Params()
     if not isinstance(features, Features):
@@ -700,7 +715,7 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
         return Stage1Output([], fixed, 0.0, {"match": 0.0, "precompute": 0.0, "grid": 0.0,
                                              "search": 0.0})
     t0 = time.perf_counter()
-    ctx, diag = _context(features, params)
+    ctx, diag = search_context(features, params)
     t1 = time.perf_counter()
     grid = params.grid()
     pd_max = max(p["P_d"] for p in grid)

@@ -40,7 +40,82 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..params import config_defaults
+
 ORIENTATION_MODES = ("wrapped", "relative", "paper")
+
+_D = config_defaults("stage1")
+
+
+@dataclass(frozen=True)
+class AffinityParams:
+    """The URP affinity's parameters, shared by stage I, GRASP and the search context.
+
+    Defaults: the ``stage1`` section of the shipped configuration (``sigma_s``,
+    ``sigma_theta``, ``orientation_mode``).
+
+    Attributes
+    ----------
+    sigma_s, sigma_theta : float
+        Bandwidths of Delta_s and Delta_theta (the paper's 0.2).
+    orientation_mode : {"wrapped", "relative", "paper"}
+        The form of Delta_theta (module docstring).
+    """
+
+    sigma_s: float = _D["sigma_s"]
+    sigma_theta: float = _D["sigma_theta"]
+    orientation_mode: str = _D["orientation_mode"]
+
+    def __post_init__(self) -> None:
+        if self.orientation_mode not in ORIENTATION_MODES:
+            raise ValueError(f"orientation_mode must be one of {ORIENTATION_MODES}, "
+                             f"got {self.orientation_mode!r}")
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Candidate correspondences (:func:`match_candidates`), shared by stage I and GRASP.
+
+    Defaults: ``match_k``, ``match_max_dist``, ``match_min_sep`` of the shipped
+    configuration's ``stage1`` section.
+
+    Attributes
+    ----------
+    k : int
+        Descriptor neighbours per feature.
+    max_dist : float
+        Largest RootSIFT Euclidean distance of a candidate (in [0, sqrt 2]).
+    min_sep : float
+        Least separation of a copy, keypoint radii.
+    """
+
+    k: int = _D["match_k"]
+    max_dist: float = _D["match_max_dist"]
+    min_sep: float = _D["match_min_sep"]
+
+
+class AffinityMatchGroups:
+    """Mixin of a parameter dataclass with the flat fields ``sigma_s``, ``sigma_theta``,
+    ``orientation_mode`` and ``match_k``, ``match_max_dist``, ``match_min_sep`` (as the
+    configuration spells them): the two groups as :class:`AffinityParams` and
+    :class:`MatchParams`."""
+
+    sigma_s: float
+    sigma_theta: float
+    orientation_mode: str
+    match_k: int
+    match_max_dist: float
+    match_min_sep: float
+
+    @property
+    def affinity(self) -> AffinityParams:
+        """``sigma_s``, ``sigma_theta``, ``orientation_mode`` as an AffinityParams."""
+        return AffinityParams(self.sigma_s, self.sigma_theta, self.orientation_mode)
+
+    @property
+    def match(self) -> MatchParams:
+        """``match_k``, ``match_max_dist``, ``match_min_sep`` as a MatchParams."""
+        return MatchParams(self.match_k, self.match_max_dist, self.match_min_sep)
 
 
 def wrap_deg(a: np.ndarray) -> np.ndarray:
@@ -72,7 +147,7 @@ def root_sift(descriptors: np.ndarray) -> np.ndarray:
 
 def urp_terms(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
               f11: np.ndarray, f12: np.ndarray, f21: np.ndarray, f22: np.ndarray,
-              orientation_mode: str = "wrapped") -> dict[str, np.ndarray]:
+              orientation_mode: str) -> dict[str, np.ndarray]:
     """The quantities of a batch of URPs (broadcast over the index arrays).
 
     Parameters
@@ -143,8 +218,7 @@ class Gates:
 
 def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
                  f11: np.ndarray, f12: np.ndarray, f21: np.ndarray, f22: np.ndarray,
-                 sigma_s: float = 0.2, sigma_theta: float = 0.2,
-                 orientation_mode: str = "wrapped", gates: Gates | None = None,
+                 affinity: AffinityParams = AffinityParams(), gates: Gates | None = None,
                  return_parts: bool = False) -> np.ndarray:
     """URP affinity u of a batch of URPs (see module docstring).
 
@@ -155,9 +229,8 @@ def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
     angle : (K,) float, degrees
     f11, f12, f21, f22 : int arrays, one broadcastable shape S
         Feature indices; -1 marks a missing entry (affinity 0).
-    sigma_s, sigma_theta : float
-        sigma_s, sigma_theta of the paper (0.2).
-    orientation_mode : {"wrapped", "relative", "paper"}
+    affinity : AffinityParams
+        sigma_s, sigma_theta and the Delta_theta form.
     gates : Gates, optional
         When given, URPs violating P_d / P_s / P_theta get affinity 0.
     return_parts : bool
@@ -169,6 +242,8 @@ def urp_affinity(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray,
         1 for a perfect translated copy; 0 for a degenerate URP (a repeated feature or
         zero within-instance distance).
     """
+    sigma_s, sigma_theta = affinity.sigma_s, affinity.sigma_theta
+    orientation_mode = affinity.orientation_mode
     if orientation_mode not in ORIENTATION_MODES:
         raise ValueError(f"orientation_mode must be one of {ORIENTATION_MODES}, "
                          f"got {orientation_mode!r}")
@@ -251,8 +326,8 @@ def pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.ndarray,
-              sigma_s: float = 0.2, sigma_theta: float = 0.2,
-              orientation_mode: str = "wrapped", gates: Gates | None = None) -> float:
+              affinity: AffinityParams = AffinityParams(),
+              gates: Gates | None = None) -> float:
     """U(Omega) = 1/(M N) * sum over m1 < m2, n1 < n2 of u(m1, m2, n1, n2 | Omega).
 
     Parameters
@@ -277,13 +352,12 @@ def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.nd
     b = omega[i1][:, j2]   # f12
     c = omega[i2][:, j1]   # f21
     d = omega[i2][:, j2]   # f22
-    u = urp_affinity(xy, scale, angle, a, b, c, d, sigma_s, sigma_theta, orientation_mode,
-                     gates)
+    u = urp_affinity(xy, scale, angle, a, b, c, d, affinity, gates)
     return float(u.sum() / (m * n))
 
 
 def match_candidates(descriptors: np.ndarray, xy: np.ndarray, scale: np.ndarray,
-                     k: int = 10, max_dist: float = 0.5, min_sep: float = 1.0,
+                     match: MatchParams = MatchParams(),
                      block: int = 1024) -> tuple[np.ndarray, np.ndarray]:
     """Candidate correspondences: k nearest RootSIFT neighbours under a distance limit.
 
@@ -292,13 +366,11 @@ def match_candidates(descriptors: np.ndarray, xy: np.ndarray, scale: np.ndarray,
     descriptors : (K, 128) float
         Raw SIFT descriptors (RootSIFT is applied here).
     xy : (K, 2) float, pixels; scale : (K,) float, pixels (keypoint diameter).
-    k : int
-        Neighbours per feature.
-    max_dist : float
-        Largest RootSIFT Euclidean distance of a candidate (in [0, sqrt 2]).
-    min_sep : float
-        A candidate must lie farther than ``min_sep * max(size_i, size_j) / 2`` pixels
-        (keypoints overlapping their own copy are the same structure).
+    match : MatchParams
+        ``k`` neighbours per feature; ``max_dist``, the largest RootSIFT Euclidean
+        distance of a candidate (in [0, sqrt 2]); a candidate must lie farther than
+        ``min_sep * max(size_i, size_j) / 2`` pixels (keypoints overlapping their own
+        copy are the same structure).
     block : int
         Rows per block of the brute-force distance computation (memory bound).
 
@@ -309,6 +381,7 @@ def match_candidates(descriptors: np.ndarray, xy: np.ndarray, scale: np.ndarray,
     dist : (K, k) float32
         Their RootSIFT distances, inf where padded.
     """
+    k, max_dist, min_sep = match.k, match.max_dist, match.min_sep
     kk = len(descriptors)
     if np.shape(xy) != (kk, 2):
         raise ValueError(f"match_candidates: xy must have shape ({kk}, 2), got {np.shape(xy)}")

@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
 from ..types import ImageResult
-from .metrics import METRICS, score_image
+from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
 
 ABLATION_ROWS = ("none", "P_d", "P_s", "P_theta", "P_d+P_s", "P_d+P_theta",
@@ -49,6 +49,9 @@ METRIC_LABELS = {"instance_precision": "Instance P", "instance_recall": "Instanc
 
 
 # ----------------------------------------------------------------------------- params
+_D = config_defaults("evaluation")
+
+
 @dataclass(frozen=True)
 class EvaluationParams:
     """Parameters of the evaluation.
@@ -75,16 +78,16 @@ class EvaluationParams:
         Decimals in Markdown tables.
     """
 
-    iod_h: float = 0.5
-    min_rp_precision: float = 0.5
-    h_curve: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-    significance_alpha: float = 0.05
-    vp_px_thresholds: tuple[float, ...] = (5, 10, 20, 30, 50, 75, 100)
-    vp_deg_thresholds: tuple[float, ...] = (1, 2, 3, 5, 10, 15, 20)
-    ts_t_fine: tuple[float, ...] = tuple(round(0.01 * k, 2) for k in range(1, 16))
-    ts_t_coarse: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(1, 21))
-    ts_which: str = "any"
-    decimals: int = 2
+    iod_h: float = _D["iod_h"]
+    min_rp_precision: float = _D["min_rp_precision"]
+    h_curve: tuple[float, ...] = tuple(_D["h_curve"])
+    significance_alpha: float = _D["significance_alpha"]
+    vp_px_thresholds: tuple[float, ...] = tuple(_D["vp_px_thresholds"])
+    vp_deg_thresholds: tuple[float, ...] = tuple(_D["vp_deg_thresholds"])
+    ts_t_fine: tuple[float, ...] = tuple(_D["ts_t_fine"])
+    ts_t_coarse: tuple[float, ...] = tuple(_D["ts_t_coarse"])
+    ts_which: str = _D["ts_which"]
+    decimals: int = _D["decimals"]
 
     def __post_init__(self) -> None:
         if not 0.0 < self.iod_h < 1.0:
@@ -220,7 +223,7 @@ def _score_frame(ds: _Dataset, h: float, min_rp_precision: float) -> pd.DataFram
 
 # ----------------------------------------------------------------------------- RP tables
 def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                        h: float = 0.5, min_rp_precision: float = 0.5,
+                        h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Per image x method: the 4 IOD metrics, counts and subset columns.
 
@@ -241,6 +244,30 @@ def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | P
         Columns ``dataset, image, method, subset, hard, prediction_missing``, the
         metrics of :data:`rescu.evaluation.metrics.METRICS` (NaN where undefined),
         ``n_det_instances, n_gt_instances, n_det_rps, n_gt_rps, gt_categories``.
+
+    Examples
+    --------
+    A one-image dataset (a tiny synthetic photo and its COCO boxes) scored against
+    stage I's result:
+
+    >>> import json, tempfile, cv2
+    >>> from pathlib import Path
+    >>> from rescu import discover, example_image
+    >>> img, truth = example_image()
+    >>> data = Path(tempfile.mkdtemp())
+    >>> (data / "images").mkdir()
+    >>> cv2.imwrite(str(data / "images" / "row.png"), img[:, :, ::-1])
+    True
+    >>> coco = {"images": [{"id": 1, "file_name": "images/row.png"}],
+    ...         "categories": [{"id": 1, "name": "square"}],
+    ...         "annotations": [{"id": i, "image_id": 1, "category_id": 1, "bbox": list(b)}
+    ...                         for i, b in enumerate(truth)]}
+    >>> _ = (data / "annotations.json").write_text(json.dumps(coco))
+    >>> _ = discover(data / "images" / "row.png", data / "rescu-i", method="rescu-i")
+    >>> scores = evaluate_rp_dataset(data, {"rescu-i": data / "rescu-i"})
+    >>> row = scores.iloc[0]
+    >>> row.method, float(row.instance_recall), float(row.rp_recall), int(row.n_gt_instances)
+    ('rescu-i', 1.0, 1.0, 5)
     """
     if not 0.0 < h < 1.0:
         raise ValueError(f"h must be in (0, 1), got {h}")
@@ -457,7 +484,7 @@ def write_markdown(text: str, path: str | Path) -> None:
 # ----------------------------------------------------------------------------- curves
 def metric_curves(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
                   hs: Sequence[float] = EvaluationParams.h_curve,
-                  min_rp_precision: float = 0.5,
+                  min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Every metric vs the IOD threshold h, per method.
 
@@ -487,7 +514,7 @@ def metric_curves(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 
 # ----------------------------------------------------------------------------- ablation
 def ablation_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                   h: float = 0.5, min_rp_precision: float = 0.5,
+                   h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Stage-I ablation: one row per variant x the 4 metrics.
 

@@ -18,7 +18,7 @@ from ..io import GroundTruthRP
 from ..scene.counting import counting_patterns
 from ..types import ImageResult
 from .core import _boxes, _dominant_index, _image_info, _load, evaluate_rp_dataset
-from .metrics import METRICS, ImageScores, score_image
+from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, ImageScores, score_image
 
 
 def _score_counting(res: ImageResult | None, gts: list[GroundTruthRP], h: float,
@@ -31,7 +31,7 @@ def _score_counting(res: ImageResult | None, gts: list[GroundTruthRP], h: float,
 
 
 def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                h: float = 0.5, min_rp_precision: float = 0.5,
+                h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Counts of matched RPs: one row per detected RP accepted for a GT RP.
 
@@ -72,7 +72,7 @@ def count_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
 
 
 def counting_table(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-                   h: float = 0.5, min_rp_precision: float = 0.5,
+                   h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Counting table per dataset and method (as the paper's grocery table).
 

@@ -18,7 +18,7 @@ from ..io import GroundTruthRP
 from ..types import ImageResult
 from .core import _load
 from .counting import _score_counting
-from .metrics import match_boxes, score_image
+from .metrics import IOD_H, MIN_RP_PRECISION, match_boxes, score_image
 
 if TYPE_CHECKING:     # imported where used: the evaluation rules never read stage II's code
     from ..extension.merge import MergeParams
@@ -53,8 +53,8 @@ def truth_instance_at(instances: Iterable[Mapping[str, Any]], box: Sequence[floa
     return None
 
 
-def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
-                 min_rp_precision: float = 0.5,
+def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = IOD_H,
+                 min_rp_precision: float = MIN_RP_PRECISION,
                  images: Iterable[str] | None = None) -> pd.DataFrame:
     """Why counts are wrong: the instances of every miscounted ground-truth RP.
 
@@ -118,8 +118,8 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = 0.5,
 
 def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
                     inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
-                    params: MergeParams | None = None, h: float = 0.5,
-                    min_rp_precision: float = 0.5
+                    params: MergeParams | None = None, h: float = IOD_H,
+                    min_rp_precision: float = MIN_RP_PRECISION
                     ) -> list[dict[str, Any]]:
     """Is RESCU-II's split-RP merge right on one image? The merge evidence of every pair
     of the RPs stage II works on, labelled by the ground truth.

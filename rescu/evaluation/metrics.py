@@ -32,7 +32,12 @@ from typing import Sequence
 
 import numpy as np
 
+from ..params import config_defaults
 from ..types import BBox
+
+_E = config_defaults("evaluation")
+IOD_H: float = _E["iod_h"]                        # default IOD threshold h
+MIN_RP_PRECISION: float = _E["min_rp_precision"]  # default least precision of an accepted RP
 
 
 def iod_matrix(det: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -88,7 +93,7 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
 
 
-def match_boxes(det: np.ndarray, gt: np.ndarray, h: float = 0.5) -> list[tuple[int, int]]:
+def match_boxes(det: np.ndarray, gt: np.ndarray, h: float = IOD_H) -> list[tuple[int, int]]:
     """One-to-one greedy matching of detections to ground truth with IOD > h.
 
     Returns the matched ``(det_index, gt_index)`` pairs, in order of decreasing IOD.
@@ -148,7 +153,7 @@ class ImageScores:
 
 
 def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBox]],
-                h: float = 0.5, min_rp_precision: float = 0.5) -> ImageScores:
+                h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION) -> ImageScores:
     """Instance- and RP-level precision and recall of one image (see module docstring).
 
     Parameters
@@ -162,6 +167,13 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
     min_rp_precision : float
         A detected RP is accepted when its precision against its assigned GT RP is at
         least this (and two or more of its instances match).
+
+    >>> from rescu.data.example import example_image
+    >>> _, truth = example_image(n=4)                  # one RP of 4 instances
+    >>> found = [[(x + 3, y, w, h) for x, y, w, h in truth[:3]]]  # 3 of them, shifted
+    >>> s = score_image(found, [truth])
+    >>> s.instance_precision, s.instance_recall, s.rp_precision, s.rp_recall
+    (1.0, 0.75, 1.0, 1.0)
     """
     det_all = [b for rp in det_rps for b in rp]
     gt_all = [b for rp in gt_rps for b in rp]

@@ -21,6 +21,22 @@ def _savefig(fig: Any, path: str | Path) -> None:
         fig.savefig(tmp, format="png", dpi=120, metadata={"Software": None})
 
 
+def _finish_rate_figure(fig: Any, axes: Any, path: str | Path, title: str | None) -> None:
+    """The common end of the curve plotters: every axis a rate in [0, 1] with a grid,
+    the legend on the first, the title; saved as PNG to ``path`` and closed."""
+    import matplotlib.pyplot as plt
+
+    for ax in axes[0]:
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    _savefig(fig, path)
+    plt.close(fig)
+
+
 def plot_metric_curves(curves: pd.DataFrame, path: str | Path,
                        title: str | None = None) -> None:
     """PNG with one panel per metric: mean vs h, one line per method."""
@@ -38,14 +54,7 @@ def plot_metric_curves(curves: pd.DataFrame, path: str | Path,
             ax.plot(gm["h"], gm["mean"], marker="o", ms=3, label=str(method))
         ax.set_title(METRIC_LABELS.get(met, met))
         ax.set_xlabel("IOD threshold h")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    _savefig(fig, path)
-    plt.close(fig)
+    _finish_rate_figure(fig, axes, path, title)
 
 
 def plot_vp_curves(success: pd.DataFrame, path: str | Path,
@@ -67,11 +76,4 @@ def plot_vp_curves(success: pd.DataFrame, path: str | Path,
                     else f"{dsn}: {method}")
         ax.set_xlabel(xl)
         ax.set_ylabel("success rate")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    _savefig(fig, path)
-    plt.close(fig)
+    _finish_rate_figure(fig, axes, path, title)

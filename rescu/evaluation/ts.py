@@ -18,7 +18,7 @@ import pandas as pd
 from ..io import GroundTruthRP
 from ..scene.symmetry import CR_EQUAL_SPACING
 from .core import EvaluationParams, _boxes, _Dataset, _dominant_index, _image_info, _load
-from .metrics import score_image
+from .metrics import IOD_H, MIN_RP_PRECISION, score_image
 
 
 def _truth_gt_flags(ds: _Dataset, f: str, gts: list[GroundTruthRP]) -> list[bool | None]:
@@ -36,7 +36,7 @@ def _truth_gt_flags(ds: _Dataset, f: str, gts: list[GroundTruthRP]) -> list[bool
 
 
 def ts_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-             h: float = 0.5, min_rp_precision: float = 0.5,
+             h: float = IOD_H, min_rp_precision: float = MIN_RP_PRECISION,
         images: Iterable[str] | None = None) -> pd.DataFrame:
     """Cross ratios of the predicted patterns, per image x method x pattern.
 

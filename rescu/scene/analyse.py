@@ -36,14 +36,17 @@ from typing import Any, Sequence
 import numpy as np
 
 from .. import layout as L
-from . import counting as C
+from . import counting as CNT
 from . import symmetry as S
 from .vp.estimator import joint_vanishing_point, rp_vanishing_point
 from .vp.geometry import INFINITY_EPS
 from .vp.lines import Lines, pattern_lines
 from .vp.params import VPParams
 from ..types import ImageResult, Pattern, VanishingPoint
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
+
+
+_D = config_defaults("scene")
 
 
 @dataclass(frozen=True)
@@ -69,9 +72,9 @@ class SceneParams:
 
     vp: VPParams = field(default_factory=VPParams)
     symmetry: S.SymmetryParams = field(default_factory=S.SymmetryParams)
-    rectify_max_side: int = 1024
-    rectify_padding: float = 0.1
-    rectify_min_w: float = 0.1
+    rectify_max_side: int = _D["rectify_max_side"]
+    rectify_padding: float = _D["rectify_padding"]
+    rectify_min_w: float = _D["rectify_min_w"]
 
     def __post_init__(self) -> None:
         if self.rectify_max_side < 8:
@@ -95,6 +98,21 @@ class SceneParams:
         d["vp"] = VPParams.from_dict(d.get("vp"))
         d["symmetry"] = S.SymmetryParams.from_dict(d.get("symmetry"))
         return cls(**d)
+
+    @classmethod
+    def from_config(cls, section: dict[str, Any] | None) -> "SceneParams":
+        """Build from the configuration's whole ``scene`` section: its ``source`` (which
+        instances the scene step reads) and ``completion``
+        (:class:`rescu.scene.completion.CompletionParams`) belong to the pipeline's step
+        and are left out; every other key goes to :meth:`from_dict`.
+
+        >>> from rescu.params import config_defaults
+        >>> p = SceneParams.from_config(config_defaults("scene"))
+        >>> p.vp.ransac_iterations, p.symmetry.threshold
+        (1000, 0.06)
+        """
+        return cls.from_dict({k: v for k, v in (section or {}).items()
+                              if k not in ("source", "completion")})
 
 
 def _boxes(p: Pattern) -> np.ndarray:
@@ -212,7 +230,7 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     size = (int(result.width), int(result.height))
     res.patterns = [analyse_pattern(p, size, params) for p in result.patterns]
     res.extra = copy.deepcopy(result.extra)
-    dom = C.dominant_pattern(res.patterns)
+    dom = CNT.dominant_pattern(res.patterns)
     res.dominant_pattern = None if dom is None else int(res.patterns[dom].id)
     res.vanishing_point = None
     if dom is not None:

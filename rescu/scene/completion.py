@@ -78,10 +78,13 @@ import numpy as np
 from .. import layout as L
 from . import symmetry as S
 from .vp.params import VPParams
-from ..params import params_from_dict
+from ..params import config_defaults, params_from_dict
 from ..types import ImageResult, Instance, Pattern
 
 SOURCE = "completion"
+
+
+_D = config_defaults("scene", "completion")
 
 
 @dataclass(frozen=True)
@@ -131,21 +134,21 @@ class CompletionParams:
         alignment) is not completed: only nearly complete grids are filled.
     """
 
-    enabled: bool = True
-    max_gaps: int = 2
-    cr_tolerance: float = 0.06
-    fit_tolerance: float = 0.05
-    max_step_ratio: float = 1.5
-    similarity_ratio: float = 0.75
-    min_similarity: float = 0.5
-    search_radius: float = 0.15
-    search_step_px: float = 1.0
-    patch_size: int = 24
-    min_row_instances: int = 3
-    end_instances: int = 1
-    grid: bool = True
-    grid_tolerance: float = 0.25
-    grid_max_missing: int = 2
+    enabled: bool = _D["enabled"]
+    max_gaps: int = _D["max_gaps"]
+    cr_tolerance: float = _D["cr_tolerance"]
+    fit_tolerance: float = _D["fit_tolerance"]
+    max_step_ratio: float = _D["max_step_ratio"]
+    similarity_ratio: float = _D["similarity_ratio"]
+    min_similarity: float = _D["min_similarity"]
+    search_radius: float = _D["search_radius"]
+    search_step_px: float = _D["search_step_px"]
+    patch_size: int = _D["patch_size"]
+    min_row_instances: int = _D["min_row_instances"]
+    end_instances: int = _D["end_instances"]
+    grid: bool = _D["grid"]
+    grid_tolerance: float = _D["grid_tolerance"]
+    grid_max_missing: int = _D["grid_max_missing"]
 
     def __post_init__(self) -> None:
         if self.max_gaps < 1:

@@ -5,7 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from ...params import params_from_dict
+from ...params import config_defaults, params_from_dict
+
+
+_D = config_defaults("scene", "vp")
 
 
 @dataclass(frozen=True)
@@ -71,24 +74,24 @@ class VPParams:
         Seed of the random pair sampling.
     """
 
-    ransac_iterations: int = 1000
-    inlier_angle_deg: float = 1.5
-    ac_threshold_deg: float = 2.0
-    min_lines: int = 3
-    infinity_alpha: float = 0.01
-    infinity_noise_deg: float = 0.5
-    infinity_noise_px: float = 0.25
-    row_tolerance: float = 0.25
-    min_row_instances: int = 3
-    max_line_residual: float = 0.15
-    precision_floor_px: float = 1.0
-    lsd_min_length: float = 0.025
-    lsd_max_segments: int = 1500
-    ml_refine: bool = True
-    register_centres: bool = True
-    joint_alpha: float = 0.01
-    spacing_alpha: float = 0.01
-    seed: int = 0
+    ransac_iterations: int = _D["ransac_iterations"]
+    inlier_angle_deg: float = _D["inlier_angle_deg"]
+    ac_threshold_deg: float = _D["ac_threshold_deg"]
+    min_lines: int = _D["min_lines"]
+    infinity_alpha: float = _D["infinity_alpha"]
+    infinity_noise_deg: float = _D["infinity_noise_deg"]
+    infinity_noise_px: float = _D["infinity_noise_px"]
+    row_tolerance: float = _D["row_tolerance"]
+    min_row_instances: int = _D["min_row_instances"]
+    max_line_residual: float = _D["max_line_residual"]
+    precision_floor_px: float = _D["precision_floor_px"]
+    lsd_min_length: float = _D["lsd_min_length"]
+    lsd_max_segments: int = _D["lsd_max_segments"]
+    ml_refine: bool = _D["ml_refine"]
+    register_centres: bool = _D["register_centres"]
+    joint_alpha: float = _D["joint_alpha"]
+    spacing_alpha: float = _D["spacing_alpha"]
+    seed: int = _D["seed"]
 
     def __post_init__(self) -> None:
         if self.ransac_iterations < 1:

@@ -19,15 +19,11 @@ from ...layout import fit_line
 from .geometry import _chi2_ppf, _f_ppf, _fit_infinity
 
 
-def _track_costs(v: np.ndarray, scat: np.ndarray) -> np.ndarray:
-    """Smallest sum of squared orthogonal distances of each track to a line through v.
-
-    v : (3,) homogeneous point (finite or at infinity); scat : (T, 3, 3) sums of
-    p~ p~^T over each track's points p~ = (x, y, 1). The line through v is
-    l = B a with B a basis of v's orthogonal complement; the distance of p~ to l is
-    l . p~ / |l_xy|, so the cost is the smallest generalised eigenvalue lambda of
-    (B^T S B, B^T diag(1, 1, 0) B): a root of det(M - lambda N) = 0.
-    """
+def _pencil(v: np.ndarray, scat: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The generalised eigenproblem of :func:`_track_costs`: the basis ``b`` (3, 2) of
+    v's orthogonal complement, ``m = B^T S B`` (T, 2, 2), ``nn = B_xy^T B_xy`` (2, 2) and
+    the smallest eigenvalue ``lam`` (T,) of each track (its cost)."""
     _, _, vt = np.linalg.svd(v.reshape(1, 3))
     b = vt[1:].T  # (3, 2)
     m = np.einsum("ia,tij,jb->tab", b, scat, b)
@@ -37,7 +33,20 @@ def _track_costs(v: np.ndarray, scat: np.ndarray) -> np.ndarray:
     qc = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] ** 2
     disc = np.sqrt(np.maximum(qb ** 2 - 4 * qa * qc, 0.0))
     den = -qb + disc
-    return np.where(den > 0, 2 * np.maximum(qc, 0.0) / np.where(den > 0, den, 1.0), 0.0)
+    lam = np.where(den > 0, 2 * np.maximum(qc, 0.0) / np.where(den > 0, den, 1.0), 0.0)
+    return b, m, nn, lam
+
+
+def _track_costs(v: np.ndarray, scat: np.ndarray) -> np.ndarray:
+    """Smallest sum of squared orthogonal distances of each track to a line through v.
+
+    v : (3,) homogeneous point (finite or at infinity); scat : (T, 3, 3) sums of
+    p~ p~^T over each track's points p~ = (x, y, 1). The line through v is
+    l = B a with B a basis of v's orthogonal complement; the distance of p~ to l is
+    l . p~ / |l_xy|, so the cost is the smallest generalised eigenvalue lambda of
+    (B^T S B, B^T diag(1, 1, 0) B): a root of det(M - lambda N) = 0.
+    """
+    return _pencil(v, scat)[3]
 
 
 def _padded_tracks(points: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -61,17 +70,7 @@ def _track_residuals(v: np.ndarray, ph: np.ndarray, mask: np.ndarray,
                      ref: np.ndarray) -> np.ndarray:
     """Signed orthogonal distances (T, K) of the track points to each track's best line
     through v (0 where padded); their squares sum to :func:`_track_costs`."""
-    _, _, vt = np.linalg.svd(v.reshape(1, 3))
-    b = vt[1:].T  # (3, 2)
-    scat = np.einsum("tki,tkj->tij", ph, ph)
-    m = np.einsum("ia,tij,jb->tab", b, scat, b)
-    nn = b[:2].T @ b[:2]
-    qa = nn[0, 0] * nn[1, 1] - nn[0, 1] ** 2
-    qb = -(m[:, 0, 0] * nn[1, 1] + m[:, 1, 1] * nn[0, 0] - 2 * m[:, 0, 1] * nn[0, 1])
-    qc = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] ** 2
-    disc = np.sqrt(np.maximum(qb ** 2 - 4 * qa * qc, 0.0))
-    den = -qb + disc
-    lam = np.where(den > 0, 2 * np.maximum(qc, 0.0) / np.where(den > 0, den, 1.0), 0.0)
+    b, m, nn, lam = _pencil(v, np.einsum("tki,tkj->tij", ph, ph))
     r = m - lam[:, None, None] * nn[None]  # (T, 2, 2), singular: a spans its null space
     a1 = np.stack([-r[:, 0, 1], r[:, 0, 0]], axis=1)
     a2 = np.stack([-r[:, 1, 1], r[:, 1, 0]], axis=1)
