@@ -143,7 +143,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .pipeline import ablation_overrides
     from .scene.analyse import SceneParams
     from .discovery.stage1 import Stage1Params
-    from .extension.stage2 import Stage2Params, is_predict_only
+    from .extension.params import Stage2Params, is_predict_only
     from .data.synth import SynthParams
 
     def build(section: str, make: Any) -> Any:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from rescu.extension.merge import MergeParams, line_residual, merge_split_patterns, pair_evidence
-from rescu.extension.stage2 import Stage2Params, predict_stage2
+from rescu.extension.params import Stage2Params
+from rescu.extension.predict import predict_stage2
 from rescu.types import ImageResult, Instance, Pattern
 
 D = 16

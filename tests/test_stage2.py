@@ -1,4 +1,5 @@
-"""Tests of rescu.extension.stage2 (RESCU-II) on tiny synthetic images."""
+"""Tests of RESCU-II (rescu.extension: params, augment, features, examples, train,
+predict) on tiny synthetic images."""
 
 import numpy as np
 import pytest
@@ -7,11 +8,14 @@ torch = pytest.importorskip("torch")
 
 from rescu import io  # noqa: E402
 from rescu.evaluation.metrics import iod_matrix  # noqa: E402
-from rescu.extension.stage2 import (Stage2Params, cluster_centres,  # noqa: E402
-                                    compute_stage2_features, dbscan_labels, finetune_record,
-                                    impute_half, visible_half_features, load_checkpoint,
-                                    occlude_instances, predict_stage2, save_checkpoint,
-                                    score_features, select_examples, train_heads)
+from rescu.extension.augment import occlude_instances  # noqa: E402
+from rescu.extension.examples import (cluster_centres, dbscan_labels,  # noqa: E402
+                                      select_examples)
+from rescu.extension.features import compute_stage2_features, finetune_record  # noqa: E402
+from rescu.extension.params import Stage2Params  # noqa: E402
+from rescu.extension.predict import (impute_half, predict_stage2,  # noqa: E402
+                                     score_features, visible_half_features)
+from rescu.extension.train import load_checkpoint, save_checkpoint, train_heads  # noqa: E402
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
 FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
@@ -232,16 +236,16 @@ def test_lattice_only_needs_lattice_windows(six):
 
 
 def test_spacing_suppression():
-    from rescu.extension.stage2 import _suppress
+    from rescu.extension.boxes import suppress
 
     own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
     cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)
     order = np.arange(3)
     # boxes 0 and 1 overlap little (IoU 0.19, cover 0.32): both survive plain NMS
-    assert _suppress(cand, order, own, own[:0], 0.3).tolist() == [0, 1, 2]
+    assert suppress(cand, order, own, own[:0], 0.3).tolist() == [0, 1, 2]
     # lattice spacing 40, fraction 0.6: centres closer than 24 px clash (1 with 0 at
     # 6.3 px, 2 with the stage-I instance at x = 45 at 20 px)
-    assert _suppress(cand, order, own, own[:0], 0.3, 24.0).tolist() == [0]
+    assert suppress(cand, order, own, own[:0], 0.3, 24.0).tolist() == [0]
 
 
 def test_cluster_centres_and_params():

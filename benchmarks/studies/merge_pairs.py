@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
-    from rescu.extension.stage2 import Stage2Params
+    from rescu.extension.params import Stage2Params
 
     ap = run_parser(__doc__)
     ap.add_argument("--iod", type=float, default=0.5,

@@ -64,12 +64,14 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
     import pandas as pd
 
     from rescu import io
-    from rescu.extension import stage2 as S2
+    from rescu.extension.params import Stage2Params
+    from rescu.extension.predict import score_proposals
+    from rescu.extension.train import load_checkpoint
     from rescu.evaluation.core import load_predictions, load_truth
     from rescu.io import load_coco_rps
     from rescu.evaluation.metrics import iod_matrix
 
-    params = S2.Stage2Params.from_dict(stage2)
+    params = Stage2Params.from_dict(stage2)
     gate = params.lattice_score_threshold
     gt = load_coco_rps(data / "annotations.json")
     truth = load_truth(data)
@@ -86,11 +88,11 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
         det = np.array([i.bbox for p in res.patterns for i in p.instances],
                        float).reshape(-1, 4)
         feats, _ = io.read_h5(h5)
-        ckpt = S2.load_checkpoint(pt)
+        ckpt = load_checkpoint(pt)
         boxes = np.asarray(feats.get("proposals", np.zeros((0, 4))), float).reshape(-1, 4)
         lattice = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes)))
                              ).reshape(-1) > 0
-        prob = (S2.score_proposals(feats, ckpt["head"])
+        prob = (score_proposals(feats, ckpt["head"])
                 if len(boxes) and "head" in ckpt else np.zeros((len(boxes), 1)))
         for g, rp in enumerate(gts):
             G = np.asarray(rp.boxes, float).reshape(-1, 4)

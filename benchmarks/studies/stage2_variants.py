@@ -92,7 +92,7 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
                 or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
-            from rescu.extension.stage2 import finetune_record
+            from rescu.extension.features import finetune_record
 
             feats, _ = io.read_h5(h5)
             epochs = (finetune_record(feats) or {}).get("epochs")
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
                                        summary_markdown, summary_table)
-    from rescu.extension.stage2 import Stage2Params, is_predict_only
+    from rescu.extension.params import Stage2Params, is_predict_only
 
     ap = run_parser(__doc__)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",

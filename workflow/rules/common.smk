@@ -4,7 +4,7 @@ import sys
 from pathlib import Path
 
 from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
-from rescu.extension.stage2 import is_predict_only
+from rescu.extension.params import is_predict_only
 from rescu.data.synth import synthetic_image_names
 
 RESULTS = config["results_dir"]
@@ -38,7 +38,7 @@ def code(*modules):
 
 def stage2_upstream():
     """The ``stage2`` keys of the features and training steps: all but those that act
-    only in prediction (:func:`rescu.extension.stage2.is_predict_only`), so that a change of a
+    only in prediction (:func:`rescu.extension.params.is_predict_only`), so that a change of a
     prediction gate reruns prediction only."""
     return {k: v for k, v in config["stage2"].items() if not is_predict_only(k)}
 

@@ -6,8 +6,10 @@ rule stage2_features:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "extension/proposals",
-                  "extension/backbone", "extension/finetune", "evaluation/metrics"),
+        code=code("extension/params", "extension/augment", "extension/boxes",
+                  "extension/examples", "extension/features", "extension/head",
+                  "extension/proposals", "extension/backbone", "extension/finetune",
+                  "evaluation/metrics"),
     output:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
     params:
@@ -28,7 +30,9 @@ rule stage2_train:
     input:
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "evaluation/metrics"),
+        code=code("extension/params", "extension/augment", "extension/boxes",
+                  "extension/examples", "extension/features", "extension/train",
+                  "extension/head", "evaluation/metrics"),
     output:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
     params:
@@ -49,7 +53,9 @@ rule stage2_predict:
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-        code=code("extension/stage2", "extension/head", "extension/merge", "evaluation/metrics"),
+        code=code("extension/params", "extension/augment", "extension/boxes",
+                  "extension/examples", "extension/features", "extension/predict",
+                  "extension/head", "extension/merge", "evaluation/metrics"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
@@ -73,8 +79,9 @@ if stage2_predict_variants():
             ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
             meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
-            code=code("extension/stage2", "extension/head", "extension/merge",
-                      "evaluation/metrics"),
+            code=code("extension/params", "extension/augment", "extension/boxes",
+                      "extension/examples", "extension/features", "extension/predict",
+                      "extension/head", "extension/merge", "evaluation/metrics"),
         output:
             expand(
                 f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
@@ -97,7 +104,9 @@ rule stage2_ablation:
     input:
         **prepared(),
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=code("extension/stage2", "extension/head", "extension/proposals",
+        code=code("extension/params", "extension/augment", "extension/boxes",
+                  "extension/examples", "extension/features", "extension/train",
+                  "extension/predict", "extension/head", "extension/proposals",
                   "extension/backbone", "extension/finetune", "extension/merge",
                   "evaluation/metrics"),
     output:
