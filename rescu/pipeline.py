@@ -311,7 +311,8 @@ def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
         s1 = io.read_result(stage1_json)
         feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1,
                                         Stage2Params.from_dict(params))
-        io.write_h5(out_h5, feats, attrs={"backbone": str(params.get("backbone", ""))})
+        backbone = (params.get("backbone") or {}).get("name", "")
+        io.write_h5(out_h5, feats, attrs={"backbone": str(backbone)})
 
     def empty(f: Failure) -> None:
         io.write_h5(out_h5, {}, attrs={"failure": json.dumps(f)})
@@ -371,23 +372,22 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
                             variants: dict[str, dict[str, Any]]) -> Failure | None:
     """RESCU-II once per prediction-only variant, from the run's own features and head.
 
-    Each variant is a mapping of ``stage2`` keys that act only in prediction
-    (:func:`rescu.extension.params.is_predict_only`; a ValueError names any other) overriding
+    Each variant is a nested mapping of ``stage2`` keys in the ``predict`` section only
+    (the keys that act only in prediction; a ValueError names any other) overriding
     ``params``; ``out_jsons`` maps each variant to its per-image JSON (method
     ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
     """
-    from .extension.params import Stage2Params, is_predict_only
+    from .extension.params import Stage2Params, predict_only_error
     from .extension.predict import predict_stage2
     from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
     plist = {}
     for name, over in variants.items():
-        bad = [k for k in over if not is_predict_only(k)] if isinstance(over, dict) else over
-        if not isinstance(over, dict) or bad:
-            raise ValueError(f"prediction-only stage-II variant {name!r}: {bad!r} are not "
-                             f"prediction keys of the stage2 section")
-        plist[name] = Stage2Params.from_dict({**params, **over})
+        why = predict_only_error(over)
+        if why:
+            raise ValueError(f"prediction-only stage-II variant {name!r}: {why}")
+        plist[name] = Stage2Params.variant(params, over)
     ckpt = load_checkpoint(ckpt_path)
 
     def run() -> None:
@@ -431,8 +431,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
         if not isinstance(over, dict):
             raise ValueError(f"stage-II ablation variant {name!r} must be a mapping of "
                              f"stage2 keys, got {over!r}")
-    plist = {name: Stage2Params.from_dict({**params, **over})
-             for name, over in variants.items()}
+    plist = {name: Stage2Params.variant(params, over) for name, over in variants.items()}
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)

@@ -257,15 +257,16 @@ def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
     _stage2(w, cfg)
     outs = {"vh": w("vh.json")}
     f = pipeline.stage2_predict_variants(w("s2.h5"), w("head.pt"), w("s.json"), w("m.json"),
-                                         outs, cfg["stage2"], {"vh": {"visible_half": True}})
+                                         outs, cfg["stage2"],
+                                         {"vh": {"predict": {"visible_half": True}}})
     assert f["stage"] == "stage2-features"
     d = read_json(outs["vh"])
     assert d["method"] == "rescu-ii[vh]" and d["patterns"] == s1["patterns"]
     assert d["failure"] == {**f, "degraded_to": "rescu-i"}
     outs = {"eb": w("eb.json"), "is": w("is.json")}
     f = pipeline.stage2_ablation(w("p.png"), w("m.json"), w("s.json"), outs, cfg["stage2"],
-                                 {"eb": {"proposal_method": "edgeboxes"},
-                                  "is": {"proposal_method": "instance_scale"}})
+                                 {"eb": {"proposals": {"method": "edgeboxes"}},
+                                  "is": {"proposals": {"method": "instance_scale"}}})
     assert f["stage"] == "stage2-ablation"
     for name, path in outs.items():
         d = read_json(path)

@@ -31,7 +31,7 @@ def tiny_config(tmp: Path, **overrides) -> Path:
         "datasets": datasets,
         "synthetic": {"n_images": 3, "sizes": [[480, 360]]},
         "ablation": {"datasets": ["synthetic"]},
-        "stage2": {"max_epochs": 2, "max_proposals": 200},
+        "stage2": {"head": {"max_epochs": 2}, "proposals": {"max_proposals": 200}},
         "report": {"samples_per_dataset": 2},
     }
     for key, value in overrides.items():
@@ -145,7 +145,7 @@ def test_parameter_change_reruns_only_dependants(finished_run):
 
 def test_stage2_gate_change_reruns_prediction_only(finished_run):
     work, _ = finished_run
-    changed = tiny_config(work, **{"stage2.lattice_score_threshold": 0.9})
+    changed = tiny_config(work, **{"stage2.predict.lattice_score_threshold": 0.9})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs.get("stage2_predict") == 3, jobs
     for upstream in ("features", "rescu_i", "stage2_features", "stage2_train"):
@@ -284,8 +284,8 @@ def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, ca
     res = work / "results"
     pv = yaml.safe_load((REPO / "config" / "config.yaml").read_text())[
         "stage2_ablation"]["predict_variants"]
-    assert pv["visible-half"] == {"visible_half": True}
-    sets = [f"{k}={str(v).lower()}" for k, v in pv["visible-half"].items()]
+    assert pv["visible-half"] == {"predict": {"visible_half": True}}
+    sets = [f"predict.{k}={str(v).lower()}" for k, v in pv["visible-half"]["predict"].items()]
     out = work / "sv-visible-half"
     argv = [str(res), "--out", str(out), "--name", "vh"]
     for s in sets:

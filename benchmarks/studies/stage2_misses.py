@@ -9,11 +9,11 @@ tables' h). Each GT instance not found gets one cause:
     no instance of its GT RP is found at all: stage II only extends RPs stage I found.
 ``no lattice window``
     no lattice window (a window where an RP's instance lattice predicts an instance,
-    ``stage2.lattice_windows``) covers it with IOD >= ``--iod``; with
-    ``stage2.lattice_only`` nothing else can add an instance.
+    ``stage2.proposals.lattice_windows``) covers it with IOD >= ``--iod``; with
+    ``stage2.predict.lattice_only`` nothing else can add an instance.
 ``window p < 0.8`` / ``window p 0.8 - gate``
     the best such window's class probability (any RP's class, the per-image head) is
-    under ``stage2.lattice_score_threshold``.
+    under ``stage2.predict.lattice_score_threshold``.
 ``window p >= gate``
     a window scores above the gate and was dropped by another one (distance to the RP's
     centre, spacing to the other instances, size, non-maximum suppression).
@@ -72,7 +72,7 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
     from rescu.evaluation.metrics import iod_matrix
 
     params = Stage2Params.from_dict(stage2)
-    gate = params.lattice_score_threshold
+    gate = params.predict.lattice_score_threshold
     gt = load_coco_rps(data / "annotations.json")
     truth = load_truth(data)
     preds = load_predictions(results / dataset / "rescu-ii", gt.keys())

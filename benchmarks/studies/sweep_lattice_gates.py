@@ -71,8 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             preds = {"RESCU-I": root / "rescu-i"}
             for r, t in itertools.product(a.ratios, a.thresholds):
-                s2 = dict(cfg["stage2"], lattice_distance_ratio=r, lattice_score_threshold=t)
-                P = Stage2Params.from_dict(s2)
+                P = Stage2Params.variant(cfg["stage2"], {"predict": {
+                    "lattice_distance_ratio": r, "lattice_score_threshold": t}})
                 out = Path(tmp) / f"{r}_{t}"
                 (out / "ii").mkdir(parents=True)
                 (out / "scene").mkdir()

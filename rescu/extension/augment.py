@@ -103,7 +103,7 @@ def jitter_boxes(inst: np.ndarray, rp_of: np.ndarray, n: int, params: Stage2Para
         wh = inst[idx, 2:]
         # spread of the instance sizes of this RP (relative): drives the deformation
         rel = float(np.mean(np.std(wh, 0) / np.maximum(np.mean(wh, 0), 1e-6)))
-        a = max(params.min_jitter, params.jitter * rel)
+        a = max(params.examples.min_jitter, params.examples.jitter * rel)
         for i in idx:
             x, y, w, h = inst[i]
             for _ in range(n):

@@ -139,11 +139,12 @@ def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2P
         return {"proposal_label": label, "n_centres": n_cent, "n_positive": n_pos,
                 "n_negative": 0, "distance": dist, "radius": radii}
     iou = box_iou(boxes, inst) if len(inst) else np.zeros((P, 0))
-    cap = max(1, int(np.floor(params.max_positive_fraction * P - 1e-9)))
+    cap = max(1, int(np.floor(params.examples.max_positive_fraction * P - 1e-9)))
     total_pos = 0
     for k in range(R):
         xk = inf_[inst_rp == k]
-        centres, lab = cluster_centres(xk, params.dbscan_eps, params.dbscan_min_samples)
+        centres, lab = cluster_centres(xk, params.examples.dbscan_eps,
+                                       params.examples.dbscan_min_samples)
         n_cent[k] = len(centres)
         dk = np.linalg.norm(pf[:, None, :] - centres[None], axis=2).min(1)   # (P,)
         dist[:, k] = dk
@@ -156,19 +157,19 @@ def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2P
             da = np.linalg.norm(ak[:, None, :] - centres[None], axis=2).min(1)
             radius = max(radius, float(np.median(da)))
         radii[k] = radius
-        size_ok = size_gate(boxes, inst[inst_rp == k], params.size_tolerance)
+        size_ok = size_gate(boxes, inst[inst_rp == k], params.examples.size_tolerance)
         mx = iou.max(1) if iou.shape[1] else np.zeros(P)
         unambiguous = (mx < 0.3) | (mx >= 0.7)
         cand = np.nonzero(size_ok & unambiguous & (label < 0)
-                          & (dk <= params.positive_radius * max(radius, 1e-6)))[0]
-        top_k = int(n_cent[k] * params.top_p)          # top k = N x P in the paper
+                          & (dk <= params.examples.positive_radius * max(radius, 1e-6)))[0]
+        top_k = int(n_cent[k] * params.examples.top_p)          # top k = N x P in the paper
         room = max(0, cap - total_pos)
         take = cand[np.argsort(dk[cand], kind="stable")][:min(top_k, room)]
         label[take] = k + 1
         n_pos[k] = len(take)
         total_pos += len(take)
     dmin = dist.min(1)
-    thr = np.quantile(dmin, params.negative_quantile)
+    thr = np.quantile(dmin, params.examples.negative_quantile)
     mx = iou.max(1) if iou.shape[1] else np.zeros(P)
     neg = (label < 0) & (dmin >= thr) & (mx < 0.3)
     label[neg] = 0

@@ -89,10 +89,10 @@ def get_backbone(params: Stage2Params):
     """The frozen backbone of ``params`` (cached per process)."""
     from .backbone import FrozenBackbone
 
-    key = (params.backbone, params.weights_path, params.feature_stride, params.device)
+    p = params.backbone
+    key = (p.name, p.weights_path, p.feature_stride, p.device)
     if key not in _BACKBONE_CACHE:
-        _BACKBONE_CACHE[key] = FrozenBackbone(params.backbone, params.weights_path,
-                                              params.feature_stride, params.device)
+        _BACKBONE_CACHE[key] = FrozenBackbone(p.name, p.weights_path, p.feature_stride, p.device)
     return _BACKBONE_CACHE[key]
 
 
@@ -100,9 +100,10 @@ def check_device(params: Stage2Params) -> None:
     """A CUDA device must be available when configured (clear error otherwise)."""
     import torch
 
-    if str(params.device).startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError(f"stage2.device is {params.device!r} but torch.cuda.is_available() "
-                           "is False (CPU-only torch or no GPU); set stage2.device: cpu")
+    if str(params.backbone.device).startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"stage2.backbone.device is {params.backbone.device!r} but "
+                           "torch.cuda.is_available() is False (CPU-only torch or no GPU); set "
+                           "stage2.backbone.device: cpu")
 
 
 def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageResult,
@@ -147,7 +148,7 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
     size = (w, h)
     rps = rp_list(stage1, params.min_instances)
     if not rps:
-        return _empty_features(stage1, scale_factor, params.backbone, size)
+        return _empty_features(stage1, scale_factor, params.backbone.name, size)
     rng = np.random.default_rng(params.seed)
     sf = float(scale_factor)
     inst = np.concatenate([b for _, b in rps]).astype(np.float32) * sf      # processed px
@@ -156,10 +157,10 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
     from .proposals import clip_boxes
 
     inst = clip_boxes(inst, size)
-    pp = params.proposal_params()
+    pp = params.proposals.proposal_params()
     boxes, scores = propose(rgb, [inst[inst_rp == k] for k in range(len(rps))], pp)
     is_lat = np.zeros(len(boxes), np.int8)
-    if params.lattice_windows:
+    if params.proposals.lattice_windows:
         from .proposals import lattice_proposals
 
         lat = [lattice_proposals(inst[inst_rp == k], size, pp) for k in range(len(rps))]
@@ -167,36 +168,37 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         boxes = np.concatenate([boxes, lat_b]).astype(np.float32)
         scores = np.concatenate([scores, np.zeros(len(lat_b), np.float32)])
         is_lat = np.concatenate([is_lat, np.ones(len(lat_b), np.int8)])
-    jit, parent = jitter_boxes(inst, inst_rp, params.n_jitter, params, rng, size)
+    jit, parent = jitter_boxes(inst, inst_rp, params.examples.n_jitter, params, rng, size)
     hneg = hard_negatives(inst, size)
-    m = min(len(boxes), params.n_aug_proposals)
+    m = min(len(boxes), params.examples.n_aug_proposals)
     aug_idx = np.sort(rng.choice(len(boxes), size=m, replace=False)).astype(np.int64) \
         if m else np.zeros((0,), np.int64)
 
     bb = get_backbone(params)
-    base = min(1.0, params.max_side / float(max(w, h)))
-    if params.instance_target_px > 0:
+    base = min(1.0, params.backbone.input_side / float(max(w, h)))
+    if params.backbone.instance_target_px > 0:
         # instance-adaptive scale: median instance shorter side -> instance_target_px
         short = float(np.median(np.minimum(inst[:, 2], inst[:, 3])))
-        base = params.instance_target_px / max(short, 1.0)
-    base = min(base, params.max_backbone_side / (float(max(w, h)) * max(params.input_scales)))
-    scales = [base * s for s in params.input_scales]
+        base = params.backbone.instance_target_px / max(short, 1.0)
+    base = min(base, params.backbone.max_backbone_side
+               / (float(max(w, h)) * max(params.backbone.input_scales)))
+    scales = [base * s for s in params.backbone.input_scales]
     aug_rng = copy.deepcopy(rng)  # the same augmented copies for a fine-tuned backbone
 
     def pooled(net) -> dict[str, np.ndarray]:
         r = copy.deepcopy(aug_rng)
         pf, inf_, jf, hf = image_features(net, rgb, [boxes, inst, jit, hneg], scales,
-                                          params.pool_size)
+                                          params.backbone.pool_size)
         aug: dict[str, list[np.ndarray]] = {"inst": [], "jit": [], "hneg": [], "prop": []}
-        for k in range(params.n_augment):
+        for k in range(params.examples.n_augment):
             img, sc, flip = augment_image(rgb, k, r)
             sets = [transform_boxes(x, sc, flip, w) for x in (inst, jit, hneg, boxes[aug_idx])]
-            if params.occlude_prob > 0:
+            if params.examples.occlude_prob > 0:
                 # own stream: the other augmentations stay as they are without occluders
-                img = occlude_instances(img, sets[0], params.occlude_prob,
-                                        tuple(params.occlude_fraction),
+                img = occlude_instances(img, sets[0], params.examples.occlude_prob,
+                                        tuple(params.examples.occlude_fraction),
                                         np.random.default_rng([params.seed, 7919, k]))
-            f = image_features(net, img, sets, scales, params.pool_size)
+            f = image_features(net, img, sets, scales, params.backbone.pool_size)
             for key, v in zip(("inst", "jit", "hneg", "prop"), f):
                 aug[key].append(v)
         d = pf.shape[1]
@@ -212,7 +214,7 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
                 "aug_proposal_features": stack(aug["prop"], m)}
 
     out = {
-        "backbone": to_bytes(params.backbone), "image_size": np.array(size, np.int64),
+        "backbone": to_bytes(params.backbone.name), "image_size": np.array(size, np.int64),
         "scale_factor": np.float64(sf), "backbone_scale": np.float64(base),
         "rp_index": np.array([i for i, _ in rps], np.int64),
         "proposals": (boxes / sf).astype(np.float32), "proposal_scores": scores,
@@ -221,16 +223,17 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         "jitter_parent": parent, "hard_negative_boxes": (hneg / sf).astype(np.float32),
         "aug_proposal_index": aug_idx, **pooled(bb),
     }
-    if params.finetune:
+    if params.backbone.finetune:
         from .finetune import finetune_backbone
 
         fb, fl = _finetune_examples(out, params, {"proposals": boxes, "instances": inst,
                                                   "jitter": jit, "hard": hneg})
         tuned, info = finetune_backbone(
-            bb, rgb, fb, fl, len(rps) + 1, scale=scales[0], pool_size=params.pool_size,
-            hidden_sizes=tuple(params.hidden_sizes), lr=params.lr, beta1=params.beta1,
-            batch_size=params.batch_size, max_epochs=params.max_epochs,
-            val_split=params.val_split, patience=params.patience, min_delta=params.min_delta,
+            bb, rgb, fb, fl, len(rps) + 1, scale=scales[0], pool_size=params.backbone.pool_size,
+            hidden_sizes=tuple(params.head.hidden_sizes), lr=params.head.lr,
+            beta1=params.head.beta1, batch_size=params.head.batch_size,
+            max_epochs=params.head.max_epochs, val_split=params.head.val_split,
+            patience=params.head.patience, min_delta=params.head.min_delta,
             seed=params.seed)
         if tuned is not bb:
             out.update(pooled(tuned))
@@ -253,7 +256,7 @@ def _finetune_examples(feats: dict[str, np.ndarray], params: Stage2Params,
     pl = np.concatenate([inst_rp + 1, inst_rp[parent] + 1, lab[pos]])
     nb = np.concatenate([px["hard"], px["proposals"][lab == 0]])
     rng = np.random.default_rng([params.seed, 7])
-    n_want = int(np.ceil(params.negatives_per_positive * max(len(pl), 1)))
+    n_want = int(np.ceil(params.examples.negatives_per_positive * max(len(pl), 1)))
     if len(nb) > n_want:
         nb = nb[np.sort(rng.choice(len(nb), n_want, replace=False))]
     boxes = np.concatenate([pb, nb]).astype(np.float32).reshape(-1, 4)

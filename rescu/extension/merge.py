@@ -57,7 +57,7 @@ from ..types import ImageResult, Instance, Pattern
 
 @dataclass(frozen=True)
 class MergeParams:
-    """Tunables of the split-RP merge (keys ``merge_*`` of config section ``stage2``).
+    """Tunables of the split-RP merge (config section ``stage2.predict.merge``, less ``enabled``).
 
     Attributes
     ----------

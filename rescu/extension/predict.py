@@ -112,9 +112,10 @@ def visible_half_features(feats: dict[str, np.ndarray], ckpt: dict[str, Any],
     prob = score_features(own_f[lat], ckpt)
     idx = np.nonzero(lat)[0]
     top = prob[:, 1:].max(1)
-    keep = (top >= params.visible_half_min_score) & (top < params.lattice_score_threshold)
+    keep = ((top >= params.predict.visible_half_min_score)
+            & (top < params.predict.lattice_score_threshold))
     idx, best = idx[keep], prob[keep, 1:].max(1)
-    best = np.maximum(best, np.nextafter(np.float32(params.visible_half_threshold), -1))
+    best = np.maximum(best, np.nextafter(np.float32(params.predict.visible_half_threshold), -1))
     if not len(idx):
         return pf, replaced
     inst = np.asarray(feats["instance_features"], np.float32)
@@ -127,13 +128,13 @@ def visible_half_features(feats: dict[str, np.ndarray], ckpt: dict[str, Any],
         if not own.any():
             continue
         ic = ib[own, :2] + ib[own, 2:] / 2
-        grow = params.visible_half_margin * np.median(ib[own, 2:], 0)
+        grow = params.predict.visible_half_margin * np.median(ib[own, 2:], 0)
         inside = np.all((pc >= ic.min(0) - grow) & (pc <= ic.max(0) + grow), 1)
         if not inside.any():
             continue
         mean = inst[own].mean(0)
         for side in range(4):
-            g = impute_half(own_f[idx[inside]], mean, side, params.pool_size)
+            g = impute_half(own_f[idx[inside]], mean, side, params.backbone.pool_size)
             pk = score_features(g, ckpt)[:, k + 1]
             rows = np.nonzero(inside)[0]
             better = pk > best[rows]
@@ -191,7 +192,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         out.extra["stage2"] = summary
         return _merge_split(out, feats, rp_index, params)
     replaced = np.zeros(len(np.asarray(feats["proposals"]).reshape(-1, 4)), bool)
-    if params.visible_half:
+    if params.predict.visible_half:
         pf, replaced = visible_half_features(feats, ckpt, params)
         feats = dict(feats, proposal_features=pf)
     prob = score_proposals(feats, ckpt)
@@ -205,26 +206,26 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     lat = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes), np.int8))).reshape(-1) > 0
     if len(lat) != len(boxes):
         lat = np.zeros(len(boxes), bool)
-    thr = np.where(lat, params.lattice_score_threshold, params.score_threshold)
-    ratio = np.where(lat, params.lattice_distance_ratio, params.max_distance_ratio)
+    thr = np.where(lat, params.predict.lattice_score_threshold, params.predict.score_threshold)
+    ratio = np.where(lat, params.predict.lattice_distance_ratio, params.predict.max_distance_ratio)
     total = by_half = 0
     for k, pi in enumerate(rp_index):
         pat = out.patterns[pi]
         own = np.array([i.bbox for i in stage1.patterns[pi].instances], np.float64)
         pk = prob[:, k + 1]
         near = sel["distance"][:, k] <= ratio * max(sel["radius"][k], 1e-6)
-        allowed = lat if params.lattice_only else np.ones(len(boxes), bool)
+        allowed = lat if params.predict.lattice_only else np.ones(len(boxes), bool)
         cand = np.nonzero((arg == k + 1) & (pk >= thr) & near & allowed
-                          & size_gate(boxes, own, params.size_tolerance))[0]
+                          & size_gate(boxes, own, params.examples.size_tolerance))[0]
         cand = cand[np.argsort(-pk[cand], kind="stable")]
         # lattice spacing: median distance of an instance centre to its nearest other one
         co = own[:, :2] + own[:, 2:] / 2
         dd = np.linalg.norm(co[:, None] - co[None], axis=2)
         np.fill_diagonal(dd, np.inf)
         spacing = float(np.median(dd.min(1))) if len(own) > 1 else 0.0
-        cand = suppress(boxes, cand, own, all_inst, params.nms_iou,
-                         params.min_spacing_fraction * spacing)
-        limit = int(np.floor(params.max_new_fraction * len(own)))
+        cand = suppress(boxes, cand, own, all_inst, params.predict.nms_iou,
+                         params.predict.min_spacing_fraction * spacing)
+        limit = int(np.floor(params.predict.max_new_fraction * len(own)))
         cand = cand[np.argsort(-pk[cand], kind="stable")][:limit]
         new = [Instance(bbox=tuple(float(v) for v in boxes[c]), score=float(pk[c]),
                         source="stage2") for c in cand]
@@ -234,7 +235,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         total += len(new)
         by_half += int(replaced[cand].sum())
     summary["added"] = total
-    if params.visible_half:
+    if params.predict.visible_half:
         summary["added_by_visible_half"] = by_half
     out.extra["stage2"] = summary
     return _merge_split(out, feats, rp_index, params)
@@ -245,7 +246,7 @@ def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[
     """The last step of :func:`predict_stage2`: merge RPs that are parts of one pattern
     (:func:`rescu.extension.merge.merge_split_patterns` on the stage-I instance features);
     ``extra["stage2"]["merged"]`` lists the merged id pairs (ids before the merge)."""
-    if not params.merge or len(rp_index) < 2:
+    if not params.predict.merge.enabled or len(rp_index) < 2:
         return out
     from .merge import merge_split_patterns
 
@@ -253,7 +254,7 @@ def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[
     pattern_of = np.asarray(rp_index, np.int64)[inst_rp]
     res, log = merge_split_patterns(out, np.asarray(feats["instance_boxes"], np.float64),
                                     np.asarray(feats["instance_features"], np.float64),
-                                    pattern_of, params.merge_params())
+                                    pattern_of, params.predict.merge.merge_params())
     if log:
         res.extra["stage2"] = dict(res.extra.get("stage2", {}),
                                    merged=[[int(v) for v in r["ids"]] for r in log])

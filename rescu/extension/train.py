@@ -61,7 +61,7 @@ def _training_set(feats: dict[str, np.ndarray], sel: dict[str, Any], params: Sta
         nx.append(np.asarray(feats["proposal_features"], np.float32)[negp])
     if nx:
         N = np.concatenate(nx)
-        n_want = int(np.ceil(params.negatives_per_positive * max(n_pos, 1)))
+        n_want = int(np.ceil(params.examples.negatives_per_positive * max(n_pos, 1)))
         if len(N) > n_want:
             N = N[np.sort(rng.choice(len(N), n_want, replace=False))]
         add(N, np.zeros(len(N), np.int64))
@@ -108,7 +108,7 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
             raise ValueError(f"feats['rp_index'] names pattern {i}, which stage1 "
                              f"({stage1.image}) does not have with >= 2 instances")
     base = {"state_dict": {}, "mean": torch.zeros(0), "std": torch.ones(0), "in_dim": 0,
-            "hidden_sizes": list(params.hidden_sizes), "n_classes": len(rp_index) + 1,
+            "hidden_sizes": list(params.head.hidden_sizes), "n_classes": len(rp_index) + 1,
             "rp_index": rp_index, "backbone": backbone}
     if not rp_index:
         return base, {"status": "no_rp", "backbone": backbone}
@@ -129,24 +129,24 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     std = X.std(0) + 1e-3
     Xs = (X - mean) / std
     perm = rng.permutation(len(y))
-    n_val = int(round(params.val_split * len(y))) if len(y) >= 10 else 0
+    n_val = int(round(params.head.val_split * len(y))) if len(y) >= 10 else 0
     val, tr = perm[:n_val], perm[n_val:]
     n_cls = len(rp_index) + 1
     counts = np.bincount(y[tr], minlength=n_cls).astype(np.float64)
     w = np.where(counts > 0, len(tr) / (n_cls * np.maximum(counts, 1)), 0.0)
     with deterministic(params.seed):
-        head = make_head(X.shape[1], tuple(params.hidden_sizes), n_cls)
-        opt = Adam(head.parameters(), lr=params.lr, betas=(params.beta1, 0.999))
+        head = make_head(X.shape[1], tuple(params.head.hidden_sizes), n_cls)
+        opt = Adam(head.parameters(), lr=params.head.lr, betas=(params.head.beta1, 0.999))
         lossf = torch.nn.CrossEntropyLoss(weight=torch.tensor(w, dtype=torch.float32))
         Xt = torch.from_numpy(Xs.astype(np.float32))
         yt = torch.from_numpy(y)
         best, best_state, bad, hist_tr, hist_val = np.inf, None, 0, [], []
-        for ep in range(int(params.max_epochs)):
+        for ep in range(int(params.head.max_epochs)):
             head.train()
             order = tr[rng.permutation(len(tr))]
             tot = 0.0
-            for i in range(0, len(order), params.batch_size):
-                b = torch.from_numpy(order[i:i + params.batch_size])
+            for i in range(0, len(order), params.head.batch_size):
+                b = torch.from_numpy(order[i:i + params.head.batch_size])
                 opt.zero_grad()
                 loss = lossf(head(Xt[b]), yt[b])
                 loss.backward()
@@ -158,12 +158,12 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
                 ev = val if len(val) else tr
                 vl = float(lossf(head(Xt[torch.from_numpy(ev)]), yt[torch.from_numpy(ev)]))
             hist_val.append(vl)
-            if vl < best - params.min_delta:
+            if vl < best - params.head.min_delta:
                 best, bad = vl, 0
                 best_state = {k: v.detach().clone() for k, v in head.state_dict().items()}
             else:
                 bad += 1
-                if bad >= params.patience:
+                if bad >= params.head.patience:
                     break
     assert best_state is not None
     ckpt = dict(base, state_dict=best_state, mean=torch.from_numpy(mean.astype(np.float32)),
