@@ -360,6 +360,8 @@ def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_r
 
 
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
-    cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {"x": {"top_p": 5}}})
-    with pytest.raises(AssertionError, match=r"predict_variants\.x: \['top_p'\]"):
+    cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {
+        "x": {"examples": {"top_p": 5}}}})
+    with pytest.raises(AssertionError,
+                       match=r"predict_variants\.x: \['examples'\] are not the predict section"):
         snakemake(tmp_path, cfg, "-n")
