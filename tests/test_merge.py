@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from rescu.extension.merge import MergeParams, line_residual, merge_split_patterns, pair_evidence
-from rescu.extension.stage2 import Stage2Params, predict_stage2
+from rescu.extension.params import Stage2Params
+from rescu.extension.predict import predict_stage2
 from rescu.types import ImageResult, Instance, Pattern
 
 D = 16
@@ -191,10 +192,14 @@ def test_params():
         MergeParams.from_dict({"simlarity_ratio": 0.9})
     with pytest.raises(ValueError, match="size_tolerance"):
         MergeParams(size_tolerance=0.5)
-    p = Stage2Params.from_dict({"merge_similarity_ratio": 0.8, "merge_max_line_residual": 0})
-    assert p.merge_params() == MergeParams(similarity_ratio=0.8, max_line_residual=0.0)
-    with pytest.raises(ValueError, match="merge_duplicate_iou|duplicate_iou"):
-        Stage2Params(merge_duplicate_iou=0.0)
+    p = Stage2Params.from_dict({"predict": {"merge": {"similarity_ratio": 0.8,
+                                                      "max_line_residual": 0}}})
+    assert p.predict.merge.merge_params() == MergeParams(similarity_ratio=0.8,
+                                                         max_line_residual=0.0)
+    with pytest.raises(ValueError, match="duplicate_iou"):
+        Stage2Params.from_dict({"predict": {"merge": {"duplicate_iou": 0.0}}})
+    with pytest.raises(ValueError, match="unknown stage2.predict.merge parameter"):
+        Stage2Params.from_dict({"predict": {"merge": {"merge_duplicate_iou": 0.5}}})
 
 
 def _stage2_inputs():
@@ -212,5 +217,6 @@ def test_predict_stage2_merges_last():
     out = predict_stage2(feats_d, ckpt, res, Stage2Params())
     assert [p.count for p in out.patterns] == [6, 4]
     assert out.extra["stage2"]["merged"] == [[0, 2]]
-    off = predict_stage2(feats_d, ckpt, res, Stage2Params(merge=False))
+    off = predict_stage2(feats_d, ckpt, res,
+                         Stage2Params.from_dict({"predict": {"merge": {"enabled": False}}}))
     assert [p.count for p in off.patterns] == [3, 4, 3] and "merged" not in off.extra["stage2"]

@@ -209,18 +209,20 @@ def _stage2(w, cfg):
                                    w("m.json"), p)
 
 
-@pytest.mark.parametrize("step, fn", [("stage2-features", "compute_stage2_features"),
-                                      ("stage2-train", "train_heads"),
-                                      ("stage2-predict", "predict_stage2")])
-def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, fn):
+@pytest.mark.parametrize("step, module, fn",
+                         [("stage2-features", "features", "compute_stage2_features"),
+                          ("stage2-train", "train", "train_heads"),
+                          ("stage2-predict", "predict", "predict_stage2")])
+def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, module, fn):
     """A stage-II exception: the RESCU-II JSON is stage I's result (method rescu-ii) with a
     degraded failure record, and scene and caption still run on it."""
-    from rescu.extension import stage2
+    import importlib
+
     from rescu.config import load_config
 
     cfg = load_config()
     w = _through_stage1(tmp_path, cfg)
-    monkeypatch.setattr(stage2, fn, _boom)
+    monkeypatch.setattr(importlib.import_module(f"rescu.extension.{module}"), fn, _boom)
     f = _stage2(w, cfg)
     assert f == {"stage": step, "type": "RuntimeError", "message": "injected failure"}
     s1, ii = read_json(w("s.json")), read_json(w("ii.json"))
@@ -245,25 +247,26 @@ def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, fn):
 
 
 def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
-    from rescu.extension import stage2
+    from rescu.extension import features
     from rescu.config import load_config
 
     cfg = load_config()
     w = _through_stage1(tmp_path, cfg)
     s1 = read_json(w("s.json"))
-    monkeypatch.setattr(stage2, "compute_stage2_features", _boom)
+    monkeypatch.setattr(features, "compute_stage2_features", _boom)
     _stage2(w, cfg)
     outs = {"vh": w("vh.json")}
     f = pipeline.stage2_predict_variants(w("s2.h5"), w("head.pt"), w("s.json"), w("m.json"),
-                                         outs, cfg["stage2"], {"vh": {"visible_half": True}})
+                                         outs, cfg["stage2"],
+                                         {"vh": {"predict": {"visible_half": True}}})
     assert f["stage"] == "stage2-features"
     d = read_json(outs["vh"])
     assert d["method"] == "rescu-ii[vh]" and d["patterns"] == s1["patterns"]
     assert d["failure"] == {**f, "degraded_to": "rescu-i"}
     outs = {"eb": w("eb.json"), "is": w("is.json")}
     f = pipeline.stage2_ablation(w("p.png"), w("m.json"), w("s.json"), outs, cfg["stage2"],
-                                 {"eb": {"proposal_method": "edgeboxes"},
-                                  "is": {"proposal_method": "instance_scale"}})
+                                 {"eb": {"proposals": {"method": "edgeboxes"}},
+                                  "is": {"proposals": {"method": "instance_scale"}}})
     assert f["stage"] == "stage2-ablation"
     for name, path in outs.items():
         d = read_json(path)
@@ -276,12 +279,12 @@ def test_scene_failure_keeps_its_input_and_the_first_record(tmp_path, monkeypatc
     input's patterns; the record names scene, keeps degraded_to rescu-i and the stage-II
     record under "upstream"; caption runs."""
     from rescu.scene import analyse as SC
-    from rescu.extension import stage2
+    from rescu.extension import predict
     from rescu.config import load_config
 
     cfg = load_config()
     w = _through_stage1(tmp_path, cfg)
-    monkeypatch.setattr(stage2, "predict_stage2", _boom)
+    monkeypatch.setattr(predict, "predict_stage2", _boom)
     f2 = _stage2(w, cfg)
     monkeypatch.setattr(SC, "analyse_scene", _boom)
     f = pipeline.scene(w("p.png"), w("m.json"), w("ii.json"), w("sc.json"), w("rect"),

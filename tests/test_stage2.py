@@ -1,4 +1,5 @@
-"""Tests of rescu.extension.stage2 (RESCU-II) on tiny synthetic images."""
+"""Tests of RESCU-II (rescu.extension: params, augment, features, examples, train,
+predict) on tiny synthetic images."""
 
 import numpy as np
 import pytest
@@ -7,14 +8,22 @@ torch = pytest.importorskip("torch")
 
 from rescu import io  # noqa: E402
 from rescu.evaluation.metrics import iod_matrix  # noqa: E402
-from rescu.extension.stage2 import (Stage2Params, cluster_centres,  # noqa: E402
-                                    compute_stage2_features, dbscan_labels, finetune_record,
-                                    impute_half, visible_half_features, load_checkpoint,
-                                    occlude_instances, predict_stage2, save_checkpoint,
-                                    score_features, select_examples, train_heads)
+from rescu.extension.augment import occlude_instances  # noqa: E402
+from rescu.extension.examples import (cluster_centres, dbscan_labels,  # noqa: E402
+                                      select_examples)
+from rescu.extension.features import compute_stage2_features, finetune_record  # noqa: E402
+from rescu.extension.params import Stage2Params, merged  # noqa: E402
+from rescu.extension.predict import (impute_half, predict_stage2,  # noqa: E402
+                                     score_features, visible_half_features)
+from rescu.extension.train import load_checkpoint, save_checkpoint, train_heads  # noqa: E402
 from rescu.types import ImageResult, Instance, Pattern  # noqa: E402
 
-FAST = dict(max_epochs=20, n_augment=2, n_aug_proposals=200)
+FAST = {"head": {"max_epochs": 20}, "examples": {"n_augment": 2, "n_aug_proposals": 200}}
+
+
+def fast(**sections) -> Stage2Params:
+    """FAST with the nested ``sections`` merged in."""
+    return Stage2Params.from_dict(merged(FAST, sections))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -48,7 +57,7 @@ def result(img, rps, name="images/t.png"):
 def six():
     img, boxes = squares()
     s1 = result(img, [boxes[:4]])
-    p = Stage2Params(**FAST)
+    p = fast()
     feats = compute_stage2_features(img, 1.0, s1, p)
     ckpt, info = train_heads(feats, s1, p)
     out = predict_stage2(feats, ckpt, s1, p)
@@ -85,7 +94,7 @@ def test_feature_dict_shapes(six):
 
 def test_positive_selection_under_ten_percent(six):
     feats = six[4]
-    sel = select_examples(feats, Stage2Params(top_p=40))
+    sel = select_examples(feats, Stage2Params.from_dict({"examples": {"top_p": 40}}))
     P = len(sel["proposal_label"])
     n_pos = int((sel["proposal_label"] > 0).sum())
     assert 0 < n_pos < 0.1 * P
@@ -97,7 +106,7 @@ def test_nothing_added_on_plain_background():
     img2 = np.full((160, 520, 3), 128, np.uint8)     # the 4 squares, then plain grey
     img2[:, : img.shape[1]] = img
     s1 = result(img2, [boxes])
-    p = Stage2Params(**FAST)
+    p = fast()
     feats = compute_stage2_features(img2, 1.0, s1, p)
     ckpt, _ = train_heads(feats, s1, p)
     out = predict_stage2(feats, ckpt, s1, p)
@@ -133,14 +142,14 @@ def test_occluders_cover_a_band_of_chosen_boxes_only():
     again = occlude_instances(img, np.array(boxes), 1.0, (0.3, 0.3), np.random.default_rng(0))
     assert np.array_equal(out, again)
     with pytest.raises(ValueError, match="occlude_prob"):
-        Stage2Params(occlude_prob=1.5)
+        Stage2Params.from_dict({"examples": {"occlude_prob": 1.5}})
     with pytest.raises(ValueError, match="occlude_fraction"):
-        Stage2Params.from_dict({"occlude_fraction": [0.5, 0.2]})
+        Stage2Params.from_dict({"examples": {"occlude_fraction": [0.5, 0.2]}})
 
 
 def test_occlusion_changes_only_the_augmented_copies(six):
     img, boxes, s1, p, feats, *_ = six
-    occ = compute_stage2_features(img, 1.0, s1, Stage2Params(**FAST, occlude_prob=1.0))
+    occ = compute_stage2_features(img, 1.0, s1, fast(examples={"occlude_prob": 1.0}))
     assert np.array_equal(occ["instance_features"], feats["instance_features"])
     assert np.array_equal(occ["proposal_features"], feats["proposal_features"])
     d = np.linalg.norm(occ["aug_instance_features"] - feats["aug_instance_features"], axis=2)
@@ -162,7 +171,7 @@ def test_no_rp_and_small_rp_unchanged(tmp_path):
     img, boxes = squares(n=3)
     for s1, m in ((result(img, []), 2), (result(img, [boxes[:1]]), 2),
                   (result(img, [boxes[:2]]), 3)):
-        p = Stage2Params(**FAST, min_instances=m)
+        p = Stage2Params.from_dict({**FAST, "min_instances": m})
         feats = compute_stage2_features(img, 1.0, s1, p)
         assert len(feats["proposals"]) == 0 and len(feats["rp_index"]) == 0
         ckpt, info = train_heads(feats, s1, p)
@@ -187,7 +196,7 @@ def test_rp_without_proposals_gets_no_new_instance(tmp_path):
     for x, y, w, h in boxes:
         img[int(y):int(y + h), int(x):int(x + w)] = tex
     s1 = result(img, [boxes])
-    p = Stage2Params(max_epochs=3, n_augment=1)
+    p = Stage2Params.from_dict({"head": {"max_epochs": 3}, "examples": {"n_augment": 1}})
     feats = compute_stage2_features(img, 1.0, s1, p)
     D = feats["instance_features"].shape[1]
     assert len(feats["rp_index"]) == 1 and feats["proposal_features"].shape == (0, D)
@@ -196,7 +205,8 @@ def test_rp_without_proposals_gets_no_new_instance(tmp_path):
     assert score_features(feats["proposal_features"], ckpt).shape == (0, 2)
     io.write_h5(tmp_path / "e.h5", feats)                # as the pipeline reads it back
     back, _ = io.read_h5(tmp_path / "e.h5")
-    for q in (p, Stage2Params(max_epochs=3, n_augment=1, visible_half=True)):
+    for q in (p, Stage2Params.from_dict({"head": {"max_epochs": 3}, "examples": {"n_augment": 1},
+                                         "predict": {"visible_half": True}})):
         out = predict_stage2(back, ckpt, s1, q)
         assert out.extra["stage2"]["status"] == "no_proposals"
         assert out.extra["stage2"]["added"] == 0 and out.patterns[0].extra["stage2_added"] == 0
@@ -208,7 +218,7 @@ def test_two_instance_rp_extended_along_its_row():
     # min_instances 2: two found squares of a row of three give the third (lattice step)
     img, boxes = squares(n=3)
     s1 = result(img, [boxes[:2]])
-    p = Stage2Params(**FAST)
+    p = fast()
     feats = compute_stage2_features(img, 1.0, s1, p)
     assert feats["proposal_lattice"].shape == (len(feats["proposals"]),)
     assert feats["proposal_lattice"].sum() > 0
@@ -223,7 +233,7 @@ def test_lattice_only_needs_lattice_windows(six):
     # with lattice_only, no lattice window means nothing new (off-lattice proposals only
     # train the head)
     img, boxes, s1, *_ = six
-    p = Stage2Params(**FAST, lattice_windows=False)
+    p = fast(proposals={"lattice_windows": False})
     feats = compute_stage2_features(img, 1.0, s1, p)
     assert feats["proposal_lattice"].sum() == 0
     ckpt, _ = train_heads(feats, s1, p)
@@ -232,27 +242,32 @@ def test_lattice_only_needs_lattice_windows(six):
 
 
 def test_spacing_suppression():
-    from rescu.extension.stage2 import _suppress
+    from rescu.extension.boxes import suppress
 
     own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
     cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)
     order = np.arange(3)
     # boxes 0 and 1 overlap little (IoU 0.19, cover 0.32): both survive plain NMS
-    assert _suppress(cand, order, own, own[:0], 0.3).tolist() == [0, 1, 2]
+    assert suppress(cand, order, own, own[:0], 0.3).tolist() == [0, 1, 2]
     # lattice spacing 40, fraction 0.6: centres closer than 24 px clash (1 with 0 at
     # 6.3 px, 2 with the stage-I instance at x = 45 at 20 px)
-    assert _suppress(cand, order, own, own[:0], 0.3, 24.0).tolist() == [0]
+    assert suppress(cand, order, own, own[:0], 0.3, 24.0).tolist() == [0]
 
 
 def test_cluster_centres_and_params():
     x = np.array([[1, 0], [0.99, 0.1], [0, 1], [0.1, 0.99], [-1, 0]], np.float32)
     c, lab = cluster_centres(x, eps=0.2, min_samples=2)
     assert len(c) == 3 and lab[0] == lab[1] and lab[2] == lab[3] and lab[4] not in lab[:4]
+    with pytest.raises(ValueError, match="unknown stage2.head parameter"):
+        Stage2Params.from_dict({"head": {"lr": 1e-3, "learning_rate": 1}})
     with pytest.raises(ValueError, match="unknown stage2 parameter"):
-        Stage2Params.from_dict({"lr": 1e-3, "learning_rate": 1})
-    assert Stage2Params.from_dict({"input_scales": [1, 1.5]}).input_scales == (1.0, 1.5)
+        Stage2Params.from_dict({"lr": 1e-3})          # a section key at the top level
+    with pytest.raises(ValueError, match="stage2.head must be a mapping"):
+        Stage2Params.from_dict({"head": 3})
+    assert Stage2Params.from_dict({"backbone": {"input_scales": [1, 1.5]}}
+                                  ).backbone.input_scales == (1.0, 1.5)
     with pytest.raises(ValueError, match="hidden_sizes"):
-        Stage2Params(hidden_sizes=(8,))
+        Stage2Params.from_dict({"head": {"hidden_sizes": [8]}})
 
 
 def test_dbscan_labels_are_scikit_learns():
@@ -284,14 +299,15 @@ def test_bad_inputs():
 def test_cuda_device_refused_without_cuda():
     img, boxes = squares(n=3)
     with pytest.raises(RuntimeError, match="cuda"):
-        compute_stage2_features(img, 1.0, result(img, [boxes]), Stage2Params(device="cuda"))
+        compute_stage2_features(img, 1.0, result(img, [boxes]),
+                                Stage2Params.from_dict({"backbone": {"device": "cuda"}}))
 
 
 def test_finetune_pools_from_the_finetuned_backbone(six):
     """finetune=True (run on the CPU here, tiny image): same boxes, features from a
     backbone trained end to end, and the rest of stage II runs on them unchanged."""
     img, boxes, s1, p, feats, _, _, _ = six
-    pf = Stage2Params(**{**FAST, "finetune": True, "max_epochs": 2})
+    pf = fast(backbone={"finetune": True}, head={"max_epochs": 2})
     ft = compute_stage2_features(img, 1.0, s1, pf)
     info = finetune_record(ft)
     assert info is not None and info["status"] == "finetuned" and 1 <= info["epochs"] <= 2
@@ -328,7 +344,7 @@ def test_impute_half_keeps_the_named_half():
     with pytest.raises(ValueError, match="pool_size"):
         impute_half(x, fill, 0, 3)
     with pytest.raises(ValueError, match="pool_size"):
-        Stage2Params(visible_half=True, pool_size=3)
+        Stage2Params.from_dict({"predict": {"visible_half": True}, "backbone": {"pool_size": 3}})
 
 
 def _template_head(t: np.ndarray, gain: float, bias: float) -> dict:
@@ -375,7 +391,7 @@ def test_visible_half_scores_half_hidden_lattice_windows_only():
              "instance_features": inst_f, "instance_rp": np.zeros(4, np.int64),
              "instance_boxes": inst_boxes}
     ckpt = _template_head(t, gain=20.0, bias=12.0)
-    p = Stage2Params(visible_half=True)
+    p = Stage2Params.from_dict({"predict": {"visible_half": True}})
     own = score_features(feats["proposal_features"], ckpt)[:, 1]
     assert 0.2 <= own[0] < 0.95 and own[1] < 0.2 and own[3] >= 0.95   # the setting holds
     pf, replaced = visible_half_features(feats, ckpt, p)
@@ -387,15 +403,15 @@ def test_visible_half_scores_half_hidden_lattice_windows_only():
     assert np.allclose(g[:, :, 0] / np.linalg.norm(g[:, :, 0]),
                        h[:, :, 0] / np.linalg.norm(h[:, :, 0]), atol=1e-5)
     # margin 0: the gap still lies inside the span; a stricter threshold replaces nothing
-    assert visible_half_features(feats, ckpt, Stage2Params(visible_half=True,
-                                                            visible_half_margin=0.0))[1][0]
-    assert not visible_half_features(feats, ckpt, Stage2Params(
-        visible_half=True, visible_half_threshold=1.0))[1].any()
+    assert visible_half_features(feats, ckpt, Stage2Params.from_dict(
+        {"predict": {"visible_half": True, "visible_half_margin": 0.0}}))[1][0]
+    assert not visible_half_features(feats, ckpt, Stage2Params.from_dict(
+        {"predict": {"visible_half": True, "visible_half_threshold": 1.0}}))[1].any()
 
 
 def test_visible_half_in_prediction(six):
     img, boxes, s1, p, feats, ckpt, info, out = six
-    pv = Stage2Params(**FAST, visible_half=True)
+    pv = fast(predict={"visible_half": True})
     out_v = predict_stage2(feats, ckpt, s1, pv)
     n = out_v.extra["stage2"]["added_by_visible_half"]
     assert 0 <= n <= out_v.extra["stage2"]["added"]

@@ -86,7 +86,9 @@ def test_two_folders_with_one_file_name_are_refused_before_work(tmp_path):
     ("stage1.max_pattern=3", ["did you mean 'max_patterns'"]),
     ("grasp.max_patterns=0", ["--set", "grasp.max_patterns"]),
     ("scene.vp.min_lines=1", ["--set", "scene.vp.min_lines"]),
-    ("stage2.backbone=densenet121", ["stage2.backbone", "weights not found"]),
+    ("stage2.backbone.name=densenet121", ["stage2.backbone.name", "weights not found"]),
+    ("stage2.backbone.nam=x", ["unknown key 'stage2.backbone.nam'", "did you mean 'name'"]),
+    ("stage2.visible_half=true", ["unknown key 'stage2.visible_half'"]),
     ("stage1.max_patterns=[1", ["--set", "stage1.max_patterns=[1", "not valid YAML"]),
     ("stage1", ["--set expects KEY=VALUE"]),
 ])
@@ -110,7 +112,7 @@ def test_bad_key_in_config_file_names_the_file(photos, tmp_path):
 
 def test_densenet_weights_not_needed_for_stage_one(photos, tmp_path):
     proc = rescu("discover", str(photos / "x.png"), "--out", str(tmp_path / "o"), "--quiet",
-                 "--method", "rescu-i", "--set", "stage2.backbone=densenet121")
+                 "--method", "rescu-i", "--set", "stage2.backbone.name=densenet121")
     assert proc.returncode == 0, proc.stderr
 
 
@@ -120,7 +122,8 @@ def test_validate_config_checks_every_section():
 
     cfg = load_config()
     assert validate_config(cfg) is cfg
-    bad = [({"stage2_ablation": {"predict_variants": {"v": {"lr": 0.1}}}}, "not prediction keys"),
+    bad = [({"stage2_ablation": {"predict_variants": {"v": {"head": {"lr": 0.1}}}}},
+            "not the predict section"),
            ({"ablation": {"variants": {"v": ["P_q"]}}}, "ablation.variants.v.0"),
            ({"caption": {"captioner": "gpt"}}, "caption.captioner"),
            ({"features": {"n_features": 0}}, "features.n_features"),

@@ -31,7 +31,7 @@ def tiny_config(tmp: Path, **overrides) -> Path:
         "datasets": datasets,
         "synthetic": {"n_images": 3, "sizes": [[480, 360]]},
         "ablation": {"datasets": ["synthetic"]},
-        "stage2": {"max_epochs": 2, "max_proposals": 200},
+        "stage2": {"head": {"max_epochs": 2}, "proposals": {"max_proposals": 200}},
         "report": {"samples_per_dataset": 2},
     }
     for key, value in overrides.items():
@@ -167,7 +167,7 @@ def test_code_change_reruns_its_steps_only(finished_run):
 
 def test_stage2_gate_change_reruns_prediction_only(finished_run):
     work, _ = finished_run
-    changed = tiny_config(work, **{"stage2.lattice_score_threshold": 0.9})
+    changed = tiny_config(work, **{"stage2.predict.lattice_score_threshold": 0.9})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs.get("stage2_predict") == 3, jobs
     for upstream in ("features", "rescu_i", "stage2_features", "stage2_train"):
@@ -306,8 +306,8 @@ def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, ca
     res = work / "results"
     pv = yaml.safe_load((REPO / "config" / "config.yaml").read_text())[
         "stage2_ablation"]["predict_variants"]
-    assert pv["visible-half"] == {"visible_half": True}
-    sets = [f"{k}={str(v).lower()}" for k, v in pv["visible-half"].items()]
+    assert pv["visible-half"] == {"predict": {"visible_half": True}}
+    sets = [f"predict.{k}={str(v).lower()}" for k, v in pv["visible-half"]["predict"].items()]
     out = work / "sv-visible-half"
     argv = [str(res), "--out", str(out), "--name", "vh"]
     for s in sets:
@@ -382,6 +382,8 @@ def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_r
 
 
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
-    cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {"x": {"top_p": 5}}})
-    with pytest.raises(AssertionError, match=r"predict_variants\.x: \['top_p'\]"):
+    cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {
+        "x": {"examples": {"top_p": 5}}}})
+    with pytest.raises(AssertionError,
+                       match=r"predict_variants\.x: \['examples'\] are not the predict section"):
         snakemake(tmp_path, cfg, "-n")

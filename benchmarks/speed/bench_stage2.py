@@ -38,10 +38,13 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     from rescu.extension import backbone as B
     from rescu.extension import proposals as PR
-    from rescu.extension import stage2 as S2
+    from rescu.extension.features import compute_stage2_features, get_backbone
+    from rescu.extension.params import Stage2Params
+    from rescu.extension.predict import predict_stage2
+    from rescu.extension.train import train_heads
     from rescu.types import ImageResult, Instance, Pattern
 
-    p = S2.Stage2Params.from_dict(json.loads(a.params))
+    p = Stage2Params.from_dict(json.loads(a.params))
     rng = np.random.default_rng(0)
     if a.image:
         from rescu.io import load_image
@@ -64,23 +67,25 @@ def main() -> None:
     s1 = ImageResult("bench.png", w, h, "rescu-i",
                      [Pattern(0, 1.0, [Instance(boxes[i]) for i in keep])])
     print(f"image {w}x{h} = {w * h / 1e6:.2f} MP, threads {a.threads}, "
-          f"{len(keep)} stage-I instances, backbone {p.backbone}")
+          f"{len(keep)} stage-I instances, backbone {p.backbone.name}")
     r0 = rss_mb()
     t = time.perf_counter()
-    bb = S2.get_backbone(p)
+    bb = get_backbone(p)
     print(f"load backbone        {time.perf_counter() - t:7.2f} s")
     inst = np.array([boxes[i] for i in keep], np.float32) * sf
     t = time.perf_counter()
-    props, _ = PR.propose(rgb, [inst], p.proposal_params())
+    props, _ = PR.propose(rgb, [inst], p.proposals.proposal_params())
     t_prop = time.perf_counter() - t
     print(f"proposals            {t_prop:7.2f} s   ({len(props)} boxes)")
     short = float(np.median(np.minimum(inst[:, 2], inst[:, 3])))
-    base = p.instance_target_px / short if p.instance_target_px > 0 else min(1, p.max_side / max(w, h))
-    base = min(base, p.max_backbone_side / (max(w, h) * max(p.input_scales)))
+    pb = p.backbone
+    base = (pb.instance_target_px / short if pb.instance_target_px > 0
+            else min(1, pb.input_side / max(w, h)))
+    base = min(base, pb.max_backbone_side / (max(w, h) * max(pb.input_scales)))
     import cv2
 
     t_fwd = 0.0
-    for s in p.input_scales:
+    for s in p.backbone.input_scales:
         img = cv2.resize(rgb, (round(w * base * s), round(h * base * s)))
         t = time.perf_counter()
         fmap = bb.feature_map(img)
@@ -88,21 +93,21 @@ def main() -> None:
     print(f"forward pass(es)     {t_fwd:7.2f} s   (input {img.shape[1]}x{img.shape[0]}, "
           f"map {tuple(fmap.shape)})")
     t = time.perf_counter()
-    B.pool_boxes(fmap, props * base, (img.shape[1], img.shape[0]), p.pool_size)
+    B.pool_boxes(fmap, props * base, (img.shape[1], img.shape[0]), p.backbone.pool_size)
     print(f"roi pooling          {time.perf_counter() - t:7.2f} s   ({len(props)} boxes, one map)")
     t = time.perf_counter()
-    feats = S2.compute_stage2_features(rgb, sf, s1, p)
+    feats = compute_stage2_features(rgb, sf, s1, p)
     t_feat = time.perf_counter() - t
-    print(f"features (all)       {t_feat:7.2f} s   (proposals + {1 + p.n_augment} x "
-          f"{len(p.input_scales)} backbone passes + pooling); backbone+pool ~ "
+    print(f"features (all)       {t_feat:7.2f} s   (proposals + {1 + p.examples.n_augment} x "
+          f"{len(p.backbone.input_scales)} backbone passes + pooling); backbone+pool ~ "
           f"{t_feat - t_prop:.2f} s = {(t_feat - t_prop) / max(t_fwd, 1e-9):.1f} x forward")
     t = time.perf_counter()
-    ckpt, info = S2.train_heads(feats, s1, p)
+    ckpt, info = train_heads(feats, s1, p)
     t_train = time.perf_counter() - t
     print(f"training             {t_train:7.2f} s   ({info.get('n_examples')} examples, "
           f"{info.get('epochs')} epochs)")
     t = time.perf_counter()
-    out = S2.predict_stage2(feats, ckpt, s1, p)
+    out = predict_stage2(feats, ckpt, s1, p)
     t_pred = time.perf_counter() - t
     print(f"prediction           {t_pred:7.2f} s   ({out.extra['stage2']['added']} added)")
     print(f"stage II total       {t_feat + t_train + t_pred:7.2f} s")

@@ -3,7 +3,7 @@ labelled by the ground truth.
 
 For every image of a finished run with two or more stage-II RPs, computes
 :func:`rescu.merge.pair_evidence` (the test ``rescu.stage2`` runs before merging, with
-the ``merge_*`` keys of the config) on the stored stage-I instance features
+the config's ``stage2.predict.merge`` section) on the stored stage-I instance features
 (``<results>/<dataset>/stage2/<image>.feats.h5``) and boxes (``rescu-i/<image>.json``),
 and labels the pair *same* when both RPs are assigned to the same ground-truth RP,
 *different* when to two, *unlabelled* when either is assigned to none
@@ -43,14 +43,14 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
-    from rescu.extension.stage2 import Stage2Params
+    from rescu.extension.params import Stage2Params
 
     ap = run_parser(__doc__)
     ap.add_argument("--iod", type=float, default=0.5,
                     help="IOD threshold h of the RP-level matching")
     a = ap.parse_args(argv)
     cfg, data = run_dataset(ap, a)
-    params = Stage2Params.from_dict(cfg["stage2"]).merge_params()
+    params = Stage2Params.from_dict(cfg["stage2"]).predict.merge.merge_params()
     ann = data / "annotations.json"
     s2 = a.results / a.dataset / "stage2"
     for path, what in ((ann, "ground truth"), (s2, "stage-II features")):

@@ -9,11 +9,11 @@ tables' h). Each GT instance not found gets one cause:
     no instance of its GT RP is found at all: stage II only extends RPs stage I found.
 ``no lattice window``
     no lattice window (a window where an RP's instance lattice predicts an instance,
-    ``stage2.lattice_windows``) covers it with IOD >= ``--iod``; with
-    ``stage2.lattice_only`` nothing else can add an instance.
+    ``stage2.proposals.lattice_windows``) covers it with IOD >= ``--iod``; with
+    ``stage2.predict.lattice_only`` nothing else can add an instance.
 ``window p < 0.8`` / ``window p 0.8 - gate``
     the best such window's class probability (any RP's class, the per-image head) is
-    under ``stage2.lattice_score_threshold``.
+    under ``stage2.predict.lattice_score_threshold``.
 ``window p >= gate``
     a window scores above the gate and was dropped by another one (distance to the RP's
     centre, spacing to the other instances, size, non-maximum suppression).
@@ -64,13 +64,15 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
     import pandas as pd
 
     from rescu import io
-    from rescu.extension import stage2 as S2
+    from rescu.extension.params import Stage2Params
+    from rescu.extension.predict import score_proposals
+    from rescu.extension.train import load_checkpoint
     from rescu.evaluation.core import load_predictions, load_truth
     from rescu.io import load_coco_rps
     from rescu.evaluation.metrics import iod_matrix
 
-    params = S2.Stage2Params.from_dict(stage2)
-    gate = params.lattice_score_threshold
+    params = Stage2Params.from_dict(stage2)
+    gate = params.predict.lattice_score_threshold
     gt = load_coco_rps(data / "annotations.json")
     truth = load_truth(data)
     preds = load_predictions(results / dataset / "rescu-ii", gt.keys())
@@ -86,11 +88,11 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
         det = np.array([i.bbox for p in res.patterns for i in p.instances],
                        float).reshape(-1, 4)
         feats, _ = io.read_h5(h5)
-        ckpt = S2.load_checkpoint(pt)
+        ckpt = load_checkpoint(pt)
         boxes = np.asarray(feats.get("proposals", np.zeros((0, 4))), float).reshape(-1, 4)
         lattice = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes)))
                              ).reshape(-1) > 0
-        prob = (S2.score_proposals(feats, ckpt["head"])
+        prob = (score_proposals(feats, ckpt["head"])
                 if len(boxes) and "head" in ckpt else np.zeros((len(boxes), 1)))
         for g, rp in enumerate(gts):
             G = np.asarray(rp.boxes, float).reshape(-1, 4)

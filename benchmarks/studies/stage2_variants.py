@@ -5,8 +5,9 @@ Re-runs the three stage-II steps of the pipeline (:func:`rescu.pipeline.stage2_f
 ``stage2_train``, ``stage2_predict``; features and head in a temporary folder) on every
 image of one dataset of a finished run, from its prepared images
 (``<results>/<dataset>/prepared/``) and stage-I results (``rescu-i/``), with the config's
-``stage2`` keys overridden by ``--set KEY=VALUE`` (values read as YAML; each override is
-checked by :class:`rescu.stage2.Stage2Params`). The results go to
+``stage2`` keys overridden by ``--set SECTION.KEY=VALUE`` (a key of a ``stage2`` section,
+``predict.merge.enabled`` one level deeper; values read as YAML; each override is checked
+by :class:`rescu.extension.params.Stage2Params`). The results go to
 ``<out>/<image>.json`` (default ``<results>/benchmarks/stage2-variants/<name>/``, beside
 a ``params.json`` of the settings; a folder made with other settings is refused, an
 image already there is not recomputed). Then prints the mean per-image instance and RP
@@ -16,8 +17,8 @@ synthetic data also per subset and hard / not hard), and the paired Wilcoxon p-v
 the variant against the run's RESCU-II (:func:`rescu.evaluation.significance_table`).
 Asserts nothing.
 
-When every ``--set`` key acts only in prediction (:data:`rescu.stage2.PREDICT_ONLY_KEYS`:
-the gates, ``visible_half*``, ``merge*``), the run's own features and head
+When every ``--set`` key is in the ``predict`` section (the keys that act only in
+prediction: the gates, ``visible_half*``, ``merge``), the run's own features and head
 (``<results>/<dataset>/stage2/``) are reused and only prediction is re-run (seconds per
 image); otherwise all three steps are.
 
@@ -26,11 +27,11 @@ What comes after stage II (scene, completion) is not re-run: compare with the ru
 
 Usage (after a run, from the repository root)::
 
-    python benchmarks/studies/stage2_variants.py results --set occlude_prob=0.5
-    python benchmarks/studies/stage2_variants.py results/holdout-11 --set occlude_prob=0.5
-    python benchmarks/studies/stage2_variants.py results --set visible_half=true   # prediction only
-    python benchmarks/studies/stage2_variants.py results --name ft --set finetune=true \\
-        --set device=cuda --workers 6          # end-to-end fine-tuning, on a GPU
+    python benchmarks/studies/stage2_variants.py results --set examples.occlude_prob=0.5
+    python benchmarks/studies/stage2_variants.py results/holdout-11 --set examples.occlude_prob=0.5
+    python benchmarks/studies/stage2_variants.py results --set predict.visible_half=true
+    python benchmarks/studies/stage2_variants.py results --name ft --set backbone.finetune=true \\
+        --set backbone.device=cuda --workers 6   # end-to-end fine-tuning, on a GPU
 """
 
 from __future__ import annotations
@@ -48,6 +49,20 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
                 str(Path(__file__).resolve().parents[1])]
 
 from _cli import parse_sets  # noqa: E402  (re-exported: the tests call it from here)
+
+
+def nested(over: dict[str, Any]) -> dict[str, Any]:
+    """``{"a.b": v}`` -> ``{"a": {"b": v}}`` (the ``--set`` keys as a nested override)."""
+    out: dict[str, Any] = {}
+    for key, value in over.items():
+        node = out
+        *path, last = key.split(".")
+        for k in path:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"--set {key}: {k!r} is set to a value and is a section")
+        node[last] = value
+    return out
 
 
 def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
@@ -92,7 +107,7 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
                 or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
-            from rescu.extension.stage2 import finetune_record
+            from rescu.extension.features import finetune_record
 
             feats, _ = io.read_h5(h5)
             epochs = (finetune_record(feats) or {}).get("epochs")
@@ -104,11 +119,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
                                        summary_markdown, summary_table)
-    from rescu.extension.stage2 import Stage2Params, is_predict_only
+    from rescu.extension.params import PREDICT_SECTION, Stage2Params, merged
 
     ap = run_parser(__doc__)
-    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a stage2 key (repeatable; value read as YAML)")
+    ap.add_argument("--set", dest="sets", action="append", default=[],
+                    metavar="SECTION.KEY=VALUE",
+                    help="override a key of a stage2 section, e.g. examples.occlude_prob=0.5 "
+                         "(repeatable; value read as YAML)")
     ap.add_argument("--name", default=None, help="variant name (default: from the --set items)")
     ap.add_argument("--out", type=Path, default=None, help="folder of the variant's JSONs")
     ap.add_argument("--workers", type=int, default=1, help="images computed in parallel")
@@ -122,8 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg, data = run_dataset(ap, a)
     try:
         over = parse_sets(a.sets)
-        params = {**cfg["stage2"], **over}
-        Stage2Params.from_dict(params)
+        params = merged(cfg["stage2"], nested(over))
+        p = Stage2Params.from_dict(params)
     except ValueError as e:
         ap.error(str(e))
     name = a.name or ("_".join(f"{k}={v}" for k, v in over.items()) or "config")
@@ -138,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     stems = sorted(p.stem for p in (run / "rescu-i").glob("*.json")
                    if (run / "prepared" / f"{p.stem}.png").exists())
     # prediction-only overrides: the run's own features and head, where it has them
-    predict_only = bool(over) and all(is_predict_only(k) for k in over)
+    predict_only = bool(over) and all(k.split(".")[0] == PREDICT_SECTION for k in over)
 
     def reuse(s: str) -> tuple[str, str] | None:
         h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.pt"
@@ -167,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         ep = [e for _, _, _, e in done if e is not None]
         if ep:
             print(f"fine-tuned backbone on {len(ep)} images: epochs median {np.median(ep):.0f}, "
-                  f"{sum(e >= int(params['max_epochs']) for e in ep)} stopped at max_epochs "
-                  f"({params['max_epochs']})")
+                  f"{sum(e >= p.head.max_epochs for e in ep)} stopped at max_epochs "
+                  f"({p.head.max_epochs})")
     images = images_with(data, out, run / "rescu-ii")
     if not images:
         print("no image with results of all three methods")

@@ -38,7 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
     from rescu import io, pipeline
-    from rescu.extension import stage2 as S2
+    from rescu.extension.params import Stage2Params
+    from rescu.extension.predict import predict_stage2
+    from rescu.extension.train import load_checkpoint
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
     from rescu.evaluation.counting import count_frame
@@ -69,16 +71,16 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             preds = {"RESCU-I": root / "rescu-i"}
             for r, t in itertools.product(a.ratios, a.thresholds):
-                s2 = dict(cfg["stage2"], lattice_distance_ratio=r, lattice_score_threshold=t)
-                P = S2.Stage2Params.from_dict(s2)
+                P = Stage2Params.variant(cfg["stage2"], {"predict": {
+                    "lattice_distance_ratio": r, "lattice_score_threshold": t}})
                 out = Path(tmp) / f"{r}_{t}"
                 (out / "ii").mkdir(parents=True)
                 (out / "scene").mkdir()
                 for s in stems:
                     feats, _ = io.read_h5(root / "stage2" / f"{s}.feats.h5")
-                    ckpt = S2.load_checkpoint(root / "stage2" / f"{s}.head.pt")
-                    res = S2.predict_stage2(feats, ckpt["head"],
-                                            io.read_result(root / "rescu-i" / f"{s}.json"), P)
+                    ckpt = load_checkpoint(root / "stage2" / f"{s}.head.pt")
+                    res = predict_stage2(feats, ckpt["head"],
+                                         io.read_result(root / "rescu-i" / f"{s}.json"), P)
                     res.method = "rescu-ii"
                     io.write_json(out / "ii" / f"{s}.json", res)
                     if a.scene:

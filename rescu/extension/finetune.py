@@ -2,7 +2,7 @@
 
 The paper trains "the backbone + 3 dense layers" per image. The default pipeline keeps
 the backbone frozen and trains only the dense head on RoI-pooled features of one shared
-feature map per image (far cheaper on a CPU; see :mod:`rescu.extension.stage2`). With
+feature map per image (far cheaper on a CPU; see :mod:`rescu.extension.features`). With
 ``finetune: true`` the backbone is trained too, on the same labelled boxes (stage-I
 instances, their deformed copies and the positive proposals of each RP; hard negatives
 and far proposals as background):
@@ -19,7 +19,7 @@ and far proposals as background):
   meaningless), every convolution is trained.
 
 The fine-tuned backbone then re-computes the cached features of every box, and the head
-of :func:`rescu.extension.stage2.train_heads` is trained on those as usual. Meant for a CUDA GPU
+of :func:`rescu.extension.train.train_heads` is trained on those as usual. Meant for a CUDA GPU
 (``stage2.device: cuda``); it runs on a CPU as well, slowly (one full backbone pass per
 step).
 """
@@ -73,7 +73,7 @@ def finetune_backbone(backbone: FrozenBackbone, rgb: np.ndarray, boxes: np.ndarr
         features), > 0.
     pool_size, hidden_sizes, lr, beta1, batch_size, max_epochs, val_split, patience,
     min_delta, seed
-        As in :class:`rescu.extension.stage2.Stage2Params`.
+        As in :class:`rescu.extension.params.Stage2Params`.
 
     Returns
     -------

