@@ -51,8 +51,11 @@ from typing import Any
 import numpy as np
 
 from ..evaluation.metrics import cover_matrix, iou_matrix
-from ..params import checked_mapping
+from ..params import checked_mapping, config_defaults
 from ..types import ImageResult, Instance, Pattern
+
+
+_M = config_defaults("stage2", "predict", "merge")
 
 
 @dataclass(frozen=True)
@@ -78,12 +81,12 @@ class MergeParams:
         (median shorter box side) of their common total-least-squares line; 0 disables.
     """
 
-    similarity_ratio: float = 0.87
-    min_similarity: float = 0.5
-    size_tolerance: float = 3.5
-    duplicate_iou: float = 0.5
-    conflict_cover: float = 0.3
-    max_line_residual: float = 0.5
+    similarity_ratio: float = _M["similarity_ratio"]
+    min_similarity: float = _M["min_similarity"]
+    size_tolerance: float = _M["size_tolerance"]
+    duplicate_iou: float = _M["duplicate_iou"]
+    conflict_cover: float = _M["conflict_cover"]
+    max_line_residual: float = _M["max_line_residual"]
 
     def __post_init__(self) -> None:
         if not self.similarity_ratio > 0:
