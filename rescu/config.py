@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .io import InputError
+from .params import deep_merge  # noqa: F401  (part of this module's API)
 
 DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
 DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
@@ -40,17 +41,6 @@ def _read_yaml(path: Any) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise InputError(f"{path}: malformed YAML ({' '.join(str(e).split())})") from None
-
-
-def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
-    """``base`` updated recursively with ``override`` (a new dict; inputs unchanged)."""
-    out = copy.deepcopy(base)
-    for k, v in override.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = deep_merge(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
 
 
 def typed_cli_overrides(overrides: Any) -> Any:

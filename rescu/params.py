@@ -65,3 +65,18 @@ def config_defaults(*path: str) -> dict[str, Any]:
             raise KeyError(f"default configuration has no {'.'.join(path[:i + 1])!r}")
         d = d[k]
     return copy.deepcopy(d)
+
+
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` updated recursively with ``override`` (a new dict; inputs unchanged).
+
+    Used for configuration overrides (``--set``, ``--config``, config files) and for
+    nested parameter variants (a stage-II variant overrides keys inside its sections).
+    """
+    out = copy.deepcopy(base)
+    for k, v in override.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out

@@ -12,7 +12,8 @@ from rescu.extension.augment import occlude_instances  # noqa: E402
 from rescu.extension.examples import (cluster_centres, dbscan_labels,  # noqa: E402
                                       select_examples)
 from rescu.extension.features import compute_stage2_features, finetune_record  # noqa: E402
-from rescu.extension.params import Stage2Params, merged  # noqa: E402
+from rescu.extension.params import Stage2Params  # noqa: E402
+from rescu.params import deep_merge as merged  # noqa: E402
 from rescu.extension.predict import (impute_half, predict_stage2,  # noqa: E402
                                      score_features, visible_half_features)
 from rescu.extension.train import load_checkpoint, save_checkpoint, train_heads  # noqa: E402

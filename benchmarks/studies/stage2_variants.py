@@ -119,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
                                        summary_markdown, summary_table)
-    from rescu.extension.params import PREDICT_SECTION, Stage2Params, merged
+    from rescu.extension.params import PREDICT_SECTION, Stage2Params
+    from rescu.params import deep_merge as merged
 
     ap = run_parser(__doc__)
     ap.add_argument("--set", dest="sets", action="append", default=[],

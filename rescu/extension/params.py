@@ -15,7 +15,7 @@ import copy
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..params import checked_mapping, config_defaults
+from ..params import checked_mapping, config_defaults, deep_merge
 from .proposals import ProposalParams
 
 #: The ``method`` name of RESCU-II's results.
@@ -24,18 +24,6 @@ METHOD = "rescu-ii"
 #: The ``stage2`` section read only by :func:`rescu.extension.predict.predict_stage2` (its
 #: gates, the visible-half scoring and the merge of RPs).
 PREDICT_SECTION = "predict"
-
-
-def merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
-    """``base`` updated recursively with ``override`` (a new dict; inputs unchanged): a
-    stage-II variant's overrides are nested like the ``stage2`` section."""
-    out = copy.deepcopy(base)
-    for k, v in override.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = merged(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
 
 
 def _section(cls: type, d: Any, name: str, tuples: dict[str, type] | None = None) -> Any:
@@ -437,7 +425,7 @@ class Stage2Params:
         if not isinstance(override, dict):
             raise ValueError(f"a stage-II variant must be a mapping of stage2 keys, got "
                              f"{override!r}")
-        return cls.from_dict(merged(base, override))
+        return cls.from_dict(deep_merge(base, override))
 
 
 def predict_only_error(override: Any) -> str | None:
