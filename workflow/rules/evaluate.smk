@@ -203,7 +203,7 @@ rule summary:
     output:
         md=f"{TABLES}/summary.md",
     params:
-        backbone=config["stage2"].get("backbone", ""),
+        backbone=config["stage2"]["backbone"]["name"],
     log:
         LOGS + "/tables/summary.log",
     script:
