@@ -160,7 +160,7 @@ def step_dependencies(script: Path, package_dir: Path = PACKAGE_DIR) -> list[Pat
     modules, _ = _parsed(package_dir)
     pkg = package_dir.name
     pipe_name = f"{pkg}.pipeline"
-    pipe_tree = ast.parse(modules[pipe_name].read_text())
+    pipe_tree = _parsed_module(modules[pipe_name])
     defs = {n.name: n for n in pipe_tree.body
             if isinstance(n, (ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))}
     entries: set[str] = set()
@@ -198,3 +198,10 @@ def step_dependencies(script: Path, package_dir: Path = PACKAGE_DIR) -> list[Pat
                     todo.append(node.id)
     entries.discard(pipe_name)
     return sorted(files | set(import_closure(sorted(entries), package_dir)))
+
+
+@functools.lru_cache(maxsize=8)
+def _parsed_module(path: Path) -> ast.Module:
+    """The AST of one source file, parsed once per process (every rule's stamp asks for
+    the pipeline's)."""
+    return ast.parse(path.read_text(), str(path))
