@@ -12,10 +12,11 @@ workflow reruns prediction only.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from ..params import checked_mapping, config_defaults, deep_merge
+from .merge import MergeParams
 from .proposals import ProposalParams
 
 #: The ``method`` name of RESCU-II's results.
@@ -257,44 +258,25 @@ class HeadParams:
             raise ValueError(f"val_split must be in [0, 1), got {self.val_split}")
 
 
-_M = config_defaults("stage2", "predict", "merge")
-
-
 @dataclass(frozen=True)
-class MergeSectionParams:
+class MergeSectionParams(MergeParams):
     """Section ``stage2.predict.merge``: the merge of RPs that are parts of one pattern,
     the last step of prediction (:func:`rescu.extension.merge.merge_split_patterns`).
+
+    The fields, defaults and checks of :class:`rescu.extension.merge.MergeParams`, plus
+    ``enabled``.
 
     Attributes
     ----------
     enabled : bool
         Merge at all.
-    similarity_ratio, min_similarity, size_tolerance, duplicate_iou, conflict_cover,
-    max_line_residual : float
-        The fields of :class:`rescu.extension.merge.MergeParams`.
     """
 
-    enabled: bool = _M["enabled"]
-    similarity_ratio: float = _M["similarity_ratio"]
-    min_similarity: float = _M["min_similarity"]
-    size_tolerance: float = _M["size_tolerance"]
-    duplicate_iou: float = _M["duplicate_iou"]
-    conflict_cover: float = _M["conflict_cover"]
-    max_line_residual: float = _M["max_line_residual"]
+    enabled: bool = config_defaults("stage2", "predict", "merge")["enabled"]
 
-    def __post_init__(self) -> None:
-        self.merge_params()  # validates the keys
-
-    def merge_params(self):
+    def merge_params(self) -> MergeParams:
         """This section, less ``enabled``, as :class:`rescu.extension.merge.MergeParams`."""
-        from .merge import MergeParams
-
-        return MergeParams(similarity_ratio=self.similarity_ratio,
-                           min_similarity=self.min_similarity,
-                           size_tolerance=self.size_tolerance,
-                           duplicate_iou=self.duplicate_iou,
-                           conflict_cover=self.conflict_cover,
-                           max_line_residual=self.max_line_residual)
+        return MergeParams(**{f.name: getattr(self, f.name) for f in fields(MergeParams)})
 
 
 _D = config_defaults("stage2", "predict")
