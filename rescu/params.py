@@ -3,13 +3,16 @@ the one home of their defaults.
 
 Every default value lives once, in the shipped default configuration
 (``rescu/defaults/config.yaml``, equal to the checkout's ``config/config.yaml``). A
-parameter dataclass reads its field defaults from there with :func:`config_defaults`::
-
-    _D = config_defaults("stage1")
+parameter dataclass reads its field defaults from there with :func:`config_section`,
+so each tunable is named once in the code::
 
     @dataclass(frozen=True)
+    @config_section("stage1")
     class Stage1Params:
-        P_d: float = _D["P_d"]
+        P_d: float
+
+A field named unlike its configuration key takes an explicit default from
+:func:`config_defaults` (``k: int = config_defaults("stage1")["match_k"]``).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import copy
 import functools
 from dataclasses import fields
-from typing import Any, Mapping, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 T = TypeVar("T")
 
@@ -65,6 +68,40 @@ def config_defaults(*path: str) -> dict[str, Any]:
             raise KeyError(f"default configuration has no {'.'.join(path[:i + 1])!r}")
         d = d[k]
     return copy.deepcopy(d)
+
+
+def config_section(*path: str) -> Callable[[type[T]], type[T]]:
+    """Class decorator, under ``@dataclass``: every annotated field of the class without a
+    default gets the value of the same name in the default configuration's mapping at
+    ``path`` (:func:`config_defaults`); a YAML list becomes a tuple (tuple-typed fields).
+
+    Fields with a default (or ``field(...)``) keep it. Raises KeyError naming a field that
+    has neither a default nor a key at ``path``.
+
+    >>> from dataclasses import dataclass
+    >>> @dataclass(frozen=True)
+    ... @config_section("evaluation")
+    ... class P:
+    ...     iod_h: float
+    ...     h_curve: tuple[float, ...]
+    ...     label: str = "x"
+    >>> P().iod_h, P().h_curve[:2], P().label
+    (0.5, (0.1, 0.2), 'x')
+    """
+    section = config_defaults(*path)
+
+    def decorate(cls: type[T]) -> type[T]:
+        for name, ann in cls.__dict__.get("__annotations__", {}).items():
+            if name in cls.__dict__ or str(ann).startswith(("ClassVar", "typing.ClassVar")):
+                continue
+            if name not in section:
+                raise KeyError(f"{cls.__name__}.{name}: default configuration has no "
+                               f"{'.'.join(path + (name,))!r}")
+            v = section[name]
+            setattr(cls, name, tuple(v) if isinstance(v, list) else v)
+        return cls
+
+    return decorate
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -56,7 +56,7 @@ from typing import Any, Callable, Protocol, Sequence
 import numpy as np
 
 from ..io import InputError
-from ..params import checked_mapping, config_defaults
+from ..params import checked_mapping, config_section
 from ..types import BBox, ImageResult, Pattern
 from .grammar import (NounPhrase, capitalise, choose_phrase, noun_phrases, rewrite_phrase,
                       tokenize)
@@ -77,10 +77,8 @@ class CaptionMissing(KeyError):
 
 
 # ----------------------------------------------------------------------------- params
-_D = config_defaults("caption")
-
-
 @dataclass(frozen=True)
+@config_section("caption")
 class CaptionParams:
     """Parameters of captioning.
 
@@ -103,13 +101,13 @@ class CaptionParams:
         Seed of the caption generator (torch).
     """
 
-    captioner: str = _D["captioner"]
-    model: str = _D["model"]
-    csv_path: str = _D["csv_path"]
-    grounding_model: str = _D["grounding_model"]
-    grounding_coverage: float = _D["grounding_coverage"]
-    max_new_tokens: int = _D["max_new_tokens"]
-    seed: int = _D["seed"]
+    captioner: str
+    model: str
+    csv_path: str
+    grounding_model: str
+    grounding_coverage: float
+    max_new_tokens: int
+    seed: int
 
     def __post_init__(self) -> None:
         if self.captioner not in ("template", "transformers", "csv"):

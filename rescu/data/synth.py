@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ..params import config_defaults, params_from_dict
+from ..params import config_section, params_from_dict
 from ..scene.symmetry import CR_EQUAL_SPACING, row_cross_ratios
 from .camera import (camera_matrix, plane_homography, project_points, rotation_matrix,
                      row_vanishing_point)
@@ -81,10 +81,8 @@ def _range2(name: str, v: Any, lo: float | None = None, integer: bool = False
     return a, b
 
 
-_D = config_defaults("synthetic")
-
-
 @dataclass(frozen=True)
+@config_section("synthetic")
 class SynthParams:
     """Parameters of the synthetic benchmark (every tunable has a default).
 
@@ -93,39 +91,39 @@ class SynthParams:
     configuration (``config/config.yaml``).
     """
 
-    n_images: int = _D["n_images"]
-    seed: int = _D["seed"]
-    sizes: tuple[tuple[int, int], ...] = tuple(_D["sizes"])
-    projective_fraction: float = _D["projective_fraction"]
-    min_rps: int = _D["min_rps"]
-    max_rps: int = _D["max_rps"]
-    grid_fraction: float = _D["grid_fraction"]
-    unequal_fraction: float = _D["unequal_fraction"]
-    unequal_min_change: float = _D["unequal_min_change"]
-    hard_fraction: float = _D["hard_fraction"]
-    photo_fraction: float = _D["photo_fraction"]
-    row_length: tuple[int, int] = tuple(_D["row_length"])
-    grid_rows: tuple[int, int] = tuple(_D["grid_rows"])
-    grid_cols: tuple[int, int] = tuple(_D["grid_cols"])
-    instance_px: tuple[float, float] = tuple(_D["instance_px"])
-    aspect: tuple[float, float] = tuple(_D["aspect"])
-    gap: tuple[float, float] = tuple(_D["gap"])
-    focal: tuple[float, float] = tuple(_D["focal"])
-    tilt_deg: tuple[float, float] = tuple(_D["tilt_deg"])
-    frontal_roll_deg: float = _D["frontal_roll_deg"]
-    shared_plane_prob: float = _D["shared_plane_prob"]
-    texture_px: int = _D["texture_px"]
-    colour_jitter: float = _D["colour_jitter"]
-    light_jitter: float = _D["light_jitter"]
-    deform: float = _D["deform"]
-    lighting_gradient: float = _D["lighting_gradient"]
-    noise_sigma: float = _D["noise_sigma"]
-    blur_sigma: tuple[float, float] = tuple(_D["blur_sigma"])
-    occluded_instances: tuple[int, int] = tuple(_D["occluded_instances"])
-    occlusion_fraction: tuple[float, float] = tuple(_D["occlusion_fraction"])
-    n_blobs: tuple[int, int] = tuple(_D["n_blobs"])
-    n_lines: tuple[int, int] = tuple(_D["n_lines"])
-    n_distractors: tuple[int, int] = tuple(_D["n_distractors"])
+    n_images: int
+    seed: int
+    sizes: tuple[tuple[int, int], ...]
+    projective_fraction: float
+    min_rps: int
+    max_rps: int
+    grid_fraction: float
+    unequal_fraction: float
+    unequal_min_change: float
+    hard_fraction: float
+    photo_fraction: float
+    row_length: tuple[int, int]
+    grid_rows: tuple[int, int]
+    grid_cols: tuple[int, int]
+    instance_px: tuple[float, float]
+    aspect: tuple[float, float]
+    gap: tuple[float, float]
+    focal: tuple[float, float]
+    tilt_deg: tuple[float, float]
+    frontal_roll_deg: float
+    shared_plane_prob: float
+    texture_px: int
+    colour_jitter: float
+    light_jitter: float
+    deform: float
+    lighting_gradient: float
+    noise_sigma: float
+    blur_sigma: tuple[float, float]
+    occluded_instances: tuple[int, int]
+    occlusion_fraction: tuple[float, float]
+    n_blobs: tuple[int, int]
+    n_lines: tuple[int, int]
+    n_distractors: tuple[int, int]
 
     def __post_init__(self) -> None:
         if int(self.n_images) != self.n_images or self.n_images < 0 or self.n_images > 10000:

@@ -15,13 +15,11 @@ import numpy as np
 
 from ..io import read_h5, write_h5
 from ..types import Features
-from ..params import config_defaults, params_from_dict
-
-
-_D = config_defaults("features")
+from ..params import config_section, params_from_dict
 
 
 @dataclass(frozen=True)
+@config_section("features")
 class FeatureParams:
     """Parameters of SIFT extraction (OpenCV ``SIFT_create``).
 
@@ -50,14 +48,14 @@ class FeatureParams:
         original pixels unchanged.
     """
 
-    n_features: int = _D["n_features"]
-    contrast_threshold: float = _D["contrast_threshold"]
-    edge_threshold: float = _D["edge_threshold"]
-    sigma: float = _D["sigma"]
-    n_octave_layers: int = _D["n_octave_layers"]
-    min_size: float = _D["min_size"]
-    upsample_below: int = _D["upsample_below"]
-    upsample_factor: float = _D["upsample_factor"]
+    n_features: int
+    contrast_threshold: float
+    edge_threshold: float
+    sigma: float
+    n_octave_layers: int
+    min_size: float
+    upsample_below: int
+    upsample_factor: float
 
     def __post_init__(self) -> None:
         if self.upsample_factor < 1.0:

@@ -31,16 +31,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..params import config_defaults, params_from_dict
+from ..params import config_section, params_from_dict
 from .stage1 import Stage1Output
 from ..types import Features, RPMatrix
 from .urp import AffinityMatchGroups, Gates, match_candidates, objective, root_sift
 
 
-_D = config_defaults("grasp")
-
-
 @dataclass(frozen=True)
+@config_section("grasp")
 class GraspParams(AffinityMatchGroups):
     """Parameters of the GRASP baseline.
 
@@ -70,26 +68,26 @@ class GraspParams(AffinityMatchGroups):
         Random seed.
     """
 
-    iterations: int = _D["iterations"]
-    rcl_size: int = _D["rcl_size"]
-    max_candidates: int = _D["max_candidates"]
-    max_steps: int = _D["max_steps"]
-    P_d: float = _D["P_d"]
-    P_s: float = _D["P_s"]
-    P_theta: float = _D["P_theta"]
-    sigma_s: float = _D["sigma_s"]
-    sigma_theta: float = _D["sigma_theta"]
-    orientation_mode: str = _D["orientation_mode"]
-    match_k: int = _D["match_k"]
-    match_max_dist: float = _D["match_max_dist"]
-    match_min_sep: float = _D["match_min_sep"]
-    pos_tol: float = _D["pos_tol"]
-    max_patterns: int = _D["max_patterns"]
-    min_instances: int = _D["min_instances"]
-    min_words: int = _D["min_words"]
-    box_grow: float = _D["box_grow"]
-    max_keypoints: int = _D["max_keypoints"]
-    seed: int = _D["seed"]
+    iterations: int
+    rcl_size: int
+    max_candidates: int
+    max_steps: int
+    P_d: float
+    P_s: float
+    P_theta: float
+    sigma_s: float
+    sigma_theta: float
+    orientation_mode: str
+    match_k: int
+    match_max_dist: float
+    match_min_sep: float
+    pos_tol: float
+    max_patterns: int
+    min_instances: int
+    min_words: int
+    box_grow: float
+    max_keypoints: int
+    seed: int
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "GraspParams":

@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..params import config_defaults, params_from_dict
+from ..params import config_section, params_from_dict
 from ..io import read_h5, write_h5
 from ..layout import registered_centres
 from ..evaluation.metrics import cover_matrix
@@ -70,10 +70,8 @@ from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift, urp_a
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
 
-_D = config_defaults("stage1")
-
-
 @dataclass(frozen=True)
+@config_section("stage1")
 class Stage1Params(AffinityMatchGroups):
     """Parameters of RESCU-I (see module docstring).
 
@@ -148,42 +146,42 @@ class Stage1Params(AffinityMatchGroups):
         random; the same seed gives the same output.
     """
 
-    sigma_s: float = _D["sigma_s"]
-    sigma_theta: float = _D["sigma_theta"]
-    orientation_mode: str = _D["orientation_mode"]
-    P_d: float = _D["P_d"]
-    P_s: float = _D["P_s"]
-    P_theta: float = _D["P_theta"]
-    grid_P_d: tuple[float, ...] = tuple(_D["grid_P_d"])
-    grid_P_s: tuple[float, ...] = tuple(_D["grid_P_s"])
-    grid_P_theta: tuple[float, ...] = tuple(_D["grid_P_theta"])
-    adaptive: tuple[str, ...] = tuple(_D["adaptive"])
-    max_patterns: int = _D["max_patterns"]
-    min_instances: int = _D["min_instances"]
-    min_words: int = _D["min_words"]
-    min_objective: float = _D["min_objective"]
-    min_spread: float = _D["min_spread"]
-    n_initials: int = _D["n_initials"]
-    initials_per_pattern: int = _D["initials_per_pattern"]
-    grid_initials: int = _D["grid_initials"]
-    grid_retry_initials: int = _D["grid_retry_initials"]
-    match_k: int = _D["match_k"]
-    match_max_dist: float = _D["match_max_dist"]
-    match_min_sep: float = _D["match_min_sep"]
-    spatial_k: int = _D["spatial_k"]
-    pos_tol: float = _D["pos_tol"]
-    u_min: float = _D["u_min"]
-    min_fill: float = _D["min_fill"]
-    max_overlap: float = _D["max_overlap"]
-    row_expand: float = _D["row_expand"]
-    max_rows: int = _D["max_rows"]
-    max_cols: int = _D["max_cols"]
-    max_iters: int = _D["max_iters"]
-    box_grow: float = _D["box_grow"]
-    extent_grow: float = _D["extent_grow"]
-    max_nested_cover: float = _D["max_nested_cover"]
-    min_centre_distance: float = _D["min_centre_distance"]
-    seed: int = _D["seed"]
+    sigma_s: float
+    sigma_theta: float
+    orientation_mode: str
+    P_d: float
+    P_s: float
+    P_theta: float
+    grid_P_d: tuple[float, ...]
+    grid_P_s: tuple[float, ...]
+    grid_P_theta: tuple[float, ...]
+    adaptive: tuple[str, ...]
+    max_patterns: int
+    min_instances: int
+    min_words: int
+    min_objective: float
+    min_spread: float
+    n_initials: int
+    initials_per_pattern: int
+    grid_initials: int
+    grid_retry_initials: int
+    match_k: int
+    match_max_dist: float
+    match_min_sep: float
+    spatial_k: int
+    pos_tol: float
+    u_min: float
+    min_fill: float
+    max_overlap: float
+    row_expand: float
+    max_rows: int
+    max_cols: int
+    max_iters: int
+    box_grow: float
+    extent_grow: float
+    max_nested_cover: float
+    min_centre_distance: float
+    seed: int
 
     def __post_init__(self) -> None:
         for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive"):

@@ -40,7 +40,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..params import config_defaults
+from ..params import config_defaults, config_section
 
 ORIENTATION_MODES = ("wrapped", "relative", "paper")
 
@@ -48,6 +48,7 @@ _D = config_defaults("stage1")
 
 
 @dataclass(frozen=True)
+@config_section("stage1")
 class AffinityParams:
     """The URP affinity's parameters, shared by stage I, GRASP and the search context.
 
@@ -62,9 +63,9 @@ class AffinityParams:
         The form of Delta_theta (module docstring).
     """
 
-    sigma_s: float = _D["sigma_s"]
-    sigma_theta: float = _D["sigma_theta"]
-    orientation_mode: str = _D["orientation_mode"]
+    sigma_s: float
+    sigma_theta: float
+    orientation_mode: str
 
     def __post_init__(self) -> None:
         if self.orientation_mode not in ORIENTATION_MODES:

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
-from ..params import checked_mapping, config_defaults
+from ..params import checked_mapping, config_section
 from ..types import ImageResult
 from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
@@ -49,10 +49,8 @@ METRIC_LABELS = {"instance_precision": "Instance P", "instance_recall": "Instanc
 
 
 # ----------------------------------------------------------------------------- params
-_D = config_defaults("evaluation")
-
-
 @dataclass(frozen=True)
+@config_section("evaluation")
 class EvaluationParams:
     """Parameters of the evaluation.
 
@@ -78,16 +76,16 @@ class EvaluationParams:
         Decimals in Markdown tables.
     """
 
-    iod_h: float = _D["iod_h"]
-    min_rp_precision: float = _D["min_rp_precision"]
-    h_curve: tuple[float, ...] = tuple(_D["h_curve"])
-    significance_alpha: float = _D["significance_alpha"]
-    vp_px_thresholds: tuple[float, ...] = tuple(_D["vp_px_thresholds"])
-    vp_deg_thresholds: tuple[float, ...] = tuple(_D["vp_deg_thresholds"])
-    ts_t_fine: tuple[float, ...] = tuple(_D["ts_t_fine"])
-    ts_t_coarse: tuple[float, ...] = tuple(_D["ts_t_coarse"])
-    ts_which: str = _D["ts_which"]
-    decimals: int = _D["decimals"]
+    iod_h: float
+    min_rp_precision: float
+    h_curve: tuple[float, ...]
+    significance_alpha: float
+    vp_px_thresholds: tuple[float, ...]
+    vp_deg_thresholds: tuple[float, ...]
+    ts_t_fine: tuple[float, ...]
+    ts_t_coarse: tuple[float, ...]
+    ts_which: str
+    decimals: int
 
     def __post_init__(self) -> None:
         if not 0.0 < self.iod_h < 1.0:

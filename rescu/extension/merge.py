@@ -51,14 +51,12 @@ from typing import Any
 import numpy as np
 
 from ..evaluation.metrics import cover_matrix, iou_matrix
-from ..params import checked_mapping, config_defaults
+from ..params import checked_mapping, config_section
 from ..types import ImageResult, Instance, Pattern
 
 
-_M = config_defaults("stage2", "predict", "merge")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "predict", "merge")
 class MergeParams:
     """Tunables of the split-RP merge (config section ``stage2.predict.merge``, less ``enabled``).
 
@@ -81,12 +79,12 @@ class MergeParams:
         (median shorter box side) of their common total-least-squares line; 0 disables.
     """
 
-    similarity_ratio: float = _M["similarity_ratio"]
-    min_similarity: float = _M["min_similarity"]
-    size_tolerance: float = _M["size_tolerance"]
-    duplicate_iou: float = _M["duplicate_iou"]
-    conflict_cover: float = _M["conflict_cover"]
-    max_line_residual: float = _M["max_line_residual"]
+    similarity_ratio: float
+    min_similarity: float
+    size_tolerance: float
+    duplicate_iou: float
+    conflict_cover: float
+    max_line_residual: float
 
     def __post_init__(self) -> None:
         if not self.similarity_ratio > 0:

@@ -3,7 +3,7 @@ sections ``backbone``, ``proposals``, ``examples``, ``head`` and ``predict`` (wi
 ``predict.merge``) plus the top-level ``seed`` and ``min_instances``.
 
 Every field default is read from the shipped configuration
-(:func:`rescu.params.config_defaults`), so the defaults live in one place. The
+(:func:`rescu.params.config_section`), so the defaults live in one place. The
 ``predict`` section (:data:`PREDICT_SECTION`) holds exactly the keys that act only in
 prediction: changing one of them needs neither new features nor a new head, and the
 workflow reruns prediction only.
@@ -15,7 +15,7 @@ import copy
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from ..params import checked_mapping, config_defaults, deep_merge
+from ..params import checked_mapping, config_section, deep_merge
 from .merge import MergeParams
 from .proposals import ProposalParams
 
@@ -40,10 +40,8 @@ def _section(cls: type, d: Any, name: str, tuples: dict[str, type] | None = None
     return cls(**d)
 
 
-_B = config_defaults("stage2", "backbone")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "backbone")
 class BackboneParams:
     """Section ``stage2.backbone``: the frozen CNN and the image it sees.
 
@@ -78,26 +76,24 @@ class BackboneParams:
         Torch device for the backbone/head (``"cpu"`` or ``"cuda"``).
     """
 
-    name: str = _B["name"]
-    weights_path: str | None = _B["weights_path"]
-    feature_stride: int = _B["feature_stride"]
-    input_side: int = _B["input_side"]
-    input_scales: tuple[float, ...] = tuple(_B["input_scales"])
-    instance_target_px: float = _B["instance_target_px"]
-    max_backbone_side: int = _B["max_backbone_side"]
-    pool_size: int = _B["pool_size"]
-    finetune: bool = _B["finetune"]
-    device: str = _B["device"]
+    name: str
+    weights_path: str | None
+    feature_stride: int
+    input_side: int
+    input_scales: tuple[float, ...]
+    instance_target_px: float
+    max_backbone_side: int
+    pool_size: int
+    finetune: bool
+    device: str
 
     def __post_init__(self) -> None:
         if not self.input_scales or any(s <= 0 for s in self.input_scales):
             raise ValueError(f"input_scales must be positive, got {self.input_scales}")
 
 
-_P = config_defaults("stage2", "proposals")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "proposals")
 class ProposalSectionParams:
     """Section ``stage2.proposals``: the region proposals around the stage-I instances.
 
@@ -125,16 +121,16 @@ class ProposalSectionParams:
         Lattice windows: multiples of the source instance's size.
     """
 
-    method: str = _P["method"]
-    edge_model_path: str | None = _P["edge_model_path"]
-    max_proposals: int = _P["max_proposals"]
-    window_scales: tuple[float, ...] = tuple(_P["window_scales"])
-    window_stride: float = _P["window_stride"]
-    max_windows: int = _P["max_windows"]
-    lattice_windows: bool = _P["lattice_windows"]
-    lattice_neighbours: int = _P["lattice_neighbours"]
-    lattice_steps: int = _P["lattice_steps"]
-    lattice_scales: tuple[float, ...] = tuple(_P["lattice_scales"])
+    method: str
+    edge_model_path: str | None
+    max_proposals: int
+    window_scales: tuple[float, ...]
+    window_stride: float
+    max_windows: int
+    lattice_windows: bool
+    lattice_neighbours: int
+    lattice_steps: int
+    lattice_scales: tuple[float, ...]
 
     def __post_init__(self) -> None:
         self.proposal_params()  # validates method
@@ -149,10 +145,8 @@ class ProposalSectionParams:
                               lattice_scales=self.lattice_scales)
 
 
-_E = config_defaults("stage2", "examples")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "examples")
 class ExampleParams:
     """Section ``stage2.examples``: the self-supervised examples and their augmentation.
 
@@ -195,21 +189,21 @@ class ExampleParams:
         Proposals (random subset) pooled in every augmented copy as extra negatives.
     """
 
-    dbscan_eps: float | None = _E["dbscan_eps"]
-    dbscan_min_samples: int = _E["dbscan_min_samples"]
-    top_p: int = _E["top_p"]
-    max_positive_fraction: float = _E["max_positive_fraction"]
-    positive_radius: float = _E["positive_radius"]
-    negative_quantile: float = _E["negative_quantile"]
-    negatives_per_positive: float = _E["negatives_per_positive"]
-    size_tolerance: float = _E["size_tolerance"]
-    n_augment: int = _E["n_augment"]
-    occlude_prob: float = _E["occlude_prob"]
-    occlude_fraction: tuple[float, float] = tuple(_E["occlude_fraction"])
-    n_jitter: int = _E["n_jitter"]
-    jitter: float = _E["jitter"]
-    min_jitter: float = _E["min_jitter"]
-    n_aug_proposals: int = _E["n_aug_proposals"]
+    dbscan_eps: float | None
+    dbscan_min_samples: int
+    top_p: int
+    max_positive_fraction: float
+    positive_radius: float
+    negative_quantile: float
+    negatives_per_positive: float
+    size_tolerance: float
+    n_augment: int
+    occlude_prob: float
+    occlude_fraction: tuple[float, float]
+    n_jitter: int
+    jitter: float
+    min_jitter: float
+    n_aug_proposals: int
 
     def __post_init__(self) -> None:
         if not 0 <= self.occlude_prob <= 1:
@@ -220,10 +214,8 @@ class ExampleParams:
                              f" got {self.occlude_fraction}")
 
 
-_H = config_defaults("stage2", "head")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "head")
 class HeadParams:
     """Section ``stage2.head``: the classifier head and its training.
 
@@ -241,14 +233,14 @@ class HeadParams:
     min_delta : float
     """
 
-    hidden_sizes: tuple[int, ...] = tuple(_H["hidden_sizes"])
-    lr: float = _H["lr"]
-    beta1: float = _H["beta1"]
-    batch_size: int = _H["batch_size"]
-    max_epochs: int = _H["max_epochs"]
-    val_split: float = _H["val_split"]
-    patience: int = _H["patience"]
-    min_delta: float = _H["min_delta"]
+    hidden_sizes: tuple[int, ...]
+    lr: float
+    beta1: float
+    batch_size: int
+    max_epochs: int
+    val_split: float
+    patience: int
+    min_delta: float
 
     def __post_init__(self) -> None:
         if len(self.hidden_sizes) != 2:
@@ -259,6 +251,7 @@ class HeadParams:
 
 
 @dataclass(frozen=True)
+@config_section("stage2", "predict", "merge")
 class MergeSectionParams(MergeParams):
     """Section ``stage2.predict.merge``: the merge of RPs that are parts of one pattern,
     the last step of prediction (:func:`rescu.extension.merge.merge_split_patterns`).
@@ -272,17 +265,15 @@ class MergeSectionParams(MergeParams):
         Merge at all.
     """
 
-    enabled: bool = config_defaults("stage2", "predict", "merge")["enabled"]
+    enabled: bool
 
     def merge_params(self) -> MergeParams:
         """This section, less ``enabled``, as :class:`rescu.extension.merge.MergeParams`."""
         return MergeParams(**{f.name: getattr(self, f.name) for f in fields(MergeParams)})
 
 
-_D = config_defaults("stage2", "predict")
-
-
 @dataclass(frozen=True)
+@config_section("stage2", "predict")
 class PredictParams:
     """Section ``stage2.predict``: the keys that act only in prediction.
 
@@ -324,18 +315,18 @@ class PredictParams:
     merge : MergeSectionParams
     """
 
-    score_threshold: float = _D["score_threshold"]
-    max_distance_ratio: float = _D["max_distance_ratio"]
-    lattice_score_threshold: float = _D["lattice_score_threshold"]
-    lattice_distance_ratio: float = _D["lattice_distance_ratio"]
-    lattice_only: bool = _D["lattice_only"]
-    nms_iou: float = _D["nms_iou"]
-    min_spacing_fraction: float = _D["min_spacing_fraction"]
-    max_new_fraction: float = _D["max_new_fraction"]
-    visible_half: bool = _D["visible_half"]
-    visible_half_min_score: float = _D["visible_half_min_score"]
-    visible_half_threshold: float = _D["visible_half_threshold"]
-    visible_half_margin: float = _D["visible_half_margin"]
+    score_threshold: float
+    max_distance_ratio: float
+    lattice_score_threshold: float
+    lattice_distance_ratio: float
+    lattice_only: bool
+    nms_iou: float
+    min_spacing_fraction: float
+    max_new_fraction: float
+    visible_half: bool
+    visible_half_min_score: float
+    visible_half_threshold: float
+    visible_half_margin: float
     merge: MergeSectionParams = field(default_factory=MergeSectionParams)
 
     def __post_init__(self) -> None:
@@ -346,10 +337,8 @@ class PredictParams:
             raise ValueError(f"visible_half_margin must be >= 0, got {self.visible_half_margin}")
 
 
-_S = config_defaults("stage2")
-
-
 @dataclass(frozen=True)
+@config_section("stage2")
 class Stage2Params:
     """Tunables of RESCU-II (config section ``stage2``): the sections and two keys that
     every step reads.
@@ -367,8 +356,8 @@ class Stage2Params:
     predict : PredictParams
     """
 
-    seed: int = _S["seed"]
-    min_instances: int = _S["min_instances"]
+    seed: int
+    min_instances: int
     backbone: BackboneParams = field(default_factory=BackboneParams)
     proposals: ProposalSectionParams = field(default_factory=ProposalSectionParams)
     examples: ExampleParams = field(default_factory=ExampleParams)

@@ -43,13 +43,11 @@ from .vp.geometry import INFINITY_EPS
 from .vp.lines import Lines, pattern_lines
 from .vp.params import VPParams
 from ..types import ImageResult, Pattern, VanishingPoint
-from ..params import checked_mapping, config_defaults
-
-
-_D = config_defaults("scene")
+from ..params import checked_mapping, config_section
 
 
 @dataclass(frozen=True)
+@config_section("scene")
 class SceneParams:
     """Parameters of the scene step (config section ``scene``).
 
@@ -72,9 +70,9 @@ class SceneParams:
 
     vp: VPParams = field(default_factory=VPParams)
     symmetry: S.SymmetryParams = field(default_factory=S.SymmetryParams)
-    rectify_max_side: int = _D["rectify_max_side"]
-    rectify_padding: float = _D["rectify_padding"]
-    rectify_min_w: float = _D["rectify_min_w"]
+    rectify_max_side: int
+    rectify_padding: float
+    rectify_min_w: float
 
     def __post_init__(self) -> None:
         if self.rectify_max_side < 8:

@@ -78,16 +78,14 @@ import numpy as np
 from .. import layout as L
 from . import symmetry as S
 from .vp.params import VPParams
-from ..params import config_defaults, params_from_dict
+from ..params import config_section, params_from_dict
 from ..types import ImageResult, Instance, Pattern
 
 SOURCE = "completion"
 
 
-_D = config_defaults("scene", "completion")
-
-
 @dataclass(frozen=True)
+@config_section("scene", "completion")
 class CompletionParams:
     """Parameters of row completion (config section ``completion``).
 
@@ -134,21 +132,21 @@ class CompletionParams:
         alignment) is not completed: only nearly complete grids are filled.
     """
 
-    enabled: bool = _D["enabled"]
-    max_gaps: int = _D["max_gaps"]
-    cr_tolerance: float = _D["cr_tolerance"]
-    fit_tolerance: float = _D["fit_tolerance"]
-    max_step_ratio: float = _D["max_step_ratio"]
-    similarity_ratio: float = _D["similarity_ratio"]
-    min_similarity: float = _D["min_similarity"]
-    search_radius: float = _D["search_radius"]
-    search_step_px: float = _D["search_step_px"]
-    patch_size: int = _D["patch_size"]
-    min_row_instances: int = _D["min_row_instances"]
-    end_instances: int = _D["end_instances"]
-    grid: bool = _D["grid"]
-    grid_tolerance: float = _D["grid_tolerance"]
-    grid_max_missing: int = _D["grid_max_missing"]
+    enabled: bool
+    max_gaps: int
+    cr_tolerance: float
+    fit_tolerance: float
+    max_step_ratio: float
+    similarity_ratio: float
+    min_similarity: float
+    search_radius: float
+    search_step_px: float
+    patch_size: int
+    min_row_instances: int
+    end_instances: int
+    grid: bool
+    grid_tolerance: float
+    grid_max_missing: int
 
     def __post_init__(self) -> None:
         if self.max_gaps < 1:

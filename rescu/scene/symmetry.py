@@ -42,16 +42,14 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..layout import checked_points
-from ..params import config_defaults, params_from_dict
+from ..params import config_section, params_from_dict
 from ..types import TranslationSymmetry
 
 CR_EQUAL_SPACING = 4.0 / 3.0  # cross ratio of 4 equally spaced collinear points
 
 
-_D = config_defaults("scene", "symmetry")
-
-
 @dataclass(frozen=True)
+@config_section("scene", "symmetry")
 class SymmetryParams:
     """Parameters of the translation-symmetry test.
 
@@ -63,8 +61,8 @@ class SymmetryParams:
         Fewest instances in a row for the test (at least 4).
     """
 
-    threshold: float = _D["threshold"]
-    min_instances: int = _D["min_instances"]
+    threshold: float
+    min_instances: int
 
     def __post_init__(self) -> None:
         if self.threshold < 0:
