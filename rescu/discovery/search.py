@@ -38,7 +38,42 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..params import config_section
 from .urp import AffinityParams, AffinityParts, Gates, pairs, urp_affinity
+
+
+@dataclass(frozen=True)
+@config_section("stage1")
+class SearchParams:
+    """The tunables of one search (config section ``stage1``; defaults from there).
+    :class:`rescu.discovery.stage1.Stage1Params` derives from this class.
+
+    Attributes
+    ----------
+    pos_tol : float
+        Position tolerance of a predicted copy, fraction of the instance size.
+    u_min : float
+        Least mean affinity of a new row / column (and twice the least of an entry).
+    min_fill : float
+        A new row needs entries in this fraction of the instances (a new column in half
+        this fraction of the words).
+    max_overlap : float
+        Max IoU between feature boxes of two instances.
+    row_expand : float
+        New words are searched within the reference instance box grown by this
+        fraction of its size.
+    max_rows, max_cols, max_iters : int
+        Size and iteration limits of one search.
+    """
+
+    pos_tol: float
+    u_min: float
+    min_fill: float
+    max_overlap: float
+    row_expand: float
+    max_rows: int
+    max_cols: int
+    max_iters: int
 
 
 @dataclass
@@ -54,11 +89,11 @@ class SearchContext:
         Candidate correspondences (descriptor neighbours), -1 padded.
     tree : cKDTree over ``xy``.
     affinity : AffinityParams
-    desc_max_dist, pos_tol, u_min, min_fill, max_overlap, row_expand, max_rows, max_cols,
-    max_iters
-        The search parameters of :class:`rescu.discovery.stage1.Stage1Params` of the same
-        names (``desc_max_dist`` is its ``match_max_dist``); no defaults here, the
-        caller (:func:`rescu.discovery.stage1.search_context`) passes them.
+    desc_max_dist : float
+        Largest RootSIFT distance of a match (stage I's ``match_max_dist``).
+    search : SearchParams
+        The search's tunables (the caller,
+        :func:`rescu.discovery.stage1.search_context`, passes its Stage1Params).
     col_hypotheses, row_candidates, v_rows : int
         Internal limits of one search step.
     """
@@ -71,14 +106,7 @@ class SearchContext:
     tree: cKDTree
     affinity: AffinityParams
     desc_max_dist: float
-    pos_tol: float
-    u_min: float
-    min_fill: float
-    max_overlap: float
-    row_expand: float
-    max_rows: int
-    max_cols: int
-    max_iters: int
+    search: SearchParams
     col_hypotheses: int = 8
     row_candidates: int = 150
     v_rows: int = 8
@@ -206,7 +234,7 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
                 gates: Gates) -> np.ndarray:
     """Add new instances (columns) to ``omega`` (M, N); returns the new matrix."""
     m, n = omega.shape
-    if n >= ctx.max_cols:
+    if n >= ctx.search.max_cols:
         return omega
     c, s, tmpl = _frames(ctx, omega)
     boxes = column_boxes(ctx.xy, omega)
@@ -231,7 +259,7 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     # its centre C: h sits in the new instance where f sits in instance j (local frame,
     # so instances that change shape along a row under perspective still agree)
     cen = ctx.xy[h] - (ctx.scale[h] / ctx.scale[f])[:, None] * (ctx.xy[f] - c[jj])
-    cell = max(3.0, ctx.pos_tol * size)
+    cell = max(3.0, ctx.search.pos_tol * size)
     key = np.floor(cen / cell).astype(np.int64)
     # cells as 1-D codes in (kx, ky) lexicographic order, with a margin of one cell
     kx = key[:, 0] - (key[:, 0].min() - 1)
@@ -276,7 +304,7 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
         pending = []
         n_h = n_hyp
         for ci in range(ptr, len(cells)):
-            if n_h >= ctx.col_hypotheses or n + len(new_cols) >= ctx.max_cols:
+            if n_h >= ctx.col_hypotheses or n + len(new_cols) >= ctx.search.max_cols:
                 break
             C, sg = frame(ci)
             if np.any((C[0] >= boxes[:, 0]) & (C[0] <= boxes[:, 2]) & (C[1] >= boxes[:, 1])
@@ -306,7 +334,7 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
             pb = ctx.xy[col[col >= 0]]
             box = np.array([pb[:, 0].min(), pb[:, 1].min(), pb[:, 0].max(), pb[:, 1].max()])
             allb = np.vstack([boxes] + ([np.array(new_boxes)] if new_boxes else []))
-            if _iou_xyxy(box, allb).max() > ctx.max_overlap:
+            if _iou_xyxy(box, allb).max() > ctx.search.max_overlap:
                 continue
             new_cols.append(col)
             new_boxes.append(box)
@@ -333,7 +361,7 @@ def _build_columns(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: np.
     fin = np.all(np.isfinite(tmpl), axis=2)            # (H, M)
     hh, rows = np.nonzero(fin)
     pred = C[hh] + sg[hh, None] * tmpl[hh, rows]
-    rad = ctx.pos_tol * size + 2.0                      # (H,)
+    rad = ctx.search.pos_tol * size + 2.0                      # (H,)
     out: list[np.ndarray | None] = [None] * nh
     if len(hh) == 0:
         return out
@@ -377,7 +405,7 @@ def _build_columns(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: np.
     o = np.lexsort((qq, -V, rr, hh))
     hh, rr, qq, meanV = hh[o], rr[o], qq[o], meanV[o]
     first = np.r_[True, (rr[1:] != rr[:-1]) | (hh[1:] != hh[:-1])]
-    good = first & (meanV >= ctx.u_min)
+    good = first & (meanV >= ctx.search.u_min)
     cols = np.full((nh, m), -1, np.int64)
     cols[hh[good], rr[good]] = qq[good]
     # one feature, one word: a feature chosen for several words keeps the first
@@ -388,7 +416,7 @@ def _build_columns(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: np.
     dup = np.zeros(len(cv), bool)
     dup[1:] = (cv[1:] == cv[:-1]) & (ch[1:] == ch[:-1])
     cols[ch[dup], cr[dup]] = -1
-    need = max(2, int(np.ceil(0.5 * ctx.min_fill * m)))
+    need = max(2, int(np.ceil(0.5 * ctx.search.min_fill * m)))
     for h in np.nonzero((cols >= 0).sum(1) >= need)[0]:
         out[h] = cols[h]
     return out
@@ -409,7 +437,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
              gates: Gates) -> np.ndarray:
     """Add new visual words (rows) to ``omega`` (M, N); returns the new matrix."""
     m, n = omega.shape
-    if m >= ctx.max_rows:
+    if m >= ctx.search.max_rows:
         return omega
     c, s, _ = _frames(ctx, omega)
     boxes = column_boxes(ctx.xy, omega)
@@ -438,8 +466,8 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
         rx = min(lim, max(bw / 2.0, half))
         ry = min(lim, max(bh / 2.0, half))
     else:
-        rx = min(lim, bw / 2.0 + ctx.row_expand * max(bw, bh))
-        ry = min(lim, bh / 2.0 + ctx.row_expand * max(bw, bh))
+        rx = min(lim, bw / 2.0 + ctx.search.row_expand * max(bw, bh))
+        ry = min(lim, bh / 2.0 + ctx.search.row_expand * max(bw, bh))
     cx, cy = (b[0] + b[2]) / 2.0, (b[1] + b[3]) / 2.0
     x0, x1 = cx - rx, cx + rx
     y0, y1 = cy - ry, cy + ry
@@ -462,7 +490,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     size = _median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
     ratio = s / s[jr]                                   # (N,)
     pred = c[None] + ratio[None, :, None] * (ctx.xy[cand][:, None, :] - c[jr][None, None])  # (E, N, 2)
-    rad = ctx.pos_tol * size * ratio + 2.0              # (N,)
+    rad = ctx.search.pos_tol * size * ratio + 2.0              # (N,)
     dd, qq = ctx.tree.query(pred.reshape(-1, 2), k=4, distance_upper_bound=float(rad.max()))
     dd = dd.reshape(e, n, 4)
     qq = qq.reshape(e, n, 4)
@@ -477,7 +505,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     row = np.take_along_axis(qs, best[..., None], 2)[..., 0]
     row = np.where(np.isfinite(np.take_along_axis(dd, best[..., None], 2)[..., 0]), row, -1)
     row[:, jr] = cand                                   # (E, N)
-    need = max(2, int(np.ceil(ctx.min_fill * n)))
+    need = max(2, int(np.ceil(ctx.search.min_fill * n)))
     keep = (row >= 0).sum(1) >= need
     row, cand = row[keep], cand[keep]
     if len(row) == 0:
@@ -496,7 +524,7 @@ def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
     taken = used.copy()
     add = []
     for r in order:
-        if meanV[r] < ctx.u_min or m + len(add) >= ctx.max_rows:
+        if meanV[r] < ctx.search.u_min or m + len(add) >= ctx.search.max_rows:
             break
         rw = row[r].copy()
         clash = (rw >= 0) & taken[np.where(rw >= 0, rw, 0)]
@@ -561,7 +589,7 @@ def prune(ctx: SearchContext, omega: np.ndarray, gates: Gates,
         e_sum = (u * valid).sum(axis=(1, 3))          # per entry (m1, n1)
         e_cnt = valid.sum(axis=(1, 3))
         e_mean = np.where(e_cnt > 0, e_sum / np.maximum(e_cnt, 1), 0.0)
-        new = np.where(pres & (e_mean >= ctx.u_min * 0.5), omega, -1)
+        new = np.where(pres & (e_mean >= ctx.search.u_min * 0.5), omega, -1)
         keep_r = (new >= 0).sum(1) >= 2
         new = new[keep_r]
         if new.shape[0] < 2:
@@ -594,7 +622,7 @@ def search(ctx: SearchContext, seed: np.ndarray, available: np.ndarray,
     """
     omega = np.array([[seed[0], seed[1]], [seed[2], seed[3]]], np.int64)
     idle = False
-    for _ in range(ctx.max_iters):
+    for _ in range(ctx.search.max_iters):
         shape0 = omega.shape
         om0 = omega
         om1 = add_columns(ctx, om0, available, gates)

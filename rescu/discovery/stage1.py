@@ -62,7 +62,8 @@ from ..params import config_section, params_from_dict
 from ..io import read_h5, write_h5
 from ..layout import registered_centres
 from ..evaluation.metrics import cover_matrix
-from .search import SearchContext, matrix_objective, objective_parts, prune, search
+from .search import (SearchContext, SearchParams, matrix_objective, objective_parts, prune,
+                     search)
 from ..types import Features, Instance, Pattern, RPMatrix
 from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift, urp_affinity,
                   urp_terms)
@@ -72,7 +73,7 @@ ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
 @dataclass(frozen=True)
 @config_section("stage1")
-class Stage1Params(AffinityMatchGroups):
+class Stage1Params(AffinityMatchGroups, SearchParams):
     """Parameters of RESCU-I (see module docstring).
 
     Attributes
@@ -113,19 +114,8 @@ class Stage1Params(AffinityMatchGroups):
     match_k, match_max_dist, match_min_sep : candidate correspondences (RootSIFT kNN).
     spatial_k : int
         Spatial neighbours per feature when forming initial URPs.
-    pos_tol : float
-        Position tolerance of a predicted copy, fraction of the instance size.
-    u_min : float
-        Least mean affinity of a new row / column (and twice the least of an entry).
-    min_fill : float
-        A new row needs entries in this fraction of the instances (a new column in half
-        this fraction of the words).
-    max_overlap : float
-        Max IoU between feature boxes of two instances.
-    row_expand : float
-        New words are searched within the reference instance box grown by this
-        fraction of its size.
-    max_rows, max_cols, max_iters : size and iteration limits of one search.
+    pos_tol, u_min, min_fill, max_overlap, row_expand, max_rows, max_cols, max_iters
+        The search's tunables (:class:`rescu.discovery.search.SearchParams`).
     box_grow : float
         Instance box = feature hull grown by box_grow * median keypoint radius.
     extent_grow : float
@@ -169,14 +159,6 @@ class Stage1Params(AffinityMatchGroups):
     match_max_dist: float
     match_min_sep: float
     spatial_k: int
-    pos_tol: float
-    u_min: float
-    min_fill: float
-    max_overlap: float
-    row_expand: float
-    max_rows: int
-    max_cols: int
-    max_iters: int
     box_grow: float
     extent_grow: float
     max_nested_cover: float
@@ -319,10 +301,7 @@ def search_context(features: Features, params: Stage1Params) -> tuple[SearchCont
     ctx = SearchContext(
         xy=xy, scale=features.scale.astype(np.float64), angle=features.angle.astype(np.float64),
         rs=root_sift(features.descriptors), nbr=nbr, tree=cKDTree(xy),
-        affinity=params.affinity, desc_max_dist=params.match_max_dist,
-        pos_tol=params.pos_tol, u_min=params.u_min, min_fill=params.min_fill,
-        max_overlap=params.max_overlap, row_expand=params.row_expand,
-        max_rows=params.max_rows, max_cols=params.max_cols, max_iters=params.max_iters)
+        affinity=params.affinity, desc_max_dist=params.match_max_dist, search=params)
     w, h = features.image_size
     return ctx, float(np.hypot(w, h))
 

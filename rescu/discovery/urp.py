@@ -98,15 +98,8 @@ class MatchParams:
 class AffinityMatchGroups:
     """Mixin of a parameter dataclass with the flat fields ``sigma_s``, ``sigma_theta``,
     ``orientation_mode`` and ``match_k``, ``match_max_dist``, ``match_min_sep`` (as the
-    configuration spells them): the two groups as :class:`AffinityParams` and
-    :class:`MatchParams`."""
-
-    sigma_s: float
-    sigma_theta: float
-    orientation_mode: str
-    match_k: int
-    match_max_dist: float
-    match_min_sep: float
+    configuration spells them; the dataclass declares them): the two groups as
+    :class:`AffinityParams` and :class:`MatchParams`."""
 
     @property
     def affinity(self) -> AffinityParams:
