@@ -62,6 +62,12 @@ _SQRT3M1 = 0.7320508075688772     # hard assignment sequence (frac(i * (sqrt 3 -
 
 
 # ============================================================================ params
+#: An integer ``(min, max)`` range of :class:`SynthParams`, drawn from uniformly.
+IntRange = tuple[int, int]
+#: A real ``(min, max)`` range of :class:`SynthParams`, drawn from uniformly.
+FloatRange = tuple[float, float]
+
+
 def _range2(name: str, v: Any, lo: float | None = None, integer: bool = False
             ) -> tuple[Any, Any]:
     try:
@@ -86,9 +92,9 @@ def _range2(name: str, v: Any, lo: float | None = None, integer: bool = False
 class SynthParams:
     """Parameters of the synthetic benchmark (every tunable has a default).
 
-    Ranges are ``(min, max)`` pairs, drawn uniformly per image / pattern / instance. The
-    defaults, and what each field means, are the ``synthetic`` section of the shipped
-    configuration (``config/config.yaml``).
+    Ranges (:data:`IntRange`, :data:`FloatRange`) are ``(min, max)`` pairs, drawn
+    uniformly per image / pattern / instance. The defaults, and what each field means,
+    are the ``synthetic`` section of the shipped configuration (``config/config.yaml``).
     """
 
     n_images: int
@@ -102,14 +108,14 @@ class SynthParams:
     unequal_min_change: float
     hard_fraction: float
     photo_fraction: float
-    row_length: tuple[int, int]
-    grid_rows: tuple[int, int]
-    grid_cols: tuple[int, int]
-    instance_px: tuple[float, float]
-    aspect: tuple[float, float]
-    gap: tuple[float, float]
-    focal: tuple[float, float]
-    tilt_deg: tuple[float, float]
+    row_length: IntRange
+    grid_rows: IntRange
+    grid_cols: IntRange
+    instance_px: FloatRange
+    aspect: FloatRange
+    gap: FloatRange
+    focal: FloatRange
+    tilt_deg: FloatRange
     frontal_roll_deg: float
     shared_plane_prob: float
     texture_px: int
@@ -118,12 +124,12 @@ class SynthParams:
     deform: float
     lighting_gradient: float
     noise_sigma: float
-    blur_sigma: tuple[float, float]
-    occluded_instances: tuple[int, int]
-    occlusion_fraction: tuple[float, float]
-    n_blobs: tuple[int, int]
-    n_lines: tuple[int, int]
-    n_distractors: tuple[int, int]
+    blur_sigma: FloatRange
+    occluded_instances: IntRange
+    occlusion_fraction: FloatRange
+    n_blobs: IntRange
+    n_lines: IntRange
+    n_distractors: IntRange
 
     def __post_init__(self) -> None:
         if int(self.n_images) != self.n_images or self.n_images < 0 or self.n_images > 10000:
