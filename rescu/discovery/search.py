@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..params import config_section
-from .urp import AffinityParams, AffinityParts, Gates, pairs, urp_affinity
+from .urp import AffinityParams, AffinityParts, Gates, objective_omega, pairs, urp_affinity
 
 
 @dataclass(frozen=True)
@@ -191,8 +191,10 @@ def _unique(a: np.ndarray, return_counts: bool = False):
     return a[start], np.diff(np.r_[start, len(a)])
 
 
-def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Column centroids (N, 2), column scales (N,), row offset templates (M, 2)."""
+def _frames(ctx: SearchContext, omega: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Column centroids (N, 2), column scales (N,), row offset templates (M, 2) and
+    column boxes (N, 4) (:func:`column_boxes`) of ``omega`` (M, N), pixels."""
     cached = ctx.extra.get("_frames")
     if cached is not None and cached[0].shape == omega.shape and np.array_equal(cached[0], omega):
         return cached[1]                                # add_rows right after add_columns
@@ -214,8 +216,9 @@ def _frames(ctx: SearchContext, omega: np.ndarray) -> tuple[np.ndarray, np.ndarr
         c = np.where(np.isfinite(c2), c2, c)
         off = np.where(pres[..., None], (p - c[None]) / s[None, :, None], np.nan)
         tmpl = _nanmedian(off, axis=1)
-    ctx.extra["_frames"] = (omega.copy(), (c, s, tmpl))
-    return c, s, tmpl
+    boxes = column_boxes(ctx.xy, omega)
+    ctx.extra["_frames"] = (omega.copy(), (c, s, tmpl, boxes))
+    return c, s, tmpl, boxes
 
 
 def _desc_ok(ctx: SearchContext, cand: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -232,12 +235,15 @@ def _desc_ok(ctx: SearchContext, cand: np.ndarray, ref: np.ndarray) -> np.ndarra
 
 def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
                 gates: Gates) -> np.ndarray:
-    """Add new instances (columns) to ``omega`` (M, N); returns the new matrix."""
+    """Add new instances (columns) to ``omega`` (M, N) int64, up to ``max_cols`` columns.
+
+    Returns the (M, N') matrix with the new columns appended, or ``omega`` itself (the
+    same object) when none is added: :func:`search` tells an idle round by identity.
+    """
     m, n = omega.shape
     if n >= ctx.search.max_cols:
         return omega
-    c, s, tmpl = _frames(ctx, omega)
-    boxes = column_boxes(ctx.xy, omega)
+    c, s, tmpl, boxes = _frames(ctx, omega)
     size = _median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
     s_ref = _median(s)
     used = np.zeros(len(ctx.xy), bool)
@@ -435,12 +441,15 @@ def _build_column(ctx: SearchContext, omega: np.ndarray, C: np.ndarray, sg: floa
 
 def add_rows(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
              gates: Gates) -> np.ndarray:
-    """Add new visual words (rows) to ``omega`` (M, N); returns the new matrix."""
+    """Add new visual words (rows) to ``omega`` (M, N) int64, up to ``max_rows`` rows.
+
+    Returns the (M', N) matrix with the new rows appended, or ``omega`` itself (the same
+    object) when none is added (see :func:`add_columns`).
+    """
     m, n = omega.shape
     if m >= ctx.search.max_rows:
         return omega
-    c, s, _ = _frames(ctx, omega)
-    boxes = column_boxes(ctx.xy, omega)
+    c, s, _, boxes = _frames(ctx, omega)
     fill = (omega >= 0).sum(0)
     jr = int(np.argmax(fill))
     b = boxes[jr]
@@ -654,12 +663,10 @@ def matrix_objective(ctx: SearchContext, omega: np.ndarray, gates: Gates,
     """U(Omega) = 1/(M N) sum of u over its URPs, with the context's sigma and
     orientation mode (as :func:`rescu.discovery.urp.objective`); ``parts`` from
     :func:`objective_parts` of the same omega saves recomputing the affinities."""
-    omega = np.asarray(omega, np.int64)
-    if omega.ndim != 2:
-        raise ValueError(f"matrix_objective: omega must have shape (M, N), got {omega.shape}")
-    m, n = omega.shape
-    if m < 2 or n < 2:
+    omega = objective_omega(omega, "matrix_objective")
+    if omega is None:
         return 0.0
     if parts is None:
         parts = objective_parts(ctx, omega)
+    m, n = omega.shape
     return float(parts.gated(gates).sum() / (m * n))

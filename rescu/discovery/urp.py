@@ -319,6 +319,17 @@ def pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return i, j
 
 
+def objective_omega(omega: np.ndarray, caller: str) -> np.ndarray | None:
+    """An RP matrix ``omega`` (M, N) as int64 for an objective U(Omega), or None when it
+    has fewer than 2 rows or columns (U is 0 then); raises ValueError naming ``caller``
+    when ``omega`` is not 2-D."""
+    omega = np.asarray(omega, np.int64)
+    if omega.ndim != 2:
+        raise ValueError(f"{caller}: omega must have shape (M, N), got {omega.shape}")
+    m, n = omega.shape
+    return None if m < 2 or n < 2 else omega
+
+
 def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.ndarray,
               affinity: AffinityParams = AffinityParams(),
               gates: Gates | None = None) -> float:
@@ -334,12 +345,10 @@ def objective(xy: np.ndarray, scale: np.ndarray, angle: np.ndarray, omega: np.nd
     float
         0 for a matrix with fewer than 2 rows or columns.
     """
-    omega = np.asarray(omega, np.int64)
-    if omega.ndim != 2:
-        raise ValueError(f"objective: omega must have shape (M, N), got {omega.shape}")
-    m, n = omega.shape
-    if m < 2 or n < 2:
+    omega = objective_omega(omega, "objective")
+    if omega is None:
         return 0.0
+    m, n = omega.shape
     i1, i2 = pairs(m)
     j1, j2 = pairs(n)
     a = omega[i1][:, j1]   # f11: word m1, instance n1
