@@ -173,21 +173,23 @@ def cmd_discover(args: argparse.Namespace) -> int:
     return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
-def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float = 0.5,
+def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None = None,
                              out_dir: Path | None = None) -> int:
     """``rescu evaluate``: print the metrics of one prediction folder; return an exit code.
 
     Uses ``annotations.json`` (RP metrics and counting) and/or ``vanishing_points.json``
     (VP success rates) of ``dataset_dir``; a missing prediction counts as no detection.
-    Writes per-image scores and tables to ``out_dir`` when given. Returns 0, or 2 when
-    the dataset has no ground truth.
+    ``h`` is the IOD threshold (None: the configuration's ``evaluation.iod_h``). Writes
+    per-image scores and tables to ``out_dir`` when given. Returns 0, or 2 when the
+    dataset has no ground truth.
     """
-    from .evaluation.core import (evaluate_rp_dataset, frame_markdown, summary_markdown,
-                                  summary_table, write_tsv)
+    from .evaluation.core import (EvaluationParams, evaluate_rp_dataset, frame_markdown,
+                                  summary_markdown, summary_table, write_tsv)
     from .evaluation.counting import counting_table
     from .evaluation.vpd import vp_frame, vp_markdown, vp_success_table
     from .io import InputError, read_json
 
+    h = EvaluationParams().iod_h if h is None else h
     dataset_dir, pred_dir = Path(dataset_dir), Path(pred_dir)
     if not pred_dir.is_dir():
         raise InputError(f"{pred_dir}: prediction folder not found")
@@ -247,6 +249,8 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .params import config_defaults
+
     p = argparse.ArgumentParser(
         prog="rescu",
         description="RESCU: discover recurring patterns in single photos and use them for 3D "
@@ -291,7 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("dataset_dir", help="dataset folder: images/ + annotations.json / "
                                        "vanishing_points.json")
     e.add_argument("pred_dir", help="folder of <image stem>.json predictions")
-    e.add_argument("--h", type=float, default=0.5, help="IOD threshold (default 0.5)")
+    e.add_argument("--h", type=float, default=None,
+                   help=f"IOD threshold (default {config_defaults('evaluation')['iod_h']})")
     e.add_argument("--out", metavar="DIR", default=None,
                    help="also write the per-image scores and tables (TSV, Markdown) here")
     e.set_defaults(func=cmd_evaluate)
