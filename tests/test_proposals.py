@@ -5,7 +5,8 @@ import pytest
 
 from rescu.evaluation.metrics import iod_matrix
 from rescu.extension.proposals import (ProposalParams, edge_and_orientation, edgeboxes_proposals,
-                                       instance_scale_proposals, lattice_proposals, propose)
+                                       instance_scale_proposals, lattice_proposals,
+                                       proposal_params, propose)
 
 
 def _squares_image(n=5, sz=24, gap=16, h=80, seed=0):
@@ -32,7 +33,7 @@ def test_edge_maps_shape_and_range():
 
 def test_edgeboxes_inside_image():
     img, _ = _squares_image()
-    b, s = edgeboxes_proposals(img, ProposalParams(method="edgeboxes", max_boxes=200))
+    b, s = edgeboxes_proposals(img, proposal_params(method="edgeboxes", max_boxes=200))
     h, w = img.shape[:2]
     assert len(b) > 0 and len(b) == len(s)
     assert np.all(b[:, 0] >= 0) and np.all(b[:, 1] >= 0)
@@ -52,21 +53,21 @@ def test_instance_scale_covers_held_out_instance():
 
 def test_instance_scale_cap_and_empty():
     q = instance_scale_proposals(np.array([[0, 0, 10, 10.]]), (1000, 1000),
-                                 ProposalParams(max_windows=300))
+                                 proposal_params(max_windows=300))
     assert 0 < len(q) <= 300
     assert instance_scale_proposals(np.zeros((0, 4)), (100, 100)).shape == (0, 4)
 
 
 def test_propose_methods_and_bad_input():
     img, boxes = _squares_image()
-    bi, _ = propose(img, [boxes[:3]], ProposalParams(method="instance_scale"))
-    be, _ = propose(img, [boxes[:3]], ProposalParams(method="edgeboxes"))
-    bb, sb = propose(img, [boxes[:3]], ProposalParams(method="both"))
+    bi, _ = propose(img, [boxes[:3]], proposal_params(method="instance_scale"))
+    be, _ = propose(img, [boxes[:3]], proposal_params(method="edgeboxes"))
+    bb, sb = propose(img, [boxes[:3]], proposal_params(method="both"))
     assert len(bb) >= max(len(bi), len(be)) and len(bb) == len(sb)
     with pytest.raises(ValueError, match="rgb"):
-        propose(img[..., 0], [], ProposalParams())
+        propose(img[..., 0], [], proposal_params())
     with pytest.raises(ValueError, match="method"):
-        ProposalParams(method="selective")
+        proposal_params(method="selective")
     with pytest.raises(ValueError, match="unknown proposal parameter"):
         ProposalParams.from_dict({"nope": 1})
 
@@ -93,3 +94,21 @@ def test_lattice_windows_at_missing_row_positions():
 def test_lattice_windows_need_two_instances():
     assert lattice_proposals(np.array([[0, 0, 10, 10.]]), (100, 100)).shape == (0, 4)
     assert lattice_proposals(np.zeros((0, 4)), (100, 100)).shape == (0, 4)
+
+
+def test_proposal_params_from_the_configuration_section():
+    # one builder: the defaults are the stage2.proposals section of the shipped config,
+    # spelled as the configuration spells them
+    from rescu.extension.params import Stage2Params
+    from rescu.params import config_defaults
+
+    sec = config_defaults("stage2", "proposals")
+    p = proposal_params()
+    assert p == Stage2Params().proposals.proposal_params()
+    assert (p.method, p.max_boxes, p.scales, p.stride_fraction, p.max_windows) == (
+        sec["method"], sec["max_proposals"], tuple(sec["window_scales"]), sec["window_stride"],
+        sec["max_windows"])
+    assert proposal_params({"max_proposals": 50}, method="both").max_boxes == 50
+    assert ProposalParams.from_dict({"scales": [1, 2]}).scales == (1.0, 2.0)
+    with pytest.raises(ValueError, match="unknown proposal parameter"):
+        proposal_params({"max_boxs": 5})

@@ -17,7 +17,7 @@ from typing import Any
 
 from ..params import checked_mapping, config_section, deep_merge
 from .merge import MergeParams
-from .proposals import ProposalParams
+from .proposals import ProposalParams, proposal_params
 
 #: The ``method`` name of RESCU-II's results.
 METHOD = "rescu-ii"
@@ -136,13 +136,9 @@ class ProposalSectionParams:
         self.proposal_params()  # validates method
 
     def proposal_params(self) -> ProposalParams:
-        """This section as :class:`rescu.extension.proposals.ProposalParams`."""
-        return ProposalParams(method=self.method, edge_model_path=self.edge_model_path,
-                              max_boxes=self.max_proposals, scales=self.window_scales,
-                              stride_fraction=self.window_stride, max_windows=self.max_windows,
-                              lattice_neighbours=self.lattice_neighbours,
-                              lattice_steps=self.lattice_steps,
-                              lattice_scales=self.lattice_scales)
+        """This section as :class:`rescu.extension.proposals.ProposalParams`
+        (:func:`rescu.extension.proposals.proposal_params`)."""
+        return proposal_params({f.name: getattr(self, f.name) for f in fields(self)})
 
 
 @dataclass(frozen=True)

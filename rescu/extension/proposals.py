@@ -17,19 +17,28 @@ All boxes here are ``[x, y, w, h]`` in *processed* pixels (float32).
 """
 
 from __future__ import annotations
-from ..params import checked_mapping
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..params import checked_mapping, config_defaults
+
 PROPOSAL_METHODS = ("edgeboxes", "instance_scale", "both")
+
+#: The :class:`ProposalParams` field of each ``stage2.proposals`` key named otherwise.
+FIELD_OF_KEY = {"max_proposals": "max_boxes", "window_scales": "scales",
+                "window_stride": "stride_fraction"}
+#: ``stage2.proposals`` keys that are not proposal parameters (the caller reads them).
+SECTION_ONLY_KEYS = ("lattice_windows",)
 
 
 @dataclass(frozen=True)
 class ProposalParams:
-    """Tunables of the region proposals.
+    """Tunables of the region proposals; made by :func:`proposal_params`, which takes
+    the fields the ``stage2.proposals`` configuration section sets from there (they have
+    no defaults here). The EdgeBoxes internals after them are not configured.
 
     Attributes
     ----------
@@ -38,19 +47,13 @@ class ProposalParams:
     edge_model_path : str or None
         Structured-edge model (``model.yml.gz``); ``None`` = computed gradient edges.
     max_boxes : int
-        Most EdgeBoxes proposals.
-    edgeboxes_alpha, edgeboxes_beta : float
-        EdgeBoxes sliding-window step and NMS threshold (alpha, beta in the paper).
-    edgeboxes_min_score : float
-        Smallest EdgeBoxes score kept.
-    min_box_side : float
-        Smallest proposal side, processed pixels.
-    edge_sigma : float
-        Gaussian smoothing before the gradients, pixels.
+        Most EdgeBoxes proposals (``max_proposals`` in the configuration).
     scales : tuple of float
-        Instance-scale windows: multiples of the RP's median instance size.
+        Instance-scale windows: multiples of the RP's median instance size
+        (``window_scales``).
     stride_fraction : float
-        Instance-scale windows: stride as a fraction of the window size (1/4).
+        Instance-scale windows: stride as a fraction of the window size
+        (``window_stride``).
     max_windows : int
         Most instance-scale windows per RP (the stride grows to stay under it).
     lattice_neighbours : int
@@ -59,22 +62,30 @@ class ProposalParams:
         Lattice windows: extrapolate up to this many steps past an instance (m below).
     lattice_scales : tuple of float
         Lattice windows: multiples of the source instance's width and height.
+    edgeboxes_alpha, edgeboxes_beta : float
+        EdgeBoxes sliding-window step and NMS threshold (alpha, beta in the paper).
+    edgeboxes_min_score : float
+        Smallest EdgeBoxes score kept.
+    min_box_side : float
+        Smallest proposal side, processed pixels.
+    edge_sigma : float
+        Gaussian smoothing before the gradients, pixels.
     """
 
-    method: str = "both"
-    edge_model_path: str | None = None
-    max_boxes: int = 1000
+    method: str
+    edge_model_path: str | None
+    max_boxes: int
+    scales: tuple[float, ...]
+    stride_fraction: float
+    max_windows: int
+    lattice_neighbours: int
+    lattice_steps: int
+    lattice_scales: tuple[float, ...]
     edgeboxes_alpha: float = 0.65
     edgeboxes_beta: float = 0.75
     edgeboxes_min_score: float = 0.01
     min_box_side: float = 8.0
     edge_sigma: float = 1.0
-    scales: tuple[float, ...] = (0.85, 1.0, 1.2)
-    stride_fraction: float = 0.25
-    max_windows: int = 4000
-    lattice_neighbours: int = 4
-    lattice_steps: int = 2
-    lattice_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
 
     def __post_init__(self) -> None:
         if self.method not in PROPOSAL_METHODS:
@@ -84,11 +95,41 @@ class ProposalParams:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ProposalParams":
+        """Build from a mapping of fields (the others from the configuration, as
+        :func:`proposal_params`); raises ValueError naming any unknown key."""
         d = checked_mapping(cls, d, "proposal parameter")
         for k in ("scales", "lattice_scales"):
             if k in d:
                 d[k] = tuple(float(s) for s in d[k])
-        return cls(**d)
+        return proposal_params(**d)
+
+
+def proposal_params(section: Mapping[str, Any] | None = None, **fields: Any
+                    ) -> ProposalParams:
+    """The region-proposal parameters of a ``stage2.proposals`` configuration section:
+    the one way their defaults are made.
+
+    Parameters
+    ----------
+    section : mapping, optional
+        ``stage2.proposals`` keys, as the configuration names them (``max_proposals``,
+        ``window_scales``, ...; see :data:`FIELD_OF_KEY`); the keys it leaves out take
+        the shipped configuration's values. :data:`SECTION_ONLY_KEYS` are ignored.
+    **fields
+        :class:`ProposalParams` fields set directly (``method="edgeboxes"``), over the
+        section.
+
+    Returns
+    -------
+    ProposalParams
+        Raises ValueError naming an unknown key.
+    """
+    sec = config_defaults("stage2", "proposals")
+    sec.update(section or {})
+    d = {FIELD_OF_KEY.get(k, k): tuple(v) if isinstance(v, list) else v
+         for k, v in sec.items() if k not in SECTION_ONLY_KEYS}
+    d.update(fields)
+    return ProposalParams(**checked_mapping(ProposalParams, d, "proposal parameter"))
 
 
 def _check_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -159,7 +200,7 @@ def edge_and_orientation(rgb: np.ndarray, sigma: float = 1.0,
     return edges, theta
 
 
-def edgeboxes_proposals(rgb: np.ndarray, params: ProposalParams = ProposalParams()
+def edgeboxes_proposals(rgb: np.ndarray, params: ProposalParams | None = None
                         ) -> tuple[np.ndarray, np.ndarray]:
     """EdgeBoxes proposals.
 
@@ -167,7 +208,8 @@ def edgeboxes_proposals(rgb: np.ndarray, params: ProposalParams = ProposalParams
     ----------
     rgb : (H, W, 3) uint8
         Processed image.
-    params : ProposalParams
+    params : ProposalParams, optional
+        Default: :func:`proposal_params` (the configuration's).
 
     Returns
     -------
@@ -176,6 +218,7 @@ def edgeboxes_proposals(rgb: np.ndarray, params: ProposalParams = ProposalParams
     scores : (P,) float32
         EdgeBoxes objectness scores (higher = better).
     """
+    params = proposal_params() if params is None else params
     import cv2
 
     rgb = _check_rgb(rgb)
@@ -196,7 +239,7 @@ def edgeboxes_proposals(rgb: np.ndarray, params: ProposalParams = ProposalParams
 
 
 def instance_scale_proposals(instance_boxes: np.ndarray, image_size: tuple[int, int],
-                             params: ProposalParams = ProposalParams()) -> np.ndarray:
+                             params: ProposalParams | None = None) -> np.ndarray:
     """Sliding windows at the scale of one RP's instances.
 
     Parameters
@@ -205,9 +248,9 @@ def instance_scale_proposals(instance_boxes: np.ndarray, image_size: tuple[int, 
         The RP's stage-I instance boxes ``[x, y, w, h]``, processed pixels (N >= 1).
     image_size : (int, int)
         ``(width, height)`` of the processed image.
-    params : ProposalParams
+    params : ProposalParams, optional
         ``scales`` (multiples of the median instance width and height), ``stride_fraction``
-        and ``max_windows``.
+        and ``max_windows``; default :func:`proposal_params`.
 
     Returns
     -------
@@ -216,6 +259,7 @@ def instance_scale_proposals(instance_boxes: np.ndarray, image_size: tuple[int, 
         each scale is anchored on the first instance so that windows aligned with the
         instance lattice are generated.
     """
+    params = proposal_params() if params is None else params
     b = np.asarray(instance_boxes, np.float64).reshape(-1, 4)
     if len(b) == 0:
         return np.zeros((0, 4), np.float32)
@@ -248,7 +292,7 @@ def instance_scale_proposals(instance_boxes: np.ndarray, image_size: tuple[int, 
 
 
 def lattice_proposals(instance_boxes: np.ndarray, image_size: tuple[int, int],
-                      params: ProposalParams = ProposalParams()) -> np.ndarray:
+                      params: ProposalParams | None = None) -> np.ndarray:
     """Windows at the positions the RP's instance lattice predicts for missing instances.
 
     Instances of an RP lie on rows / grids (in perspective, approximately), so a missing
@@ -265,8 +309,9 @@ def lattice_proposals(instance_boxes: np.ndarray, image_size: tuple[int, int],
         The RP's stage-I instance boxes ``[x, y, w, h]``, processed pixels.
     image_size : (int, int)
         ``(width, height)`` of the processed image.
-    params : ProposalParams
-        ``lattice_neighbours`` (k), ``lattice_steps`` (m), ``lattice_scales``.
+    params : ProposalParams, optional
+        ``lattice_neighbours`` (k), ``lattice_steps`` (m), ``lattice_scales``; default
+        :func:`proposal_params`.
 
     Returns
     -------
@@ -274,6 +319,7 @@ def lattice_proposals(instance_boxes: np.ndarray, image_size: tuple[int, int],
         Windows ``[x, y, w, h]`` clipped to the image, processed pixels (Q = 0 when
         N < 2).
     """
+    params = proposal_params() if params is None else params
     b = np.asarray(instance_boxes, np.float64).reshape(-1, 4)
     W, H = float(image_size[0]), float(image_size[1])
     if len(b) < 2:
@@ -322,7 +368,7 @@ def clip_boxes(boxes: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
 
 
 def propose(rgb: np.ndarray, rp_instance_boxes: Sequence[np.ndarray],
-            params: ProposalParams = ProposalParams()) -> tuple[np.ndarray, np.ndarray]:
+            params: ProposalParams | None = None) -> tuple[np.ndarray, np.ndarray]:
     """All proposals of an image for the configured ``method``.
 
     Parameters
@@ -332,7 +378,8 @@ def propose(rgb: np.ndarray, rp_instance_boxes: Sequence[np.ndarray],
     rp_instance_boxes : list of (N_k, 4) float
         Stage-I instance boxes of each RP, processed pixels (used by instance-scale
         windows).
-    params : ProposalParams
+    params : ProposalParams, optional
+        Default: :func:`proposal_params` (the configuration's).
 
     Returns
     -------
@@ -341,6 +388,7 @@ def propose(rgb: np.ndarray, rp_instance_boxes: Sequence[np.ndarray],
     scores : (P,) float32
         EdgeBoxes score, or 0 for instance-scale windows.
     """
+    params = proposal_params() if params is None else params
     rgb = _check_rgb(rgb)
     h, w = rgb.shape[:2]
     boxes, scores = [np.zeros((0, 4), np.float32)], [np.zeros((0,), np.float32)]
