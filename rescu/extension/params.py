@@ -275,15 +275,13 @@ class PredictParams:
 
     Attributes
     ----------
-    score_threshold : float
-        Smallest class probability of a new instance.
-    max_distance_ratio : float
+    score_threshold, lattice_score_threshold : float
+        Smallest class probability of a new instance from another proposal / from a
+        lattice window.
+    max_distance_ratio, lattice_distance_ratio : float
         A new instance's feature must lie within this times the RP's instance radius
-        (largest instance-to-centre distance) of an RP cluster centre.
-    lattice_score_threshold : float
-        Smallest class probability of a new instance from a lattice window.
-    lattice_distance_ratio : float
-        ``max_distance_ratio`` for lattice windows.
+        (largest instance-to-centre distance) of an RP cluster centre (other proposals /
+        lattice windows).
     lattice_only : bool
         New instances come only from lattice windows (the other proposals are training
         examples only); on real stage-I output the off-lattice additions were mostly
