@@ -59,8 +59,8 @@ def config_defaults(*path: str) -> dict[str, Any]:
     """A copy of the default configuration's mapping at ``path``.
 
     ``config_defaults("stage1")`` is the ``stage1`` section, ``config_defaults("scene",
-    "completion")`` a nested one. YAML lists stay lists: a tuple-typed field converts
-    (``tuple(_D["adaptive"])``). Raises KeyError naming the path when it is absent.
+    "completion")`` a nested one. YAML lists stay lists (:func:`config_section` makes
+    them tuples). Raises KeyError naming the path when it is absent.
     """
     d: Any = _default_config()
     for i, k in enumerate(path):
