@@ -53,7 +53,7 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     ImageResult
         With ``extra["failure"]`` set (and no pattern) when the image could not be
         processed (unreadable, too small, stage I failed): this function does not raise
-        for a bad image. When a later step failed (stage II, scene, caption), the
+        for a bad image. When a later step failed (stage II, scene, image VP, caption), the
         previous step's patterns are kept and the record has ``"degraded_to"`` (see
         :func:`rescu.pipeline.is_degraded`).
 
@@ -137,7 +137,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         rect = Path(out_dir) / f"{stem}_rectified" if out_dir is not None else work / "rect"
         pipeline.scene(w("image.png"), w("meta.json"), source, w("scene.json"), str(rect),
                        cfg["scene"])
-        pipeline.caption(w("image.png"), w("meta.json"), w("scene.json"), w("final.json"),
+        pipeline.image_vp(w("image.png"), w("meta.json"), w("scene.json"), w("joint.json"),
+                          cfg["scene"])
+        pipeline.caption(w("image.png"), w("meta.json"), w("joint.json"), w("final.json"),
                          cfg["caption"])
         result = io.read_result(w("final.json"))
         if out_dir is not None:

@@ -132,6 +132,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .discovery.grasp import GraspParams
     from .pipeline import ablation_overrides
     from .scene.analyse import SceneParams
+    from .scene.vp.manhattan import ImageVPParams
     from .discovery.stage1 import Stage1Params
     from .extension.params import Stage2Params, predict_only_error
     from .data.synth import SynthParams
@@ -165,9 +166,9 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
         build(f"stage2_ablation.predict_variants.{name}",
               lambda: Stage2Params.variant(s2, over))
     scene = config["scene"]
-    build("scene", lambda: SceneParams.from_dict(
-        {k: v for k, v in scene.items() if k not in ("source", "completion")}))
+    build("scene", lambda: SceneParams.from_config(scene))
     build("scene.completion", lambda: CompletionParams.from_dict(scene.get("completion") or {}))
+    build("scene.image_vp", lambda: ImageVPParams.from_dict(scene.get("image_vp") or {}))
     build("caption", lambda: CaptionParams.from_dict(config["caption"]))
     build("synthetic", lambda: SynthParams.from_dict(config["synthetic"]))
     build("evaluation", lambda: EvaluationParams.from_dict(config["evaluation"]))

@@ -519,6 +519,91 @@ def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> 
     return _guard("lsd-vp", meta.get("failure"), run, empty)
 
 
+def vp_truth(annotations_json: str, out_json: str) -> None:
+    """The derived VP ground truth of a dataset of rectified photos
+    (:func:`rescu.data.datasets.rectified_vp_truth`) from its ``annotations.json``."""
+    from .data.datasets import rectified_vp_truth
+
+    try:
+        truth = rectified_vp_truth(io.read_json(annotations_json))
+    except io.InputError as e:
+        raise io.InputError(f"{annotations_json}: {e}") from None
+    io.write_json(out_json, truth)
+
+
+def dataset_focal(gt_json: str | None, meta_path: str) -> float | None:
+    """The true focal length (original pixels) of the image of ``meta_path`` in a dataset's
+    ``vanishing_points.json`` (its calibration); None when not given there."""
+    if not gt_json:
+        return None
+    from .io import load_vanishing_points
+
+    g = load_vanishing_points(gt_json).get(io.read_json(meta_path).get("image", ""))
+    f = None if g is None else g.get("focal_px")
+    return None if f is None else float(f)
+
+
+def image_vp(png: str, meta_path: str, in_json: str, out_json: str,
+             params: dict[str, Any], focal_px: float | None = None) -> Failure | None:
+    """The image's VPs from RP rows and LSD lines together (the joint estimator).
+
+    ``params`` is the config's ``scene`` section (its ``image_vp`` entry:
+    :class:`rescu.scene.vp.manhattan.ImageVPParams`); ``focal_px`` the true focal length
+    (original pixels) when known. See :mod:`rescu.scene.image_vp`; a failure of this
+    step keeps the scene result (degraded).
+    """
+    from .scene import analyse as SC
+    from .scene.image_vp import image_vanishing_points
+    from .scene.vp.manhattan import ImageVPParams
+
+    meta = io.read_json(meta_path)
+    src = io.read_result(in_json)
+
+    def run() -> None:
+        p = SC.SceneParams.from_config(params)
+        ip = ImageVPParams.from_dict(params.get("image_vp"))
+        rgb, _ = read_prepared(png, meta_path)
+        res = image_vanishing_points(rgb, float(meta["scale_factor"]), src, p, ip, focal_px)
+        io.write_json(out_json, res)
+
+    upstream = _blocking(src.extra.get("failure"))
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
+                      else degraded_result(src, src.method, f))
+
+    return _guard("image-vp", upstream, run, empty)
+
+
+def peer_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any],
+            focal_px: float | None = None) -> Failure | None:
+    """A peer's VPs (``lu-vp-detect``, Lu et al. 2017) as a per-image JSON (method
+    "lu-vp-detect"); ``focal_px`` (original pixels) defaults to the larger image side.
+    See :func:`rescu.scene.vp.peers.lu_vanishing_points`."""
+    from .scene.vp.peers import lu_vanishing_points
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        sf = float(meta["scale_factor"])
+        w, h = meta["original_size"]
+        f = float(focal_px) if focal_px is not None else float(max(w, h))
+        res = empty_result(meta, "lu-vp-detect", None)
+        vps = lu_vanishing_points(rgb, f * sf, seed=int(params["seed"]),
+                                  length_px=float(params["length_px"]) * sf,
+                                  scale_factor=sf)
+        res.vanishing_point = vps[0].vanishing_point if vps else None
+        res.extra["vanishing_points"] = [m.to_json() for m in vps]
+        res.extra["focal_px"] = f
+        io.write_json(out_json, res)
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, "lu-vp-detect", f))
+
+    return _guard("peer-vp", meta.get("failure"), run, empty)
+
+
 # --------------------------------------------------------------------------- captions
 def caption(png: str, meta_path: str, in_json: str, out_json: str,
             params: dict[str, Any]) -> Failure | None:

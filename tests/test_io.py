@@ -222,3 +222,31 @@ def test_config_defaults_are_the_shipped_config():
     assert config_defaults("stage1")["P_d"] == shipped["stage1"]["P_d"]
     with pytest.raises(KeyError, match="stage1.nope"):
         config_defaults("stage1", "nope")
+
+
+def test_rectified_photos_get_derived_vp_truth(tmp_path):
+    from rescu import pipeline
+    from rescu.data.datasets import build_image_table
+    from rescu.io import load_vanishing_points
+
+    root = tmp_path / "facades"
+    (root / "images").mkdir(parents=True)
+    (root / "images" / "a.jpg").write_bytes(b"")
+    (root / "annotations.json").write_text(json.dumps({"images": [
+        {"id": 1, "file_name": "images/a.jpg", "width": 40, "height": 30}],
+        "annotations": [], "categories": []}))
+    cfg = {**load_config(), "run_datasets": None,
+           "datasets": {"f": {"path": str(root), "vp_truth": "rectified"},
+                        "g": {"path": str(root)}}}
+    table = build_image_table(cfg, str(tmp_path / "results"))
+    assert table["f"]["has_vps"] and table["f"]["vp_truth"] == tmp_path / "results" / "f" / \
+        "vanishing_points.json"
+    assert not table["g"]["has_vps"] and table["g"]["vp_truth"] is None
+    pipeline.vp_truth(str(root / "annotations.json"), str(table["f"]["vp_truth"]))
+    gt = load_vanishing_points(table["f"]["vp_truth"])
+    assert list(gt) == ["images/a.jpg"] and gt["images/a.jpg"]["focal_px"] is None
+    assert [v.tolist() for v in gt["images/a.jpg"]["vanishing_points"]] == [[1, 0, 0],
+                                                                             [0, 1, 0]]
+    (root / "annotations.json").write_text(json.dumps({"images": [{"id": 1}]}))
+    with pytest.raises(InputError, match=r"annotations.json: .*images\[0\] needs file_name"):
+        pipeline.vp_truth(str(root / "annotations.json"), str(tmp_path / "x.json"))

@@ -3,7 +3,10 @@
 A dataset is a name and a folder in the layout of ``../shared/README.md``: ``images/``
 plus ``annotations.json`` (COCO boxes; recurring-pattern ground truth) and/or
 ``vanishing_points.json``. A plain folder of photos (no ``images/`` subfolder, no ground
-truth) works too. Two datasets are built by the pipeline itself: ``kind: synthetic``
+truth) works too. A folder of *rectified* photos (facades seen frontally, e.g. the CMP
+facade database) can say ``vp_truth: rectified``: its VP ground truth is then derived
+(:func:`rectified_vp_truth`, written under the results folder): a rectified image's rows
+and columns meet at the horizontal and the vertical point at infinity. Two datasets are built by the pipeline itself: ``kind: synthetic``
 (the generated benchmark) and ``kind: package_photos`` (photos shipped inside installed
 packages).
 """
@@ -62,7 +65,9 @@ def build_image_table(config: dict[str, Any], results_dir: str,
     """The images of every configured dataset, known before anything runs.
 
     Returns ``{dataset: {"root": Path, "kind": str, "images": {stem: path}, "names":
-    {stem: "images/<file>"}, "has_rps": bool, "has_vps": bool}}``. A folder dataset
+    {stem: "images/<file>"}, "has_rps": bool, "has_vps": bool, "vp_truth": Path | None}}``;
+    ``vp_truth`` is the dataset's ``vanishing_points.json`` (for ``vp_truth: rectified``
+    the derived one, ``<results_dir>/<dataset>/vanishing_points.json``). A folder dataset
     whose folder is missing is skipped with a message (``log``); two images with the
     same stem in one dataset are an error naming both. Only the datasets of
     ``run_datasets`` are listed when it is set (:func:`selected_datasets`), otherwise
@@ -97,7 +102,8 @@ def build_image_table(config: dict[str, Any], results_dir: str,
                            and p.suffix.lower() in IMAGE_EXTENSIONS
                            and not p.name.startswith("."))
             has_rps = (root / "annotations.json").is_file()
-            has_vps = (root / "vanishing_points.json").is_file()
+            has_vps = (root / "vanishing_points.json").is_file() or (
+                spec.get("vp_truth") == "rectified" and has_rps)
             if not files:
                 log(f"rescu: dataset '{name}': no images in {folder}, skipped")
                 continue
@@ -112,6 +118,40 @@ def build_image_table(config: dict[str, Any], results_dir: str,
                                  f"name '{stem}'; rename one of them")
             imgs[stem] = folder / f
             names[stem] = prefix + f
+        truth = None
+        if has_vps:
+            truth = (Path(results_dir) / name / "vanishing_points.json"
+                     if spec.get("vp_truth") == "rectified" else root / "vanishing_points.json")
         table[name] = {"root": root, "kind": kind, "images": {s: str(p) for s, p in imgs.items()},
-                       "names": names, "has_rps": has_rps, "has_vps": has_vps}
+                       "names": names, "has_rps": has_rps, "has_vps": has_vps,
+                       "vp_truth": truth}
     return table
+
+
+def rectified_vp_truth(annotations: dict[str, Any]) -> dict[str, Any]:
+    """VP ground truth of rectified photos, from their COCO ``annotations`` (image sizes).
+
+    In a rectified photo of a facade the rows of the facade are horizontal and its
+    columns vertical in the image: they meet at the horizontal and the vertical points at
+    infinity. Each image gets those two VPs (``homogeneous`` ``[1, 0, 0]`` and ``[0, 1, 0]``,
+    directions ``[1, 0, 0]`` and ``[0, 1, 0]``) and no focal length, in the format of
+    ``vanishing_points.json`` (``../shared/README.md``).
+
+    >>> t = rectified_vp_truth({"images": [{"file_name": "images/a.jpg", "width": 4,
+    ...                                      "height": 3}]})
+    >>> [v["homogeneous"] for v in t["images"][0]["vanishing_points"]]
+    [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    """
+    if not isinstance(annotations, dict) or not isinstance(annotations.get("images"), list):
+        raise InputError("annotations: field 'images' missing or not a list")
+    out = []
+    for i, im in enumerate(annotations["images"]):
+        if not isinstance(im, dict) or not all(k in im for k in ("file_name", "width",
+                                                                   "height")):
+            raise InputError(f"annotations: images[{i}] needs file_name, width and height")
+        vps = [{"direction": d, "homogeneous": d} for d in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])]
+        out.append({"file_name": im["file_name"], "width": int(im["width"]),
+                    "height": int(im["height"]), "focal_px": None, "principal_point": None,
+                    "vanishing_points": vps})
+    return {"derived_from": "rectified photos: rows horizontal, columns vertical",
+            "images": out}

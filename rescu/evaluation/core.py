@@ -68,6 +68,9 @@ class EvaluationParams:
         Point-error thresholds of the VPD success rate, pixels.
     vp_deg_thresholds : tuple of float
         Angle-error thresholds of the VPD success rate, degrees.
+    vp_aa_thresholds : tuple of float
+        Thresholds t of the VPD angular accuracy AA@t (area under the angle-accuracy
+        curve from 0 to t degrees, divided by t), degrees.
     ts_t_fine, ts_t_coarse : tuple of float
         Cross-ratio tolerances t of the SR_ts sweeps over (0, 0.15] and (0, 1].
     ts_which : str
@@ -82,6 +85,7 @@ class EvaluationParams:
     significance_alpha: float
     vp_px_thresholds: tuple[float, ...]
     vp_deg_thresholds: tuple[float, ...]
+    vp_aa_thresholds: tuple[float, ...]
     ts_t_fine: tuple[float, ...]
     ts_t_coarse: tuple[float, ...]
     ts_which: str
@@ -99,8 +103,8 @@ class EvaluationParams:
         if self.ts_which not in ("any", "dominant"):
             raise ValueError("EvaluationParams.ts_which must be 'any' or 'dominant', got "
                              f"{self.ts_which!r}")
-        for name in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "ts_t_fine",
-                     "ts_t_coarse"):
+        for name in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "vp_aa_thresholds",
+                     "ts_t_fine", "ts_t_coarse"):
             v = getattr(self, name)
             if len(v) == 0 or any(not (float(x) > 0) for x in v):
                 raise ValueError(f"EvaluationParams.{name} must be a non-empty list of "

@@ -24,7 +24,13 @@ from ..io import atomic_path, read_result
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
 RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
-VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines": "vp-lsd"}
+VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines": "vp-lsd",
+              "RESCU joint": "scene-joint", "RESCU joint (true focal)": "scene-joint-f",
+              "lu-vp-detect (true focal)": "vp-lu"}
+"""VPD table rows -> per-image folders: the RP-only VP with and without the angular
+constraint (scene step), the LSD-line baseline, the joint estimator (RP rows + lines,
+focal estimated, the final JSON's VP; and with the dataset's true focal) and the peer
+``lu-vp-detect`` (given the true focal)."""
 
 
 @dataclass
@@ -34,6 +40,8 @@ class DatasetRef:
 
     root: Path
     images: list[str]
+    vp_truth: Path | None = None
+    """The VP ground truth file (None: ``root / "vanishing_points.json"``)."""
 
 
 def _with_dataset(t: pd.DataFrame, name: str) -> pd.DataFrame:
@@ -152,16 +160,29 @@ def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
 def vp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E.EvaluationParams,
               out_tsv: str | Path, out_md: str | Path, out_errors: str | Path,
               out_tests: str | Path, figures_dir: str | Path,
-              methods: Mapping[str, str] = VP_METHODS) -> None:
+              methods: Mapping[str, str] = VP_METHODS, out_aa: str | Path | None = None,
+              out_triplet: str | Path | None = None) -> None:
     """VPD success rates (point- and vector-based) vs threshold, per dataset and method,
-    with paired tests between methods; curves as PNG."""
+    with paired tests between methods; curves as PNG; the angular accuracy AA@t of the
+    dominant VP and of the triplet (true and nominal focal) into ``out_aa``, the
+    triplet's per-GT-VP errors into ``out_triplet``."""
     results = Path(results)
-    frames = []
+    frames, triplets = [], []
     for name, ref in datasets.items():
-        frames.append(EV.vp_frame(ref.root, _pred_dirs(results, name, methods),
-                                 images=ref.images).assign(dataset=name))
+        dirs = _pred_dirs(results, name, methods)
+        frames.append(EV.vp_frame(ref.root, dirs, images=ref.images, truth=ref.vp_truth)
+                      .assign(dataset=name))
+        triplets.append(EV.vp_triplet_frame(ref.root, dirs, images=ref.images,
+                                            truth=ref.vp_truth).assign(dataset=name))
     errors = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    triplet = pd.concat(triplets, ignore_index=True) if triplets else pd.DataFrame()
+    aa = EV.vp_aa_table(errors, triplet, params.vp_aa_thresholds) if len(errors) else \
+        pd.DataFrame()
     E.write_tsv(errors, out_errors)
+    if out_aa is not None:
+        E.write_tsv(aa, out_aa)
+    if out_triplet is not None:
+        E.write_tsv(triplet, out_triplet)
     if len(errors):
         success = EV.vp_success_table(errors, params.vp_px_thresholds, params.vp_deg_thresholds)
         tests = EV.vp_significance(errors)
@@ -171,6 +192,8 @@ def vp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
                 EP.plot_vp_curves(s, Path(figures_dir) / f"vpd_{name}.png",
                                  title=f"{name}: VP success rate")
         md = EV.vp_markdown(success, params.decimals, errors)
+        if len(aa):
+            md += "\n" + EV.vp_aa_markdown(aa, params.decimals)
         if len(tests):
             md += "\n\nPaired Wilcoxon tests of per-image errors:\n\n" + \
                 E.frame_markdown(tests, 4)
@@ -256,7 +279,8 @@ def summary_markdown(parts: Sequence[tuple[str, str | Path]], header: str) -> st
 def dataset_refs(table: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> dict[str, DatasetRef]:
     """:class:`DatasetRef` for the named datasets of an image table
     (:func:`rescu.data.datasets.build_image_table`)."""
-    return {n: DatasetRef(Path(table[n]["root"]), sorted(dict(table[n]["names"]).values()))
+    return {n: DatasetRef(Path(table[n]["root"]), sorted(dict(table[n]["names"]).values()),
+                          Path(table[n]["vp_truth"]) if table[n].get("vp_truth") else None)
             for n in names}
 
 

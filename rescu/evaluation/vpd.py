@@ -7,7 +7,15 @@ the point error is the pixel distance between the dehomogenised points
 the angle error the angle between the back-projected 3D directions
 (:func:`rescu.scene.vp.errors.vector_error`; sign-free), with the true focal length and
 principal point where the dataset gives them, else ``f = (w + h) / 4`` and the image
-centre. A missing prediction has infinite errors (a failure at every threshold).
+centre. A missing prediction has infinite errors (a failure at every threshold). Every
+angle error is also given with the *nominal* focal (``f = (w + h) / 4`` and the image centre,
+``angle_error_nominal_deg``), so that a dataset with a true focal reads both ways.
+
+Beside the dominant VP, :func:`vp_triplet_frame` scores every VP a method lists (the
+``vanishing_points`` of the joint estimator and of peers; a method with one VP lists that):
+each ground-truth VP to its *closest* listed VP. :func:`vp_aa_table` gives the literature's
+angular accuracy AA@t (the area under the curve of the share of errors below x, for x
+from 0 to t degrees, divided by t) for both.
 """
 
 from __future__ import annotations
@@ -19,13 +27,16 @@ import numpy as np
 import pandas as pd
 
 from ..io import load_vanishing_points
-from ..scene.vp.errors import closest_gt_error
+from ..scene.vp.errors import closest_gt_error, vector_error
+from ..types import ImageResult
 from .core import EvaluationParams, _check_pred_dirs, _paired, load_predictions, paired_wilcoxon
 
 
 def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
-             images: Iterable[str] | None = None) -> pd.DataFrame:
-    """VP errors per image x method against ``vanishing_points.json``.
+             images: Iterable[str] | None = None,
+             truth: str | Path | None = None) -> pd.DataFrame:
+    """VP errors per image x method against ``vanishing_points.json`` (``truth``: another
+    file in its format, e.g. the derived truth of rectified photos).
 
     Returns
     -------
@@ -38,36 +49,163 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
     """
     dataset_dir = Path(dataset_dir)
     _check_pred_dirs(pred_dirs)
-    gt = load_vanishing_points(dataset_dir / "vanishing_points.json")
-    if images is not None:
-        keep = set(images)
-        gt = {f: v for f, v in gt.items() if f in keep}
+    gt = _truth(dataset_dir, images, truth)
     rows = []
     for method, d in pred_dirs.items():
         preds = load_predictions(d, gt.keys())
         for f, g in gt.items():
-            w, hgt = g["width"], g["height"]
-            true_f = g.get("focal_px") is not None
-            focal = float(g["focal_px"]) if true_f else (w + hgt) / 4.0
-            pp = (g["principal_point"] if g.get("principal_point") is not None
-                  else (w / 2.0, hgt / 2.0))
             if not g["vanishing_points"]:
                 continue  # nothing to compare with (e.g. a frontal synthetic image)
+            size, focal, pp, true_f = _camera(g)
             res = preds[f]
             vp = res.vanishing_point if res is not None else None
             if vp is None:
-                pe = ae = float("inf")
+                pe = ae = an = float("inf")
             else:
                 pe = closest_gt_error(vp.homogeneous, g["vanishing_points"], "point",
-                                      (w, hgt), focal, pp)
+                                      size, focal, pp)
                 ae = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
-                                      (w, hgt), focal, pp)
+                                      size, focal, pp)
+                an = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector", size)
             rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
                          "vp_missing": vp is None, "point_error_px": pe,
-                         "angle_error_deg": ae, "focal_px": focal,
-                         "focal_source": "true" if true_f else "assumed",
+                         "angle_error_deg": ae, "angle_error_nominal_deg": an,
+                         "focal_px": focal, "focal_source": "true" if true_f else "assumed",
                          "n_gt_vps": len(g["vanishing_points"])})
     return pd.DataFrame(rows)
+
+
+def _truth(dataset_dir: Path, images: Iterable[str] | None,
+           truth: str | Path | None) -> dict[str, dict]:
+    """The GT VPs (``truth``, default ``dataset_dir / "vanishing_points.json"``) of
+    ``images`` (None: all)."""
+    gt = load_vanishing_points(truth if truth is not None
+                               else dataset_dir / "vanishing_points.json")
+    if images is not None:
+        keep = set(images)
+        gt = {f: v for f, v in gt.items() if f in keep}
+    return gt
+
+
+def _camera(g: Mapping) -> tuple[tuple[int, int], float, tuple[float, float], bool]:
+    """``(size, focal, principal point, whether the focal is true)`` of one GT image: the
+    dataset's calibration where given, else ``f = (w + h) / 4`` and the image centre."""
+    w, hgt = int(g["width"]), int(g["height"])
+    true_f = g.get("focal_px") is not None
+    focal = float(g["focal_px"]) if true_f else (w + hgt) / 4.0
+    pp = (tuple(g["principal_point"]) if g.get("principal_point") is not None
+          else (w / 2.0, hgt / 2.0))
+    return (w, hgt), focal, pp, true_f
+
+
+def listed_vps(res: ImageResult | None) -> list[np.ndarray]:
+    """Every VP a prediction lists: its ``vanishing_points`` (joint estimator, peers),
+    else its one image-level ``vanishing_point``; [] without any."""
+    if res is None:
+        return []
+    lst = res.extra.get("vanishing_points")
+    if lst:
+        return [np.asarray(v["homogeneous"], float) for v in lst]
+    return [] if res.vanishing_point is None else [np.asarray(res.vanishing_point.homogeneous,
+                                                              float)]
+
+
+def vp_triplet_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
+                     images: Iterable[str] | None = None,
+                     truth: str | Path | None = None) -> pd.DataFrame:
+    """Each ground-truth VP's angle error to the closest VP a method lists
+    (:func:`listed_vps`).
+
+    Returns
+    -------
+    DataFrame
+        ``dataset, image, method, gt_index, n_listed, angle_error_deg`` (true focal and
+        principal point where given, else nominal), ``angle_error_nominal_deg``
+        (``f = (w + h) / 4``, image centre); inf when the method lists no VP.
+    """
+    dataset_dir = Path(dataset_dir)
+    _check_pred_dirs(pred_dirs)
+    gt = _truth(dataset_dir, images, truth)
+    rows = []
+    for method, d in pred_dirs.items():
+        preds = load_predictions(d, gt.keys())
+        for f, g in gt.items():
+            size, focal, pp, _ = _camera(g)
+            listed = listed_vps(preds[f])
+            for j, q in enumerate(g["vanishing_points"]):
+                ae = min((vector_error(v, q, size, focal, pp) for v in listed),
+                         default=float("inf"))
+                an = min((vector_error(v, q, size) for v in listed), default=float("inf"))
+                rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
+                             "gt_index": j, "n_listed": len(listed),
+                             "angle_error_deg": ae, "angle_error_nominal_deg": an})
+    return pd.DataFrame(rows, columns=["dataset", "image", "method", "gt_index", "n_listed",
+                                       "angle_error_deg", "angle_error_nominal_deg"])
+
+
+def angular_accuracy(errors: Sequence[float], threshold: float) -> float:
+    """AA@t: the area under the share of errors <= x for x in [0, t], divided by t.
+
+    Equals the mean of ``max(0, 1 - e / t)`` (a missing VP, ``inf``, counts 0); NaN for
+    no errors.
+
+    >>> angular_accuracy([0.0, 5.0, float("inf")], 10.0)
+    0.5
+    """
+    e = np.asarray(errors, float).reshape(-1)
+    if threshold <= 0:
+        raise ValueError(f"threshold must be > 0, got {threshold}")
+    if not len(e):
+        return float("nan")
+    return float(np.mean(np.clip(1.0 - e / threshold, 0.0, None)))
+
+
+def vp_aa_table(errors: pd.DataFrame, triplet: pd.DataFrame,
+                thresholds: Sequence[float] = EvaluationParams.vp_aa_thresholds
+                ) -> pd.DataFrame:
+    """AA@t per dataset, method, target (``dominant``: :func:`vp_frame`; ``triplet``:
+    :func:`vp_triplet_frame`) and focal (``true``: the dataset's where given; ``nominal``).
+
+    Returns
+    -------
+    DataFrame
+        ``dataset, method, target, focal, n, AA@<t>...``.
+    """
+    rows = []
+    for target, fr in (("dominant", errors), ("triplet", triplet)):
+        if fr is None or not len(fr):
+            continue
+        for (dsn, method), g in fr.groupby(["dataset", "method"], sort=False):
+            for focal, col in (("true", "angle_error_deg"),
+                               ("nominal", "angle_error_nominal_deg")):
+                r = {"dataset": dsn, "method": method, "target": target, "focal": focal,
+                     "n": int(len(g))}
+                for t in thresholds:
+                    r[f"AA@{t:g}"] = angular_accuracy(g[col].to_numpy(float), float(t))
+                rows.append(r)
+    return pd.DataFrame(rows)
+
+
+def vp_aa_markdown(aa: pd.DataFrame, decimals: int = 2) -> str:
+    """Markdown of :func:`vp_aa_table`: per dataset, one row per method, target and focal."""
+    if not len(aa):
+        return ""
+    cols = [c for c in aa.columns if c.startswith("AA@")]
+    lines = ["## Angular accuracy (AA@t, degrees)", "",
+             "AA@t: area under the share of angle errors below x, for x from 0 to t degrees, "
+             "divided by t (a missing VP counts 0). *dominant*: the image VP to the closest "
+             "GT VP; *triplet*: every GT VP to the closest VP the method lists. *true*: the "
+             "dataset's focal length and principal point (where it gives none: the nominal); "
+             "*nominal*: f = (w + h) / 4 and the image centre.", ""]
+    for dsn, g in aa.groupby("dataset", sort=False):
+        lines += [f"### {dsn}", "",
+                  "| method | target | focal | n | " + " | ".join(cols) + " |",
+                  "|---|---|---|---:|" + "---:|" * len(cols)]
+        for _, r in g.iterrows():
+            lines.append(f"| {r['method']} | {r['target']} | {r['focal']} | {r['n']} | "
+                         + " | ".join(f"{r[c]:.{decimals}f}" for c in cols) + " |")
+        lines.append("")
+    return "\n".join(lines)
 
 
 def vp_success_table(frame: pd.DataFrame,

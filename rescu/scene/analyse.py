@@ -100,9 +100,10 @@ class SceneParams:
     @classmethod
     def from_config(cls, section: dict[str, Any] | None) -> "SceneParams":
         """Build from the configuration's whole ``scene`` section: its ``source`` (which
-        instances the scene step reads) and ``completion``
-        (:class:`rescu.scene.completion.CompletionParams`) belong to the pipeline's step
-        and are left out; every other key goes to :meth:`from_dict`.
+        instances the scene step reads), ``completion``
+        (:class:`rescu.scene.completion.CompletionParams`), ``image_vp``
+        (:class:`rescu.scene.vp.manhattan.ImageVPParams`) and ``peer_vp`` belong to other
+        steps and are left out; every other key goes to :meth:`from_dict`.
 
         >>> from rescu.params import config_defaults
         >>> p = SceneParams.from_config(config_defaults("scene"))
@@ -110,7 +111,7 @@ class SceneParams:
         (1000, 0.06)
         """
         return cls.from_dict({k: v for k, v in (section or {}).items()
-                              if k not in ("source", "completion")})
+                              if k not in ("source", "completion", "image_vp", "peer_vp")})
 
 
 def _boxes(p: Pattern) -> np.ndarray:
@@ -245,8 +246,9 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     return res
 
 
-def _pattern_lines(p: Pattern, params: SceneParams) -> Lines:
-    """Implicit lines (with their points) of an analysed pattern, from its rows."""
+def pattern_implicit_lines(p: Pattern, params: SceneParams) -> Lines:
+    """Implicit lines (with their points, original pixels) of an analysed pattern: one per
+    visual word and row of ``p.extra["rows"]`` (:func:`rescu.scene.vp.lines.pattern_lines`)."""
     b = _boxes(p)
     c, sz = L.instance_centres_sizes(b)
     if params.vp.register_centres and len(c) >= 2:
@@ -276,7 +278,7 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
         return None
     seeds = sorted(have, key=lambda i: (i != dom, -patterns[i].count,
                                         -float(patterns[i].score), i))
-    lines = {i: _pattern_lines(patterns[i], params) for i in have}
+    lines = {i: pattern_implicit_lines(patterns[i], params) for i in have}
     best: tuple[int, VanishingPoint | None] | None = None
     for s in seeds:
         order = [s] + sorted((i for i in have if i != s),

@@ -4,7 +4,7 @@
 rule caption:
     input:
         **prepared(),
-        result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
+        result=f"{RESULTS}/{{dataset}}/scene-joint/{{image}}.json",
         code=step_code("caption"),
     output:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",

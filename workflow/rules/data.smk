@@ -42,6 +42,19 @@ rule export_photos:
         "../scripts/export_photos.py"
 
 
+rule rectified_vp_truth:
+    # VP ground truth of a dataset of rectified photos (`vp_truth: rectified`): derived
+    input:
+        annotations=lambda wildcards: f"{DATASETS[wildcards.dataset]['root']}/annotations.json",
+        code=step_code("vp_truth"),
+    output:
+        f"{RESULTS}/{{dataset}}/vanishing_points.json",
+    log:
+        LOGS + "/data/vp_truth_{dataset}.log",
+    script:
+        "../scripts/vp_truth.py"
+
+
 rule prepare:
     input:
         image=source_image,

@@ -4,15 +4,29 @@ FIGURES = f"{RESULTS}/figures"
 EVAL_CODE = step_code("tables")
 
 
-def dataset_params(names):
-    return {n: {"root": str(DATASETS[n]["root"]), "names": DATASETS[n]["names"]} for n in names}
+def dataset_params(names, vp=False):
+    """Each dataset's root and image names (with ``vp``: its VP ground truth file too)."""
+    out = {n: {"root": str(DATASETS[n]["root"]), "names": DATASETS[n]["names"]} for n in names}
+    if vp:
+        for n in names:
+            out[n]["vp_truth"] = str(DATASETS[n]["vp_truth"])
+    return out
 
 
 def vp_methods():
-    """VPD table rows: method name -> per-image folder (the no-AC variant with ``paper``)."""
+    """VPD table rows: method name -> per-image folder (the no-AC variant with ``paper``;
+    the peer ``lu-vp-detect`` where it is installed)."""
     from rescu.evaluation.tables import VP_METHODS
+    from rescu.scene.vp.peers import LU_INSTALL, lu_available
 
-    return {k: v for k, v in VP_METHODS.items() if PAPER or v != "scene-noac"}
+    lu = lu_available()
+    if not lu and vp_datasets():
+        print(f"rescu: the VPD table has no lu-vp-detect row: {LU_INSTALL}", file=sys.stderr)
+    return {k: v for k, v in VP_METHODS.items()
+            if (PAPER or v != "scene-noac") and (lu or v != "vp-lu")}
+
+
+VP_ROWS = vp_methods()
 
 
 def ablation_tables():
@@ -133,22 +147,24 @@ rule vp_tables:
         preds=per_image(
             f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
             vp_datasets(),
-            method=list(vp_methods().values()),
+            method=list(VP_ROWS.values()),
         ),
-        gt=gt_files(vp_datasets(), "vanishing_points.json"),
+        gt=[str(DATASETS[n]["vp_truth"]) for n in vp_datasets()],
         code=EVAL_CODE,
     output:
         tsv=f"{TABLES}/vpd.tsv",
         md=f"{TABLES}/vpd.md",
         errors=f"{TABLES}/vpd_errors.tsv",
         tests=f"{TABLES}/vpd_tests.tsv",
+        aa=f"{TABLES}/vpd_aa.tsv",
+        triplet=f"{TABLES}/vpd_triplet_errors.tsv",
         figures=expand(f"{FIGURES}/vpd_{{ds}}.png", ds=vp_datasets()),
     params:
         results=RESULTS,
         figures=FIGURES,
-        datasets=dataset_params(vp_datasets()),
+        datasets=dataset_params(vp_datasets(), vp=True),
         evaluation=config["evaluation"],
-        methods=vp_methods(),
+        methods=VP_ROWS,
     log:
         LOGS + "/tables/vp_tables.log",
     script:

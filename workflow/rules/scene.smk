@@ -62,3 +62,62 @@ rule line_vp:
         f"{RESULTS}/benchmarks/{{dataset}}/line_vp/{{image}}.tsv"
     script:
         "../scripts/line_vp.py"
+
+
+def vp_ground_truth(wildcards):
+    return str(DATASETS[wildcards.dataset]["vp_truth"])
+
+
+rule image_vp:
+    # the image's VPs: RP rows and LSD lines in one estimator (the final JSON's VP)
+    input:
+        **prepared(),
+        result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
+        code=step_code("image_vp"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/scene-joint/{{image}}.json",
+    params:
+        scene=config["scene"],
+    log:
+        LOGS + "/{dataset}/image_vp/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/image_vp/{{image}}.tsv"
+    script:
+        "../scripts/image_vp.py"
+
+
+rule image_vp_true_focal:
+    # the same with the dataset's true focal length (a row of the VPD table)
+    input:
+        **prepared(),
+        result=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
+        gt=vp_ground_truth,
+        code=step_code("image_vp"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/scene-joint-f/{{image}}.json",
+    params:
+        scene=config["scene"],
+    log:
+        LOGS + "/{dataset}/image_vp_true_focal/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/image_vp_true_focal/{{image}}.tsv"
+    script:
+        "../scripts/image_vp.py"
+
+
+rule peer_vp:
+    # lu-vp-detect (Lu et al. 2017) with the dataset's true focal length: a peer's row
+    input:
+        **prepared(),
+        gt=vp_ground_truth,
+        code=step_code("peer_vp"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/vp-lu/{{image}}.json",
+    params:
+        peer=config["scene"]["peer_vp"],
+    log:
+        LOGS + "/{dataset}/peer_vp/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/peer_vp/{{image}}.tsv"
+    script:
+        "../scripts/peer_vp.py"

@@ -33,7 +33,7 @@ else:
         T.counting_tables(refs, p.results, ev, out.tsv, out.md)
     elif rule == "vp_tables":
         T.vp_tables(refs, p.results, ev, out.tsv, out.md, out.errors, out.tests, figures,
-                    dict(p.methods))
+                    dict(p.methods), out.aa, out.triplet)
     elif rule == "ts_tables":
         T.ts_tables(refs, p.results, ev, out.tsv, out.md, figures)
     else:
