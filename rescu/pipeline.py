@@ -140,6 +140,19 @@ def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
         return rec
 
 
+def _keep_input(meta: dict[str, Any], src: ImageResult,
+                out_json: str) -> Callable[[Failure], None]:
+    """The ``write_empty`` of a step that refines ``src``: on an upstream failure (nothing
+    to keep) an empty result, on the step's own failure its input, degraded."""
+    upstream = _blocking(src.extra.get("failure"))
+
+    def empty(f: Failure) -> None:
+        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
+                      else degraded_result(src, src.method, f))
+
+    return empty
+
+
 def empty_result(meta: dict[str, Any], method: str, failure: Failure | None) -> ImageResult:
     """A result with no pattern for the image described by ``meta``."""
     w, h = meta.get("original_size", [0, 0])
@@ -488,14 +501,8 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
                 io.write_image(Path(out_rectified_dir) / f"rp{pat.id}.png", view)
         io.write_json(out_json, res)
 
-    upstream = _blocking(src.extra.get("failure"))
-
-    def empty(f: Failure) -> None:
-        # an upstream failure: nothing to keep; the scene step's own: keep its input
-        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
-                      else degraded_result(src, src.method, f))
-
-    return _guard("scene", upstream, run, empty)
+    return _guard("scene", _blocking(src.extra.get("failure")), run,
+                  _keep_input(meta, src, out_json))
 
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
@@ -566,13 +573,8 @@ def image_vp(png: str, meta_path: str, in_json: str, out_json: str,
         res = image_vanishing_points(rgb, float(meta["scale_factor"]), src, p, ip, focal_px)
         io.write_json(out_json, res)
 
-    upstream = _blocking(src.extra.get("failure"))
-
-    def empty(f: Failure) -> None:
-        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
-                      else degraded_result(src, src.method, f))
-
-    return _guard("image-vp", upstream, run, empty)
+    return _guard("image-vp", _blocking(src.extra.get("failure")), run,
+                  _keep_input(meta, src, out_json))
 
 
 def peer_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any],

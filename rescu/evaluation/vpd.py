@@ -21,7 +21,7 @@ from 0 to t degrees, divided by t) for both.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -47,44 +47,44 @@ def vp_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
         docstring), inf when missing.
         Images without a GT VP are left out.
     """
-    dataset_dir = Path(dataset_dir)
-    _check_pred_dirs(pred_dirs)
-    gt = _truth(dataset_dir, images, truth)
     rows = []
-    for method, d in pred_dirs.items():
-        preds = load_predictions(d, gt.keys())
-        for f, g in gt.items():
-            if not g["vanishing_points"]:
-                continue  # nothing to compare with (e.g. a frontal synthetic image)
-            size, focal, pp, true_f = _camera(g)
-            res = preds[f]
-            vp = res.vanishing_point if res is not None else None
-            if vp is None:
-                pe = ae = an = float("inf")
-            else:
-                pe = closest_gt_error(vp.homogeneous, g["vanishing_points"], "point",
-                                      size, focal, pp)
-                ae = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
-                                      size, focal, pp)
-                an = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector", size)
-            rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
-                         "vp_missing": vp is None, "point_error_px": pe,
-                         "angle_error_deg": ae, "angle_error_nominal_deg": an,
-                         "focal_px": focal, "focal_source": "true" if true_f else "assumed",
-                         "n_gt_vps": len(g["vanishing_points"])})
+    for method, f, g, res in _predictions(dataset_dir, pred_dirs, images, truth):
+        size, focal, pp, true_f = _camera(g)
+        vp = res.vanishing_point if res is not None else None
+        if vp is None:
+            pe = ae = an = float("inf")
+        else:
+            pe = closest_gt_error(vp.homogeneous, g["vanishing_points"], "point",
+                                  size, focal, pp)
+            ae = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector",
+                                  size, focal, pp)
+            an = closest_gt_error(vp.homogeneous, g["vanishing_points"], "vector", size)
+        rows.append({"dataset": Path(dataset_dir).name, "image": f, "method": method,
+                     "vp_missing": vp is None, "point_error_px": pe,
+                     "angle_error_deg": ae, "angle_error_nominal_deg": an,
+                     "focal_px": focal, "focal_source": "true" if true_f else "assumed",
+                     "n_gt_vps": len(g["vanishing_points"])})
     return pd.DataFrame(rows)
 
 
-def _truth(dataset_dir: Path, images: Iterable[str] | None,
-           truth: str | Path | None) -> dict[str, dict]:
-    """The GT VPs (``truth``, default ``dataset_dir / "vanishing_points.json"``) of
-    ``images`` (None: all)."""
+def _predictions(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path],
+                 images: Iterable[str] | None, truth: str | Path | None
+                 ) -> Iterator[tuple[str, str, dict, ImageResult | None]]:
+    """``(method, image, its GT, its prediction or None)`` for every method and every
+    image (of ``images``; None: all) with a GT VP in ``truth`` (default ``dataset_dir /
+    "vanishing_points.json"``); images without one (e.g. a frontal synthetic image) are
+    left out."""
+    _check_pred_dirs(pred_dirs)
     gt = load_vanishing_points(truth if truth is not None
-                               else dataset_dir / "vanishing_points.json")
+                               else Path(dataset_dir) / "vanishing_points.json")
     if images is not None:
         keep = set(images)
         gt = {f: v for f, v in gt.items() if f in keep}
-    return gt
+    for method, d in pred_dirs.items():
+        preds = load_predictions(d, gt.keys())
+        for f, g in gt.items():
+            if g["vanishing_points"]:
+                yield method, f, g, preds[f]
 
 
 def _camera(g: Mapping) -> tuple[tuple[int, int], float, tuple[float, float], bool]:
@@ -123,22 +123,17 @@ def vp_triplet_frame(dataset_dir: str | Path, pred_dirs: Mapping[str, str | Path
         principal point where given, else nominal), ``angle_error_nominal_deg``
         (``f = (w + h) / 4``, image centre); inf when the method lists no VP.
     """
-    dataset_dir = Path(dataset_dir)
-    _check_pred_dirs(pred_dirs)
-    gt = _truth(dataset_dir, images, truth)
     rows = []
-    for method, d in pred_dirs.items():
-        preds = load_predictions(d, gt.keys())
-        for f, g in gt.items():
-            size, focal, pp, _ = _camera(g)
-            listed = listed_vps(preds[f])
-            for j, q in enumerate(g["vanishing_points"]):
-                ae = min((vector_error(v, q, size, focal, pp) for v in listed),
-                         default=float("inf"))
-                an = min((vector_error(v, q, size) for v in listed), default=float("inf"))
-                rows.append({"dataset": dataset_dir.name, "image": f, "method": method,
-                             "gt_index": j, "n_listed": len(listed),
-                             "angle_error_deg": ae, "angle_error_nominal_deg": an})
+    for method, f, g, res in _predictions(dataset_dir, pred_dirs, images, truth):
+        size, focal, pp, _ = _camera(g)
+        listed = listed_vps(res)
+        for j, q in enumerate(g["vanishing_points"]):
+            ae = min((vector_error(v, q, size, focal, pp) for v in listed),
+                     default=float("inf"))
+            an = min((vector_error(v, q, size) for v in listed), default=float("inf"))
+            rows.append({"dataset": Path(dataset_dir).name, "image": f, "method": method,
+                         "gt_index": j, "n_listed": len(listed),
+                         "angle_error_deg": ae, "angle_error_nominal_deg": an})
     return pd.DataFrame(rows, columns=["dataset", "image", "method", "gt_index", "n_listed",
                                        "angle_error_deg", "angle_error_nominal_deg"])
 

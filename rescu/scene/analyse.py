@@ -294,6 +294,17 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     return copy.deepcopy(best[1])
 
 
+def processed_image(rgb: np.ndarray, scale_factor: float) -> np.ndarray:
+    """``rgb`` as an array after checking it is a processed (H, W, 3) image with a
+    positive ``scale_factor`` (processed = original * scale_factor); ValueError if not."""
+    img = np.asarray(rgb)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"rgb must have shape (H, W, 3), got {img.shape}")
+    if scale_factor <= 0:
+        raise ValueError(f"scale_factor must be > 0, got {scale_factor}")
+    return img
+
+
 def rectify_pattern(rgb: np.ndarray, scale_factor: float, pattern: Pattern,
                     params: SceneParams = SceneParams()) -> np.ndarray | None:
     """Rectified view of a pattern's region: its VP sent to infinity.
@@ -319,11 +330,7 @@ def rectify_pattern(rgb: np.ndarray, scale_factor: float, pattern: Pattern,
     """
     import cv2
 
-    img = np.asarray(rgb)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"rgb must have shape (H, W, 3), got {img.shape}")
-    if scale_factor <= 0:
-        raise ValueError(f"scale_factor must be > 0, got {scale_factor}")
+    img = processed_image(rgb, scale_factor)
     hh, ww = img.shape[:2]
     b = _boxes(pattern) * scale_factor
     if len(b) == 0:

@@ -26,7 +26,7 @@ import copy
 import numpy as np
 
 from ..types import ImageResult, VanishingPoint
-from .analyse import SceneParams, pattern_implicit_lines
+from .analyse import SceneParams, pattern_implicit_lines, processed_image
 from .vp.geometry import _canonical, inside_image
 from .vp.lines import Lines
 from .vp.lsd import lsd_segments
@@ -51,7 +51,7 @@ def rp_row_lines(result: ImageResult, params: SceneParams = SceneParams()) -> Li
                              for q, d in zip(lines.points, lines.directions)])
         else:
             span = np.asarray(lines.weights, float)
-        parts.append(Lines(lines.midpoints, lines.directions, span))
+        parts.append(Lines(lines.midpoints, lines.directions, span, points=lines.points))
     return Lines.concat(parts) if parts else Lines.empty()
 
 
@@ -85,21 +85,23 @@ def image_vanishing_points(rgb: np.ndarray, scale_factor: float, result: ImageRe
     ImageResult
         See the module docstring; ``result`` is not modified.
     """
-    img = np.asarray(rgb)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"rgb must have shape (H, W, 3), got {img.shape}")
-    if scale_factor <= 0:
-        raise ValueError(f"scale_factor must be > 0, got {scale_factor}")
+    img = processed_image(rgb, scale_factor)
     h, w = img.shape[:2]
     vpp = scene_params.vp
     segs = lsd_segments(img, vpp.lsd_min_length * float(np.hypot(w, h)), vpp.lsd_max_segments)
     rp = rp_row_lines(result, scene_params)
-    rp_proc = Lines(rp.midpoints * scale_factor, rp.directions, rp.weights * scale_factor)
+    rp_proc = Lines(rp.midpoints * scale_factor, rp.directions, rp.weights * scale_factor,
+                    points=None if rp.points is None else [q * scale_factor for q in rp.points])
     cues = [("lines", Lines.from_segments(segs), params.line_weight),
             ("rp_rows", rp_proc, params.rp_weight)]
     focal = focal_px if focal_px is not None else params.focal_px
+    to_proc = np.diag([scale_factor, scale_factor, 1.0])
+    points = [to_proc @ np.asarray(v.homogeneous, float)
+              for v in [result.vanishing_point] + [p.vanishing_point for p in result.patterns]
+              if v is not None]
     mh = manhattan_vps(cues, (w, h), params,
-                       focal_px=None if focal is None else float(focal) * scale_factor)
+                       focal_px=None if focal is None else float(focal) * scale_factor,
+                       point_hypotheses=points)
     return _with_vps(result, mh, scale_factor)
 
 

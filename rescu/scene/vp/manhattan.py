@@ -45,14 +45,15 @@ import numpy as np
 
 from ...params import config_section, params_from_dict
 from ...types import VanishingPoint
-from .geometry import _canonical, _fit_vp, inside_image
+from .geometry import _canonical, _chi2_ppf, _fit_vp, inside_image
 from .lines import Lines
 
 
 @dataclass(frozen=True)
 @config_section("scene", "image_vp")
 class ImageVPParams:
-    """Parameters of the image's joint VP estimator (config section ``scene.image_vp``).
+    """Parameters of the image's joint VP estimator (config section ``scene.image_vp``;
+    defaults from the shipped configuration, :func:`rescu.params.config_section`).
 
     Attributes
     ----------
@@ -79,6 +80,19 @@ class ImageVPParams:
         frame then only assigns the lines; real scenes are not exactly orthogonal:
         York Urban's ground-truth directions deviate by 1.4 degrees, median); False:
         report the strictly orthogonal frame.
+    noise_px : float
+        Noise floor of a line point (pixels): a segment's direction has the angular
+        standard deviation ``noise_px * sqrt(2) / length``, an RP implicit line that of
+        its fit (:func:`angular_sigma`); the test of ``point_alpha`` weighs lines by the
+        inverse variance. (The fits weigh them by their votes: inverse-variance weights
+        fitted York Urban's VPs less well, median 0.78 against 0.55 degrees;
+        ``benchmarks/studies/image_vp_sweep.py``.)
+    point_alpha : float
+        A VP given as a point hypothesis (the RP-based VPs of the scene step, whose
+        maximum-likelihood and spacing refinements locate a VP along its lines better
+        than a line fit does where the lines are nearly parallel) replaces a fitted VP
+        when that VP's lines cannot tell the two apart: likelihood-ratio test of this
+        level (:func:`_point_hypothesis`); 0: never.
     seed : int
         Seed of the random draws.
     """
@@ -93,6 +107,8 @@ class ImageVPParams:
     line_weight: float
     rp_weight: float
     refit_free: bool
+    noise_px: float
+    point_alpha: float
     seed: int
 
     def __post_init__(self) -> None:
@@ -257,11 +273,56 @@ def _refine(frame: np.ndarray, f: float, estimate_f: bool, mids: np.ndarray,
     return frame, f
 
 
+def angular_sigma(lines: Lines, noise_px: float) -> np.ndarray:
+    """Standard deviation (radians) of each line's direction, (L,).
+
+    A line fitted to points (``Lines.points``: RP implicit lines) has
+    ``max(r, noise_px) / sqrt(sum (t_i - mean t)^2)``, with ``r`` the RMS distance of its
+    points from it and ``t_i`` their positions along it; a segment without points (LSD)
+    is its two end points: ``noise_px * sqrt(2) / length`` (``Lines.weights`` = length).
+    """
+    n = len(lines)
+    out = np.empty(n)
+    w = np.asarray(lines.weights, float)
+    for i in range(n):
+        q = lines.points[i] if lines.points is not None else None
+        if q is None or len(q) < 2:
+            out[i] = noise_px * np.sqrt(2.0) / max(w[i], 1e-9)
+            continue
+        c = q - q.mean(axis=0)
+        t = c @ lines.directions[i]
+        r = c @ np.array([-lines.directions[i][1], lines.directions[i][0]])
+        rms = float(np.sqrt(np.mean(r ** 2)))
+        out[i] = max(rms, noise_px) / max(float(np.sqrt(np.sum(t ** 2))), 1e-9)
+    return out
+
+
+def _point_hypothesis(v: np.ndarray, cands: Sequence[np.ndarray], mids: np.ndarray,
+                      dirs: np.ndarray, prec: np.ndarray, alpha: float) -> np.ndarray:
+    """The fitted VP ``v`` (normalised), or the candidate of ``cands`` its lines cannot
+    tell from it: the likelihood-ratio statistic ``sum p_i (e_ic^2 - e_iv^2) / s^2``
+    (``p_i`` the inverse angular variances, ``e`` the sines, ``s^2`` the residual variance
+    factor of ``v``, at least 1) below the ``1 - alpha`` quantile of chi^2(2); the
+    smallest statistic wins."""
+    if alpha <= 0 or not cands or len(mids) < 3:
+        return v
+    c_v = prec * _sines(v, mids, dirs) ** 2
+    s2 = max(float(c_v.sum()) / (len(mids) - 2), 1.0)
+    crit = _chi2_ppf(1.0 - alpha, 2)
+    best, best_t = v, crit
+    for c in cands:
+        t = float((prec * _sines(c, mids, dirs) ** 2 - c_v).sum()) / s2
+        if t < best_t:
+            best, best_t = c / np.linalg.norm(c), t
+    return best
+
+
 # --------------------------------------------------------------------------- estimator
 def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[int, int],
                   params: ImageVPParams = ImageVPParams(),
                   focal_px: float | None = None,
-                  principal_point: tuple[float, float] | None = None) -> ManhattanResult | None:
+                  principal_point: tuple[float, float] | None = None,
+                  point_hypotheses: Sequence[np.ndarray] = ()) -> ManhattanResult | None:
     """The image's Manhattan VPs from lines of several cues (module docstring).
 
     Parameters
@@ -285,7 +346,7 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
     w_img, h_img = image_size
     if w_img <= 0 or h_img <= 0:
         raise ValueError(f"image_size must be positive, got {image_size}")
-    names, mids, dirs, wts = [], [], [], []
+    names, mids, dirs, wts, sigs = [], [], [], [], []
     for name, lines, cw in cues:
         if cw <= 0 or len(lines) == 0:
             continue
@@ -295,6 +356,7 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
         mids.append(np.asarray(lines.midpoints, float)[ok])
         dirs.append(d[ok] / n[ok, None])
         wts.append(np.asarray(lines.weights, float)[ok] * cw)
+        sigs.append(angular_sigma(lines, params.noise_px)[ok])
         names += [name] * int(ok.sum())
     if not mids or sum(len(m) for m in mids) < 3:
         return None
@@ -304,6 +366,8 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
     mids_n = (np.concatenate(mids) - pp) * s
     dirs_n = np.concatenate(dirs)
     w = np.concatenate(wts) * s
+    var_inv = 1.0 / np.concatenate(sigs) ** 2         # inverse angular variances
+
     cue = np.array(names)
     tau = np.sin(np.radians(params.inlier_angle_deg))
     thr = np.sin(np.radians(params.refine_angle_deg))
@@ -336,6 +400,8 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
     e = _sines(_vps_of(frame, f), mids_n, dirs_n)
     k = e.argmin(axis=0)
     inl = e[k, np.arange(len(k))] < thr
+    t_n = np.array([[s, 0, -s * pp[0]], [0, s, -s * pp[1]], [0, 0, 1.0]])
+    cands = [t_n @ np.asarray(v, float) for v in point_hypotheses]
     t_inv = np.array([[1 / s, 0, pp[0]], [0, 1 / s, pp[1]], [0, 0, 1.0]])
     vps = []
     for j in range(3):
@@ -345,6 +411,8 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
         d = frame[j] / np.linalg.norm(frame[j])
         if params.refit_free:
             vn = _fit_vp(mids_n[sel], dirs_n[sel], w[sel], _vps_of(d, f))
+            vn = _point_hypothesis(vn, cands, mids_n[sel], dirs_n[sel], var_inv[sel],
+                                   params.point_alpha)
             d = vn / np.array([f, f, 1.0])
             d = d / np.linalg.norm(d)
         v = _canonical(t_inv @ _vps_of(d, f))
