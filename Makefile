@@ -22,6 +22,9 @@ $(STAMP): requirements.txt pyproject.toml
 	$(if $(TORCH_INDEX),$(BIN)/python -m pip install --quiet torch==2.14.1 torchvision==0.29.1 --index-url $(TORCH_INDEX))
 	$(BIN)/python -m pip install --quiet -r requirements.txt
 	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
+	# the VPD table's peer (optional; --no-deps: its wheel asks for opencv-contrib-python,
+	# which would replace the pinned headless OpenCV)
+	-$(BIN)/python -m pip install --quiet --no-deps lu-vp-detect==1.0.4
 	touch $(STAMP)
 
 run: setup

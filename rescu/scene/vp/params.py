@@ -5,13 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from ...params import config_defaults, params_from_dict
-
-
-_D = config_defaults("scene", "vp")
+from ...params import config_section, params_from_dict
 
 
 @dataclass(frozen=True)
+@config_section("scene", "vp")
 class VPParams:
     """Parameters of vanishing-point detection (RP-based and line baseline).
 
@@ -74,24 +72,24 @@ class VPParams:
         Seed of the random pair sampling.
     """
 
-    ransac_iterations: int = _D["ransac_iterations"]
-    inlier_angle_deg: float = _D["inlier_angle_deg"]
-    ac_threshold_deg: float = _D["ac_threshold_deg"]
-    min_lines: int = _D["min_lines"]
-    infinity_alpha: float = _D["infinity_alpha"]
-    infinity_noise_deg: float = _D["infinity_noise_deg"]
-    infinity_noise_px: float = _D["infinity_noise_px"]
-    row_tolerance: float = _D["row_tolerance"]
-    min_row_instances: int = _D["min_row_instances"]
-    max_line_residual: float = _D["max_line_residual"]
-    precision_floor_px: float = _D["precision_floor_px"]
-    lsd_min_length: float = _D["lsd_min_length"]
-    lsd_max_segments: int = _D["lsd_max_segments"]
-    ml_refine: bool = _D["ml_refine"]
-    register_centres: bool = _D["register_centres"]
-    joint_alpha: float = _D["joint_alpha"]
-    spacing_alpha: float = _D["spacing_alpha"]
-    seed: int = _D["seed"]
+    ransac_iterations: int
+    inlier_angle_deg: float
+    ac_threshold_deg: float
+    min_lines: int
+    infinity_alpha: float
+    infinity_noise_deg: float
+    infinity_noise_px: float
+    row_tolerance: float
+    min_row_instances: int
+    max_line_residual: float
+    precision_floor_px: float
+    lsd_min_length: float
+    lsd_max_segments: int
+    ml_refine: bool
+    register_centres: bool
+    joint_alpha: float
+    spacing_alpha: float
+    seed: int
 
     def __post_init__(self) -> None:
         if self.ransac_iterations < 1:
