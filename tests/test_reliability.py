@@ -323,3 +323,50 @@ def test_upstream_failure_stays_empty_through_stage2(tmp_path):
     final = read_json(w("final.json"))
     assert final["patterns"] == [] and "degraded_to" not in final["failure"]
     assert "caption" not in final or not final["caption"]
+
+
+def test_image_vp_step_passes_failures_on_and_degrades(tmp_path, monkeypatch):
+    """The joint VP step: a bad image stays empty with the prepare record; on a good one its
+    own failure keeps the scene result (degraded), and without failure it adds the image's
+    VPs; the peer step records a missing package as its failure."""
+    from rescu.config import load_config
+    from rescu.scene import image_vp as IV
+    from rescu.scene.vp import peers
+
+    cfg = load_config()
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "bad.png").write_bytes(b"\x89PNG broken")
+    b = lambda n: str(bad / n)  # noqa: E731
+    pipeline.prepare(b("bad.png"), b("p.png"), b("m.json"), image_name="bad.png",
+                     max_side=800, min_side=16)
+    pipeline.features(b("p.png"), b("m.json"), b("f.h5"), cfg["features"])
+    pipeline.stage1(b("f.h5"), b("m.json"), b("s.json"), b("s.h5"), cfg["stage1"])
+    pipeline.scene(b("p.png"), b("m.json"), b("s.json"), b("sc.json"), b("r"), cfg["scene"])
+    assert pipeline.image_vp(b("p.png"), b("m.json"), b("sc.json"), b("j.json"),
+                             cfg["scene"])["stage"] == "prepare"
+    assert read_json(b("j.json"))["patterns"] == []
+    assert pipeline.peer_vp(b("p.png"), b("m.json"), b("lu.json"),
+                            cfg["scene"]["peer_vp"])["stage"] == "prepare"
+
+    w = _through_stage1(tmp_path, cfg)
+    assert pipeline.scene(w("p.png"), w("m.json"), w("s.json"), w("sc.json"), w("r"),
+                          cfg["scene"]) is None
+    assert pipeline.image_vp(w("p.png"), w("m.json"), w("sc.json"), w("j.json"),
+                             cfg["scene"], focal_px=500.0) is None
+    sc, j = read_json(w("sc.json")), read_json(w("j.json"))
+    assert j["patterns"] == sc["patterns"] and j["rp_vanishing_point"] == sc["vanishing_point"]
+    assert isinstance(j["vanishing_points"], list) and "focal_px" in j
+    monkeypatch.setattr(IV, "manhattan_vps", _boom)
+    f = pipeline.image_vp(w("p.png"), w("m.json"), w("sc.json"), w("j2.json"), cfg["scene"])
+    j2 = read_json(w("j2.json"))
+    assert f["stage"] == "image-vp" and j2["failure"]["degraded_to"] == "rescu-i"
+    assert j2["patterns"] == sc["patterns"] and j2["vanishing_point"] == sc["vanishing_point"]
+
+    def absent(*_a, **_k):
+        raise ImportError(peers.LU_INSTALL)
+
+    monkeypatch.setattr(peers, "lu_vanishing_points", absent)
+    f = pipeline.peer_vp(w("p.png"), w("m.json"), w("lu.json"), cfg["scene"]["peer_vp"])
+    assert f["stage"] == "peer-vp" and "pip install --no-deps lu-vp-detect" in f["message"]
+    assert read_json(w("lu.json"))["vanishing_point"] is None
