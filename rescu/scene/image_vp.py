@@ -4,7 +4,8 @@
 of every RP row (:func:`rescu.scene.analyse.pattern_implicit_lines`, feature tracks along
 a row) and the LSD segments of the image (:func:`rescu.scene.vp.lsd.lsd_segments`) vote
 in one estimator (:func:`rescu.scene.vp.manhattan.manhattan_vps`) for up to three
-mutually orthogonal VPs and the focal length. The result's image-level
+mutually orthogonal VPs and the focal length; the RP-based VPs of the scene step (the
+image's and each pattern's) enter as point hypotheses. The result's image-level
 ``vanishing_point`` becomes that estimator's dominant VP; the RP-only VP of the scene
 step is kept as ``rp_vanishing_point``, and the new fields are
 

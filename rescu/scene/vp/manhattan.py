@@ -27,7 +27,9 @@ is not given (principal point at the image centre, square pixels, no skew).
    inliers three times.
 4. **Refit**: with ``refit_free`` each VP is refitted on its own inliers (weighted least
    squares of the sines, :func:`rescu.scene.vp.geometry._fit_vp`), no longer bound to
-   be orthogonal to the others.
+   be orthogonal to the others. A *point hypothesis* (a VP estimated elsewhere, e.g.
+   the RP-based VPs of the scene step) then replaces it when its lines cannot tell the
+   two apart (:func:`_point_hypothesis`, level ``point_alpha``).
 5. **Result**: the three VPs ordered by support (inlier weight); a VP with fewer than
    ``min_lines`` inlier lines is left out of the list. The first is the *dominant* VP.
 
