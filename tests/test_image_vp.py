@@ -220,3 +220,16 @@ def test_angular_accuracy_and_the_triplet_frame(tmp_path: Path) -> None:
     assert a.loc[("one", "dominant", "true"), "AA@3"] == pytest.approx(1.0, abs=1e-4)
     md = EV.vp_aa_markdown(aa)
     assert "| three | triplet | true | 3 | 1.00 | 1.00 |" in md and "AA@10" in md
+
+
+def test_point_errors_at_infinity_get_a_sentence_not_a_table() -> None:
+    import pandas as pd
+
+    e = pd.DataFrame({"dataset": ["d", "d"], "image": ["a", "b"], "method": ["m", "m"],
+                      "vp_missing": [False, False], "point_error_px": [np.inf, np.inf],
+                      "angle_error_deg": [0.5, 1.0], "angle_error_nominal_deg": [0.5, 1.0],
+                      "focal_px": [10.0, 10.0], "focal_source": ["assumed"] * 2,
+                      "n_gt_vps": [2, 2]})
+    md = EV.vp_markdown(EV.vp_success_table(e, (5,), (1, 5)), errors=e)
+    assert "Point errors are undefined here" in md and "≤ 5 px" not in md
+    assert "| m | 1.00 | 1.00 |" in md

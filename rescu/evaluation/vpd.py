@@ -254,7 +254,9 @@ def vp_markdown(success: pd.DataFrame, decimals: int = 2,
     With ``errors`` (:func:`vp_frame`), each dataset's first section opens with what its
     errors mean: how many images, how many GT VPs each (errors are to the closest one),
     which focal length the angle error used, and per method the median angle error and
-    the number of images without a VP.
+    the number of images without a VP; a dataset whose point errors are all infinite
+    (its GT VPs lie at infinity, e.g. rectified photos) gets a sentence saying so instead
+    of a point-error table of zeros.
     """
     lines = []
     noted: set[str] = set()
@@ -268,6 +270,10 @@ def vp_markdown(success: pd.DataFrame, decimals: int = 2,
             if len(e):
                 noted.add(dsn)
                 lines += [_vp_note(e), ""]
+            if kind == "point_px" and len(e) and np.isinf(e["point_error_px"]).all():
+                lines += ["Point errors are undefined here: the ground-truth VPs lie at "
+                          "infinity (every point error is infinite). Angle errors below.", ""]
+                continue
         head = ["method"] + [f"≤ {t:g} {unit}" for t in p.columns]
         lines.append("| " + " | ".join(head) + " |")
         lines.append("|" + "|".join(["---"] + ["---:"] * len(p.columns)) + "|")
