@@ -102,12 +102,16 @@ def test_outputs_exist_and_parse(finished_run):
         assert d["method"] == "rescu-ii"
         assert "failure" not in d, d.get("failure")
         assert d["caption"]["base"] and d["caption"]["enhanced"]
+        # the image's VPs (joint step) beside the RP-only one
+        assert isinstance(d["vanishing_points"], list) and "rp_vanishing_point" in d
+        assert "focal_px" in d and "focal_estimated" in d
     assert len(list((res / "synthetic" / "overlay").glob("*.png"))) == 3
     assert len(list((res / "synthetic" / "features").glob("*.h5"))) == 3
     assert len(list((res / "synthetic" / "stage2").glob("*.head.pt"))) == 3
     for table in ("rp_discovery", "ablation", "stage2_ablation", "counting", "vpd", "ts",
-                  "captions", "failures"):
+                  "captions", "failures", "vpd_aa", "vpd_triplet_errors"):
         assert (res / "tables" / f"{table}.tsv").exists(), table
+    assert "RESCU joint" in (res / "tables" / "vpd.md").read_text()
     # every ablation variant has its per-image JSONs and a row in its table
     default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     abl = (res / "tables" / "ablation.tsv").read_text()
