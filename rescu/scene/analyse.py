@@ -246,9 +246,13 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     return res
 
 
-def pattern_implicit_lines(p: Pattern, params: SceneParams) -> Lines:
+def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True) -> Lines:
     """Implicit lines (with their points, original pixels) of an analysed pattern: one per
-    visual word and row of ``p.extra["rows"]`` (:func:`rescu.scene.vp.lines.pattern_lines`)."""
+    visual word and row of ``p.extra["rows"]`` (:func:`rescu.scene.vp.lines.pattern_lines`).
+
+    With ``spacing`` the rows that pass the translation-symmetry test give their lines the
+    instance ordinals (``Lines.positions``, for the spacing model); False skips those
+    tests (``positions`` None) for a caller that uses directions and points only."""
     b = _boxes(p)
     c, sz = L.instance_centres_sizes(b)
     if params.vp.register_centres and len(c) >= 2:
@@ -256,7 +260,7 @@ def pattern_implicit_lines(p: Pattern, params: SceneParams) -> Lines:
                                  else np.asarray(p.feature_points, float))
     rows = [np.asarray(r, int) for r in p.extra.get("rows", [])]
     fp = None if p.feature_points is None else np.asarray(p.feature_points, float)
-    equal = equal_rows(fp, c, rows, params.symmetry, params.vp)
+    equal = equal_rows(fp, c, rows, params.symmetry, params.vp) if spacing else None
     return pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
                            params.vp.precision_floor_px, equal)
 

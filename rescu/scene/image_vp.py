@@ -44,7 +44,7 @@ def rp_row_lines(result: ImageResult, params: SceneParams = SceneParams()) -> Li
     for p in result.patterns:
         if not p.extra.get("rows"):
             continue
-        lines = pattern_implicit_lines(p, params)
+        lines = pattern_implicit_lines(p, params, spacing=False)
         if not len(lines):
             continue
         if lines.points is not None:

@@ -209,13 +209,16 @@ def _sines(vps: np.ndarray, mids: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.abs(cross) / np.maximum(np.hypot(t[..., 0], t[..., 1]), 1e-12)
 
 
-def _hypotheses(mids: np.ndarray, dirs: np.ndarray, draws: np.ndarray,
-                f: float) -> np.ndarray:
-    """Manhattan frames ``(H', 3, 3)`` (rows = unit directions) from line triplets ``draws``
-    (H, 3) at focal ``f`` (normalised); degenerate draws are dropped."""
-    a = np.c_[mids - dirs, np.ones(len(mids))]
-    b = np.c_[mids + dirs, np.ones(len(mids))]
-    lines = np.cross(a, b)                                           # (N, 3)
+def _homogeneous_lines(mids: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Homogeneous lines (N, 3) through ``mids`` (N, 2) along ``dirs`` (N, 2)."""
+    return np.cross(np.c_[mids - dirs, np.ones(len(mids))],
+                    np.c_[mids + dirs, np.ones(len(mids))])
+
+
+def _hypotheses(lines: np.ndarray, draws: np.ndarray, f: float) -> np.ndarray:
+    """Manhattan frames ``(H', 3, 3)`` (rows = unit directions) from triplets ``draws``
+    (H, 3) of the homogeneous ``lines`` (N, 3) at focal ``f`` (normalised); degenerate
+    draws are dropped."""
     v1 = np.cross(lines[draws[:, 0]], lines[draws[:, 1]])
     d1 = v1 / np.array([f, f, 1.0])
     n3 = lines[draws[:, 2]] * np.array([f, f, 1.0])
@@ -283,13 +286,11 @@ def angular_sigma(lines: Lines, noise_px: float) -> np.ndarray:
     points from it and ``t_i`` their positions along it; a segment without points (LSD)
     is its two end points: ``noise_px * sqrt(2) / length`` (``Lines.weights`` = length).
     """
-    n = len(lines)
-    out = np.empty(n)
-    w = np.asarray(lines.weights, float)
-    for i in range(n):
-        q = lines.points[i] if lines.points is not None else None
-        if q is None or len(q) < 2:
-            out[i] = noise_px * np.sqrt(2.0) / max(w[i], 1e-9)
+    out = noise_px * np.sqrt(2.0) / np.maximum(np.asarray(lines.weights, float), 1e-9)
+    if lines.points is None:
+        return out
+    for i, q in enumerate(lines.points):
+        if len(q) < 2:
             continue
         c = q - q.mean(axis=0)
         t = c @ lines.directions[i]
@@ -387,8 +388,9 @@ def manhattan_vps(cues: Sequence[tuple[str, Lines, float]], image_size: tuple[in
     draws = draws[(draws[:, 0] != draws[:, 1]) & (draws[:, 2] != draws[:, 0])
                   & (draws[:, 2] != draws[:, 1])]
     best: tuple[float, np.ndarray, float] | None = None
+    lines = _homogeneous_lines(mids_n, dirs_n)        # the same for every focal tried
     for f in focals:
-        frames = _hypotheses(mids_n, dirs_n, draws, f)
+        frames = _hypotheses(lines, draws, f)
         if not len(frames):
             continue
         sc = _scores(frames, f, mids_n, dirs_n, w, tau)
