@@ -12,7 +12,7 @@ CORES  ?= 2
 # On your own machine, CPU-only torch wheels: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH_INDEX ?=
 
-.PHONY: setup run paper holdout stress test report clean cluster-test
+.PHONY: setup run paper holdout realdev stress test report clean cluster-test
 
 setup: $(STAMP)
 
@@ -41,6 +41,14 @@ SEED ?=
 holdout: setup
 	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/holdout.yaml \
 	  $(if $(SEED),--config 'synthetic={seed: $(SEED)}' results_dir=results/holdout-$(SEED))
+
+# every image of the real RP datasets in ../shared/data up to the RP discovery table
+# (config/realdev.yaml) -> results/realdev/tables/rp_discovery.md
+realdev: setup
+	@for d in cmp_facade spb_facades aerial_cars chess; do test -f ../shared/data/$$d/annotations.json \
+	  || { echo "realdev: ../shared/data/$$d/annotations.json not found (see ../shared/README.md)"; exit 2; }; done
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/realdev.yaml \
+	  -- results/realdev/tables/rp_discovery.md
 
 # stage II under heavy occlusion (config/stress.yaml) -> results/stress/tables/
 # stage2_ablation.md (RESCU-I vs RESCU-II) and counting.md; make stress SEED=202 ->

@@ -87,3 +87,16 @@ def test_completion_variants_refusals(tmp_path, capsys):
     assert cv.main([str(tmp_path), "--set", "end_instances=2"]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
     assert not (tmp_path / "benchmarks").exists()
+
+
+def test_stage1_variants_refusals(tmp_path, capsys):
+    s1 = load("stage1_variants")
+    with pytest.raises(SystemExit):          # not a stage1 key
+        s1.main([str(tmp_path), "--set", "no_such_key=1"])
+    assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):          # not a dataset of the config
+        s1.main([str(tmp_path), "--dataset", "nowhere", "--set", "max_patterns=8"])
+    assert "nowhere" in capsys.readouterr().err
+    assert s1.main([str(tmp_path), "--set", "max_patterns=8"]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    assert not (tmp_path / "benchmarks").exists()

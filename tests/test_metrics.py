@@ -204,3 +204,33 @@ def test_scores_in_unit_interval_and_monotone_in_h(sc) -> None:
         if prev is not None:
             assert all(math.isnan(c) or c <= p + 1e-12 for c, p in zip(cur, prev))
         prev = cur
+
+
+def _row(n, y, w=10):
+    return [(20 * i, y, w, w) for i in range(n)]
+
+
+def test_paper_instance_metric_matches_only_within_the_assigned_gt_rp():
+    windows, doors = _row(4, 0), _row(2, 100)
+    mixed = windows[:2] + doors          # precision 0.5 against both; doors recalled fully
+    s = score_image([mixed], [windows, doors])
+    assert s.instance_precision == 0.5 and s.instance_recall == pytest.approx(2 / 6)
+    assert s.instance_precision_any == 1.0 and s.instance_recall_any == pytest.approx(4 / 6)
+
+
+def test_paper_instance_metric_counts_each_gt_instance_once():
+    windows = _row(4, 0)
+    s = score_image([windows[:3], windows[1:]], [windows])   # two RPs on one GT RP
+    assert s.instance_recall == 1.0 and s.instance_precision == pytest.approx(4 / 6)
+    assert s.instance_precision_any == s.instance_precision
+
+
+def test_paper_instance_metric_never_above_any_rp_figure():
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        gts = [_row(int(rng.integers(2, 6)), 30 * g) for g in range(3)]
+        boxes = [b for g in gts for b in g]
+        dets = [[boxes[j] for j in rng.choice(len(boxes), 3, replace=False)] for _ in range(2)]
+        s = score_image(dets, gts)
+        assert s.instance_precision <= s.instance_precision_any
+        assert s.instance_recall <= s.instance_recall_any

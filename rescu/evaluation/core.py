@@ -37,7 +37,7 @@ import pandas as pd
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
 from ..params import checked_mapping, config_section
 from ..types import ImageResult
-from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
+from .metrics import ANY_RP_METRICS, IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
 
 ABLATION_ROWS = ("none", "P_d", "P_s", "P_theta", "P_d+P_s", "P_d+P_theta",
@@ -45,7 +45,9 @@ ABLATION_ROWS = ("none", "P_d", "P_s", "P_theta", "P_d+P_s", "P_d+P_theta",
 """Rows of the stage-I ablation table: which parameters are adaptive."""
 
 METRIC_LABELS = {"instance_precision": "Instance P", "instance_recall": "Instance R",
-                 "rp_precision": "RP P", "rp_recall": "RP R"}
+                 "rp_precision": "RP P", "rp_recall": "RP R",
+                 "instance_precision_any": "Instance P (any RP)",
+                 "instance_recall_any": "Instance R (any RP)"}
 
 
 # ----------------------------------------------------------------------------- params
@@ -414,11 +416,12 @@ def format_mean_std(mean: float, std: float, decimals: int = 2) -> str:
 
 def summary_markdown(summary: pd.DataFrame, metrics: Sequence[str] = METRICS,
                      alpha: float = 0.05, decimals: int = 2,
-                     row_label: str = "method", title: str | None = None) -> str:
+                     row_label: str = "method", title: str | None = None,
+                     note: str = "") -> str:
     """Markdown tables of a :func:`summary_table`: one per dataset and subset.
 
     The best mean is **bold**; a method not significantly different from the best
-    (Wilcoxon p >= ``alpha``) is in *italics*.
+    (Wilcoxon p >= ``alpha``) is in *italics*. ``note`` is appended below the legend.
     """
     lines: list[str] = []
     if title:
@@ -445,6 +448,8 @@ def summary_markdown(summary: pd.DataFrame, metrics: Sequence[str] = METRICS,
     lines.append(f"Mean ± std over images (undefined values left out). Bold: best; "
                  f"italics: not significantly different from the best (paired Wilcoxon "
                  f"signed-rank, p ≥ {alpha:g}).")
+    if note:
+        lines += ["", note]
     return "\n".join(lines) + "\n"
 
 

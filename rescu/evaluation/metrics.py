@@ -7,10 +7,19 @@ Protocol (the paper's, with the choices it leaves open stated here):
 * Matching is one-to-one: pairs are taken greedily in order of decreasing IOD (ties:
   larger IoU first, then lower indices), so one detection is never credited for two
   ground-truth instances nor two detections for one.
-* Instance level (per image): all detected instances of all detected RPs are pooled
-  and matched against all ground-truth instances of all ground-truth RPs.
+* Instance level (per image), the paper's (``instance_precision``,
+  ``instance_recall``): each detected RP is *assigned* the GT RP against which its
+  instance precision is highest (ties: higher recall, then the lower index; an RP that
+  matches no GT instance is assigned none). A detected RP's instances are matched
+  one-to-one only to the instances of the GT RP assigned to it; the detected RPs
+  assigned to one GT RP are matched together, so each GT instance is counted once.
   precision = matched detections / detections; recall = matched GT instances / GT
-  instances.
+  instances. The assignment does not need the RP to be accepted at the RP level.
+* Instance level, any RP (``instance_precision_any``, ``instance_recall_any``; the
+  figure these tables gave before the paper's): all detected instances of all detected
+  RPs are pooled and matched against all GT instances of all GT RPs, whichever RP they
+  belong to. It is never below the paper's figure; the gap measures instances credited
+  to another RP's objects (e.g. an RP that mixes windows and doors).
 * RP level (per image): for each detected RP, the instance-level precision against each
   ground-truth RP alone is computed; the RP is assigned the GT RP with the highest one
   (ties: higher recall). It is *accepted* when that precision is >= 0.5 and at least two
@@ -142,6 +151,8 @@ class ImageScores:
     instance_recall: float
     rp_precision: float
     rp_recall: float
+    instance_precision_any: float
+    instance_recall_any: float
     n_det_instances: int
     n_gt_instances: int
     n_det_rps: int
@@ -177,10 +188,9 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
     """
     det_all = [b for rp in det_rps for b in rp]
     gt_all = [b for rp in gt_rps for b in rp]
-    pairs = match_boxes(np.asarray(det_all, float), np.asarray(gt_all, float), h)
-    ip = _ratio(len(pairs), len(det_all))
-    ir = _ratio(len(pairs), len(gt_all))
+    n_any = len(match_boxes(np.asarray(det_all, float), np.asarray(gt_all, float), h))
     assignment: list[int | None] = []
+    best_gt: list[int | None] = []          # per detected RP: GT RP of its best precision
     acceptable = np.zeros((len(det_rps), len(gt_rps)), bool)  # det RP i ok for GT RP g
     n_accepted = 0
     for i, rp in enumerate(det_rps):
@@ -196,21 +206,33 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
             key = (p, r if not np.isnan(r) else 0.0, -g)
             if best is None or key > best:
                 best, n_matched_best = key, len(m)
+        best_gt.append(-best[2] if best is not None and n_matched_best > 0 else None)
         if best is not None and best[0] >= min_rp_precision and n_matched_best >= 2:
             n_accepted += 1
             assignment.append(-best[2])
         else:
             assignment.append(None)
+    n_assigned = 0                          # the paper's: matches within assigned pairs
+    for g, gt in enumerate(gt_rps):
+        boxes = [b for rp, a in zip(det_rps, best_gt) if a == g for b in rp]
+        if boxes:
+            n_assigned += len(match_boxes(np.asarray(boxes, float), np.asarray(gt, float), h))
     n_recalled = _max_bipartite_matching(acceptable)
     return ImageScores(
-        instance_precision=ip, instance_recall=ir,
+        instance_precision=_ratio(n_assigned, len(det_all)),
+        instance_recall=_ratio(n_assigned, len(gt_all)),
         rp_precision=_ratio(n_accepted, len(det_rps)),
         rp_recall=_ratio(n_recalled, len(gt_rps)),
+        instance_precision_any=_ratio(n_any, len(det_all)),
+        instance_recall_any=_ratio(n_any, len(gt_all)),
         n_det_instances=len(det_all), n_gt_instances=len(gt_all),
         n_det_rps=len(det_rps), n_gt_rps=len(gt_rps), rp_assignment=assignment)
 
 
 METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
+"""The four figures of the paper's tables."""
+ANY_RP_METRICS = ("instance_precision_any", "instance_recall_any")
+"""The instance figures with matching across RPs (the tables' second pair of columns)."""
 
 
 def summarise(scores: Sequence[ImageScores]) -> dict[str, float]:
