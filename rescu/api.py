@@ -114,7 +114,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         pipeline.features(w("image.png"), w("meta.json"), w("features.h5"), cfg["features"])
         s1 = "grasp" if method == "grasp" else "rescu-i"
         pipeline.stage1(w("features.h5"), w("meta.json"), w(f"{s1}.json"), w(f"{s1}.rp.h5"),
-                        cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1)
+                        cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1,
+                        png=w("image.png"))
         source = w(f"{s1}.json")
         if method == "rescu-ii":
             # the pipeline's thread counts (config `threads`): the same floats as its run,

@@ -50,7 +50,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import io
-from .types import ImageResult
+from .types import Features, ImageResult, Pattern, RPMatrix
 
 log = logging.getLogger("rescu")
 
@@ -225,11 +225,14 @@ def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> F
 
 # --------------------------------------------------------------------------- stage I
 def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
-           params: dict[str, Any], method: str = "rescu-i") -> Failure | None:
+           params: dict[str, Any], method: str = "rescu-i",
+           png: str | None = None) -> Failure | None:
     """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features.
 
     Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
-    matrices (feature indices) to HDF5.
+    matrices (feature indices) to HDF5. With ``png`` (the prepared image) and
+    ``stage1.refine_boxes``, RESCU-I's boxes are moved onto the edges each RP's instances
+    share (:mod:`rescu.discovery.extent`); GRASP's never are.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
@@ -243,10 +246,12 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
-            out = S1.discover(feats, S1.Stage1Params.from_dict(params))
+            p = S1.Stage1Params.from_dict(params)
+            out = S1.discover(feats, p)
         S1.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
-        res.patterns = S1.rps_to_patterns(feats, out.rps)
+        res.patterns = (S1.rps_to_patterns(feats, out.rps) if method == "grasp"
+                        else _rescu_i_patterns(feats, out.rps, p, png, meta_path))
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -256,6 +261,25 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         io.write_json(out_json, empty_result(meta, method, f))
 
     return _guard(method, _h5_failure(features_h5), run, empty)
+
+
+def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any, png: str | None,
+                      meta_path: str) -> list[Pattern]:
+    """RESCU-I's RP matrices as patterns (original pixels); with ``png`` (the prepared
+    image) and ``p.refine_boxes``, their boxes moved onto the edges each RP's instances
+    share (:func:`rescu.discovery.extent.refine_pattern_boxes`)."""
+    from .discovery import stage1 as S1
+
+    pats = S1.rps_to_patterns(feats, rps)
+    if png is not None and p.refine_boxes and pats:
+        import cv2
+
+        from .discovery.extent import refine_pattern_boxes
+
+        rgb, meta = read_prepared(png, meta_path)
+        refine_pattern_boxes(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), float(meta["scale_factor"]),
+                             pats, p.refine_shifts, p.refine_scales)
+    return pats
 
 
 def ablation_overrides(spec: Any) -> dict[str, Any]:
@@ -279,12 +303,13 @@ def ablation_overrides(spec: Any) -> dict[str, Any]:
 
 
 def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
-             params: dict[str, Any], variants: dict[str, Any]) -> Failure | None:
+             params: dict[str, Any], variants: dict[str, Any],
+             png: str | None = None) -> Failure | None:
     """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive, and
     optionally another ``orientation_mode``; see :func:`ablation_overrides`).
 
     ``out_jsons`` maps each variant name to its per-image result JSON (method
-    ``rescu-i[<variant>]``). Features are loaded once.
+    ``rescu-i[<variant>]``). Features are loaded once. ``png``: as :func:`stage1`.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
@@ -298,7 +323,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
             p = S1.Stage1Params.from_dict({**params, **over})
             o = S1.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
-            res.patterns = S1.rps_to_patterns(feats, o.rps)
+            res.patterns = _rescu_i_patterns(feats, o.rps, p, png, meta_path)
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)

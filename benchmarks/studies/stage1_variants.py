@@ -44,7 +44,8 @@ def _one(job: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, float]:
 
     pipeline.limit_threads(1)
     out_h5 = str(Path(out_json).with_suffix(".rps.h5"))
-    fail = pipeline.stage1(h5, meta, out_json, out_h5, params)
+    png = meta.replace(".meta.json", ".png")
+    fail = pipeline.stage1(h5, meta, out_json, out_h5, params, png=png)
     Path(out_h5).unlink(missing_ok=True)
     status = "ok" if fail is None else f"failed: {fail.get('message')}"
     return Path(out_json).stem, status, time.time() - t

@@ -128,6 +128,12 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
         more words (:func:`drop_duplicate_instances`): boxes overlapping by more than
         ``max_nested_cover`` of the smaller box (1.0: off), or registered centres closer
         than ``min_centre_distance`` x the median larger box side (0: off).
+    refine_boxes : bool
+        Move each RP's instance boxes onto the edges its instances share (one shift and
+        scale per RP; :mod:`rescu.discovery.extent`). Needs the image; done by
+        :func:`rescu.pipeline.stage1` for RESCU-I.
+    refine_shifts, refine_scales : list of float
+        The candidate centre shifts (fractions of the box side) and side scales.
     seed : int
         Tie-break of the initial URPs: correspondences with equal support are ranked by
         their feature indices ``(a, b)`` when 0 (default), by a permutation drawn from
@@ -163,10 +169,14 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
     extent_grow: float
     max_nested_cover: float
     min_centre_distance: float
+    refine_boxes: bool
+    refine_shifts: tuple[float, ...]
+    refine_scales: tuple[float, ...]
     seed: int
 
     def __post_init__(self) -> None:
-        for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive"):
+        for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive", "refine_shifts",
+                     "refine_scales"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         bad = [a for a in self.adaptive if a not in ADAPTIVE_NAMES]
         if bad:
@@ -187,6 +197,11 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
                 or self.grid_retry_initials < 0:
             raise ValueError("Stage1Params.grid_retry_initials must be an integer >= 0, got "
                              f"{self.grid_retry_initials!r}")
+        if self.refine_boxes and (not self.refine_shifts or not self.refine_scales
+                                  or min(self.refine_scales) <= 0):
+            raise ValueError("Stage1Params: refine_shifts and refine_scales must be non-empty "
+                             f"and the scales > 0, got {self.refine_shifts!r}, "
+                             f"{self.refine_scales!r}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 

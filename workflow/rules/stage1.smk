@@ -7,6 +7,7 @@ rule rescu_i:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
         code=step_code("stage1"),
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
@@ -43,6 +44,7 @@ rule ablation:
     input:
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
         code=step_code("ablation"),
     output:
         expand(

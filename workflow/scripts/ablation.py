@@ -6,4 +6,4 @@ pipeline.limit_threads(snakemake.threads)
 variants = snakemake.params.variants
 outputs = dict(zip(variants, snakemake.output))  # output order = variant order
 pipeline.ablation(snakemake.input.features, snakemake.input.meta, outputs,
-                  snakemake.params.stage1, variants)
+                  snakemake.params.stage1, variants, png=snakemake.input.png)

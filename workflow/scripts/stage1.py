@@ -4,4 +4,5 @@ from rescu import pipeline
 pipeline.setup_logging(snakemake.log[0])
 pipeline.limit_threads(snakemake.threads)
 pipeline.stage1(snakemake.input.features, snakemake.input.meta, snakemake.output.json,
-                snakemake.output.h5, snakemake.params.stage1, method="rescu-i")
+                snakemake.output.h5, snakemake.params.stage1, method="rescu-i",
+                png=snakemake.input.png)
