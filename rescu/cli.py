@@ -183,8 +183,9 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None 
     per-image scores and tables to ``out_dir`` when given. Returns 0, or 2 when the
     dataset has no ground truth.
     """
-    from .evaluation.core import (EvaluationParams, evaluate_rp_dataset, frame_markdown,
-                                  summary_markdown, summary_table, write_tsv)
+    from .evaluation.core import (RP_TABLE_NOTE, EvaluationParams, evaluate_rp_dataset,
+                                  frame_markdown, summary_markdown, summary_table, write_tsv)
+    from .evaluation.metrics import TABLE_METRICS
     from .evaluation.counting import counting_table
     from .evaluation.vpd import vp_frame, vp_markdown, vp_success_table
     from .io import InputError, read_json
@@ -213,8 +214,9 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None 
     method = pred_dir.name or "predictions"
     if has_rp:
         scores = evaluate_rp_dataset(dataset_dir, {method: pred_dir}, h)
-        summary = summary_table(scores)
-        print(summary_markdown(summary, title=f"RP discovery (IOD h = {h})"))
+        summary = summary_table(scores, TABLE_METRICS)
+        print(summary_markdown(summary, TABLE_METRICS, title=f"RP discovery (IOD h = {h})",
+                               note=RP_TABLE_NOTE))
         counting = counting_table(dataset_dir, {method: pred_dir}, h)
         print("\n## Counting\n\n" + frame_markdown(counting))
         if out_dir is not None:

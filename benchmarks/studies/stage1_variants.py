@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.discovery.stage1 import Stage1Params
     from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
                                        summary_markdown, summary_table)
-    from rescu.evaluation.metrics import ANY_RP_METRICS, METRICS
+    from rescu.evaluation.metrics import TABLE_METRICS as metrics
     from rescu.params import deep_merge
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -91,7 +91,6 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
     if not claim_variant_folder(base, {"stage1": params}):
         return 2
-    metrics = (*METRICS, *ANY_RP_METRICS)
     for ds in sets:
         data = dataset_root(ds, cfg["datasets"][ds], str(a.results))
         run, out = a.results / ds, base / ds

@@ -37,7 +37,7 @@ import pandas as pd
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
 from ..params import checked_mapping, config_section
 from ..types import ImageResult
-from .metrics import ANY_RP_METRICS, IOD_H, METRICS, MIN_RP_PRECISION, score_image
+from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
 
 ABLATION_ROWS = ("none", "P_d", "P_s", "P_theta", "P_d+P_s", "P_d+P_theta",
@@ -48,6 +48,14 @@ METRIC_LABELS = {"instance_precision": "Instance P", "instance_recall": "Instanc
                  "rp_precision": "RP P", "rp_recall": "RP R",
                  "instance_precision_any": "Instance P (any RP)",
                  "instance_recall_any": "Instance R (any RP)"}
+
+RP_TABLE_NOTE = (
+    "Instance P / R are the paper's: a detected RP's instances are matched one-to-one only "
+    "to the instances of the ground-truth RP assigned to it (its highest instance "
+    "precision), each ground-truth instance counted once. The *any RP* columns match all "
+    "detected instances against all ground-truth instances of the image, whichever RP they "
+    "belong to (the figure of earlier versions of these tables); see "
+    "`rescu/evaluation/metrics.py`.")
 
 
 # ----------------------------------------------------------------------------- params

@@ -233,6 +233,8 @@ METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
 """The four figures of the paper's tables."""
 ANY_RP_METRICS = ("instance_precision_any", "instance_recall_any")
 """The instance figures with matching across RPs (the tables' second pair of columns)."""
+TABLE_METRICS = METRICS + ANY_RP_METRICS
+"""The columns of an RP discovery table."""
 
 
 def summarise(scores: Sequence[ImageScores]) -> dict[str, float]:

@@ -21,7 +21,7 @@ from . import plots as EP
 from . import ts as ET
 from . import vpd as EV
 from ..io import atomic_path, read_result
-from .metrics import ANY_RP_METRICS, METRICS
+from .metrics import TABLE_METRICS
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
 RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
@@ -32,15 +32,6 @@ VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines":
 constraint (scene step), the LSD-line baseline, the joint estimator (RP rows + lines,
 focal estimated, the final JSON's VP; and with the dataset's true focal) and the peer
 ``lu-vp-detect`` (given the true focal)."""
-
-
-RP_TABLE_NOTE = (
-    "Instance P / R are the paper's: a detected RP's instances are matched one-to-one only "
-    "to the instances of the ground-truth RP assigned to it (its highest instance "
-    "precision), each ground-truth instance counted once. The *any RP* columns match all "
-    "detected instances against all ground-truth instances of the image, whichever RP they "
-    "belong to (the figure of earlier versions of these tables); see "
-    "`rescu/evaluation/metrics.py`.")
 
 
 @dataclass
@@ -90,12 +81,11 @@ def rp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
     scores = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     E.write_tsv(scores, out_scores)
     E.write_tsv(pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(), out_curves)
-    metrics = (*METRICS, *ANY_RP_METRICS)
-    summary = E.summary_table(scores, metrics) if len(scores) else pd.DataFrame()
-    md = (E.summary_markdown(summary, metrics, alpha=params.significance_alpha,
+    summary = E.summary_table(scores, TABLE_METRICS) if len(scores) else pd.DataFrame()
+    md = (E.summary_markdown(summary, TABLE_METRICS, alpha=params.significance_alpha,
                              decimals=params.decimals,
                              title=f"RP discovery (IOD h = {params.iod_h})",
-                             note=RP_TABLE_NOTE)
+                             note=E.RP_TABLE_NOTE)
           if len(summary) else "_no dataset with recurring-pattern ground truth_\n")
     _write(summary, md, out_tsv, out_md)
 
