@@ -250,8 +250,11 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
             out = S1.discover(feats, p)
         S1.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
-        res.patterns = (S1.rps_to_patterns(feats, out.rps) if method == "grasp"
-                        else _rescu_i_patterns(feats, out.rps, p, png, meta_path))
+        if method == "grasp":
+            res.patterns = S1.rps_to_patterns(feats, out.rps)
+        else:
+            gray = _prepared_gray(png if p.refine_boxes else None, meta_path)
+            res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -263,23 +266,31 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     return _guard(method, _h5_failure(features_h5), run, empty)
 
 
-def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any, png: str | None,
-                      meta_path: str) -> list[Pattern]:
-    """RESCU-I's RP matrices as patterns (original pixels); with ``png`` (the prepared
-    image) and ``p.refine_boxes``, their boxes moved onto the edges each RP's instances
-    share (:func:`rescu.discovery.extent.refine_pattern_boxes`)."""
+def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
+                      gray: np.ndarray | None, scale_factor: float) -> list[Pattern]:
+    """RESCU-I's RP matrices as patterns (original pixels); with ``gray`` (the prepared
+    image, :func:`_prepared_gray`; processed = original x ``scale_factor``, the meta's
+    value) and ``p.refine_boxes``, their boxes moved onto the
+    edges each RP's instances share (:func:`rescu.discovery.extent.refine_pattern_boxes`)."""
     from .discovery import stage1 as S1
 
     pats = S1.rps_to_patterns(feats, rps)
-    if png is not None and p.refine_boxes and pats:
-        import cv2
-
+    if gray is not None and p.refine_boxes and pats:
         from .discovery.extent import refine_pattern_boxes
 
-        rgb, meta = read_prepared(png, meta_path)
-        refine_pattern_boxes(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), float(meta["scale_factor"]),
-                             pats, p.refine_shifts, p.refine_scales)
+        refine_pattern_boxes(gray, scale_factor, pats, p.refine_shifts,
+                             p.refine_scales)
     return pats
+
+
+def _prepared_gray(png: str | None, meta_path: str) -> np.ndarray | None:
+    """The prepared image in grey (H, W) uint8, read once per step; None without ``png``."""
+    if png is None:
+        return None
+    import cv2
+
+    rgb, _ = read_prepared(png, meta_path)
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
 def ablation_overrides(spec: Any) -> dict[str, Any]:
@@ -319,11 +330,12 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
 
     def run() -> None:
         feats = F.load_features(features_h5)
+        gray = _prepared_gray(png if params.get("refine_boxes") else None, meta_path)
         for name, over in overrides.items():
             p = S1.Stage1Params.from_dict({**params, **over})
             o = S1.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
-            res.patterns = _rescu_i_patterns(feats, o.rps, p, png, meta_path)
+            res.patterns = _rescu_i_patterns(feats, o.rps, p, gray, float(meta["scale_factor"]))
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)

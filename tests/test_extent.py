@@ -70,3 +70,13 @@ def test_transform_boxes_clips_to_the_image_and_degenerate_cases():
     p = Pattern(id=0, score=1.0, instances=[Instance(bbox=(1, 1, 0, 3)), Instance(bbox=(5, 1, 2, 3))])
     refine_pattern_boxes(np.zeros((10, 10), np.uint8), 1.0, [p], SHIFTS, SCALES)
     assert p.instances[0].bbox == (1, 1, 0, 3)
+
+
+def test_stage1_params_refuse_bad_refine_settings():
+    from rescu.config import load_config
+    from rescu.discovery.stage1 import Stage1Params
+
+    cfg = load_config()["stage1"]
+    for bad in ({"refine_scales": [0.0, 1.0]}, {"refine_shifts": [2.0]}, {"refine_shifts": []}):
+        with pytest.raises(ValueError, match="refine_"):
+            Stage1Params.from_dict({**cfg, **bad})

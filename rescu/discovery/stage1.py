@@ -198,9 +198,10 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
             raise ValueError("Stage1Params.grid_retry_initials must be an integer >= 0, got "
                              f"{self.grid_retry_initials!r}")
         if self.refine_boxes and (not self.refine_shifts or not self.refine_scales
-                                  or min(self.refine_scales) <= 0):
-            raise ValueError("Stage1Params: refine_shifts and refine_scales must be non-empty "
-                             f"and the scales > 0, got {self.refine_shifts!r}, "
+                                  or min(self.refine_scales) <= 0
+                                  or max(abs(v) for v in self.refine_shifts) > 1):
+            raise ValueError("Stage1Params: refine_shifts and refine_scales must be non-empty, "
+                             f"the shifts in [-1, 1] and the scales > 0, got {self.refine_shifts!r}, "
                              f"{self.refine_scales!r}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
