@@ -113,9 +113,13 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
                          max_side=cfg["image"]["max_side"], min_side=cfg["image"]["min_side"])
         pipeline.features(w("image.png"), w("meta.json"), w("features.h5"), cfg["features"])
         s1 = "grasp" if method == "grasp" else "rescu-i"
+        dense = s1 == "rescu-i" and bool(cfg["dense"]["enabled"])
+        if dense:
+            pipeline.dense(w("image.png"), w("meta.json"), w("dense.json"), cfg["dense"])
         pipeline.stage1(w("features.h5"), w("meta.json"), w(f"{s1}.json"), w(f"{s1}.rp.h5"),
                         cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1,
-                        png=w("image.png"))
+                        png=w("image.png"), dense_json=w("dense.json") if dense else None,
+                        dense_params=cfg["dense"])
         source = w(f"{s1}.json")
         if method == "rescu-ii":
             # the pipeline's thread counts (config `threads`): the same floats as its run,

@@ -145,7 +145,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
     from .io import InputError
     from .pipeline import setup_logging
 
-    cfg = load_config(args.config, _parse_set(args.set), stage2=args.method == "rescu-ii")
+    sets = (["dense.enabled=true"] if args.dense else []) + list(args.set)
+    cfg = load_config(args.config, _parse_set(sets), stage2=args.method == "rescu-ii")
     photos = _collect_photos(args.photos)
     names = result_names(photos)
     out = Path(args.out)
@@ -284,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="optional YAML file overriding sections of the default config/config.yaml")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter, e.g. --set stage1.max_patterns=2 (repeatable)")
+    d.add_argument("--dense", action="store_true",
+                   help="also find RPs in the CNN feature map (small or smooth objects: cars "
+                        "from above, chess pieces); same as --set dense.enabled=true")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -134,6 +134,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .scene.analyse import SceneParams
     from .scene.vp.manhattan import ImageVPParams
     from .discovery.stage1 import Stage1Params
+    from .extension.dense import DenseParams
     from .extension.params import Stage2Params, predict_only_error
     from .data.synth import SynthParams
 
@@ -147,6 +148,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     s1 = config["stage1"]
     build("stage1", lambda: Stage1Params.from_dict(s1))
     build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
+    build("dense", lambda: DenseParams.from_dict(config["dense"]))
     for name, spec in (config.get("ablation") or {}).get("variants", {}).items():
         build(f"ablation.variants.{name}",
               lambda: Stage1Params.from_dict({**s1, **ablation_overrides(spec)}))

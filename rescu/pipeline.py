@@ -226,13 +226,17 @@ def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> F
 # --------------------------------------------------------------------------- stage I
 def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
            params: dict[str, Any], method: str = "rescu-i",
-           png: str | None = None) -> Failure | None:
+           png: str | None = None, dense_json: str | None = None,
+           dense_params: dict[str, Any] | None = None) -> Failure | None:
     """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features.
 
     Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
     matrices (feature indices) to HDF5. With ``png`` (the prepared image) and
     ``stage1.refine_boxes``, RESCU-I's boxes are moved onto the edges each RP's instances
-    share (:mod:`rescu.discovery.extent`); GRASP's never are.
+    share (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense_json`` (the
+    :func:`dense` step's result) RESCU-I's RPs are combined with the dense ones
+    (:func:`rescu.extension.dense.combine_sources`, section ``dense``); a failed dense
+    step leaves stage I's RPs alone and is recorded as ``extra["dense_failure"]``.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
@@ -255,6 +259,8 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         else:
             gray = _prepared_gray(png if p.refine_boxes else None, meta_path)
             res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
+            if dense_json is not None:
+                _add_dense(res, dense_json, dense_params)
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -281,6 +287,38 @@ def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
         refine_pattern_boxes(gray, scale_factor, pats, p.refine_shifts,
                              p.refine_scales)
     return pats
+
+
+def _add_dense(res: ImageResult, dense_json: str, params: dict[str, Any] | None) -> None:
+    """``res.patterns`` combined with the dense step's RPs in ``dense_json`` (in place)."""
+    from .extension import dense as D
+
+    found = ImageResult.from_json(io.read_json(dense_json))
+    failure = found.extra.get("failure")
+    if failure:
+        res.extra["dense_failure"] = failure
+        return
+    res.patterns = D.combine_sources(res.patterns, found.patterns, D.DenseParams.from_dict(params))
+    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
+
+
+def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
+    """The dense source (:func:`rescu.extension.dense.find_dense`) on one prepared image:
+    its RPs (instances in original pixels, ``method="dense"``) -> ``out_json``. A failed
+    upstream step or an error writes an empty result with the failure recorded."""
+    from .extension import dense as D
+
+    meta = io.read_json(meta_path)
+
+    def run() -> None:
+        rgb, _ = read_prepared(png, meta_path)
+        res = empty_result(meta, "dense", None)
+        res.patterns = D.find_dense(rgb, D.DenseParams.from_dict(params),
+                                    scale_factor=float(meta["scale_factor"]))
+        io.write_json(out_json, res)
+
+    return _guard("dense", _blocking(meta.get("failure")), run,
+                  lambda f: io.write_json(out_json, empty_result(meta, "dense", f)))
 
 
 def _prepared_gray(png: str | None, meta_path: str) -> np.ndarray | None:

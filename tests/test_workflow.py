@@ -245,6 +245,20 @@ def test_default_run_has_no_ablation_and_paper_run_has_every_table(tmp_path):
     assert_outputs_under(proc, "results/paper/")
 
 
+def test_dense_source_adds_its_step_before_rescu_i_and_a_table_row(tmp_path):
+    """dense.enabled: one `dense` job per image, RESCU-I reads it (its params change only
+    then), and the RP table gets the dense source's own row; off (the default): none."""
+    cfg = tiny_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("paper: true", "paper: false"))
+    assert "dense" not in planned_jobs(snakemake(tmp_path, cfg, "-n"))
+    on = tiny_config(tmp_path, **{"dense.enabled": True})
+    on.write_text(on.read_text().replace("paper: true", "paper: false"))
+    proc = snakemake(tmp_path, on, "-n", "--", "results/tables/rp_discovery.md")
+    jobs = planned_jobs(proc)
+    assert jobs.get("dense") == 3 and jobs.get("rescu_i") == 3, jobs
+    assert re.search(r"input: [^\n]*results/synthetic/dense/\S+\.json", proc.stdout)
+
+
 def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
     """config/stress.yaml (``make stress``): every synthetic image hard, more and larger
     occluders than the default set, its own seed and folder; ``make stress`` asks for the

@@ -105,12 +105,14 @@ class FrozenBackbone:
             for blk in model._blocks:
                 s = blk._block_args.stride
                 strides.append(s[0] if isinstance(s, (list, tuple)) else int(s))
-            cum, last16 = 2, 0
+            cum, last8, last16 = 2, 0, 0
             for i, s in enumerate(strides):
                 cum *= s
+                if cum == 8:
+                    last8 = i
                 if cum == 16:
                     last16 = i
-            self._last16 = last16
+            self._last8, self._last16 = last8, last16
         else:
             import torchvision
 
@@ -178,6 +180,43 @@ class FrozenBackbone:
         import torch.nn.functional as F
 
         return F.relu(m.features(x))
+
+    def multiscale_maps(self, rgb: np.ndarray):
+        """The stride-8 and stride-16 feature maps of one image (one pass).
+
+        EfficientNet-Lite0: outputs of the last MBConv blocks at stride 8 (40 channels)
+        and 16 (112); DenseNet-121: of dense blocks 2 (512) and 3 (1024).
+
+        Parameters
+        ----------
+        rgb : (H, W, 3) uint8
+
+        Returns
+        -------
+        (torch.Tensor (1, C8, ceil(H/8), ceil(W/8)), torch.Tensor (1, C16, ceil(H/16),
+        ceil(W/16))), float32
+        """
+        torch = _torch()
+        x = self.preprocess(rgb)
+        m = self.model
+        with torch.no_grad():
+            if self.name == "efficientnet-lite0":
+                x = m._swish(m._bn0(m._conv_stem(x)))
+                f8 = None
+                for idx, block in enumerate(m._blocks):
+                    x = block(x, drop_connect_rate=None)
+                    if idx == self._last8:
+                        f8 = x
+                    if idx == self._last16:
+                        return f8, x
+            f8 = None
+            for name, layer in m.features.named_children():
+                x = layer(x)
+                if name == "denseblock2":
+                    f8 = x
+                if name == "denseblock3":
+                    return f8, x
+        raise RuntimeError(f"{self.name}: no stride-16 block found")
 
     def feature_map(self, rgb: np.ndarray):
         """Feature map of one image.

@@ -10,6 +10,7 @@ from rescu.imports import step_dependencies
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
+DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) feeds RESCU-I
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
 BASEDIR = Path(workflow.basedir)
 
@@ -96,6 +97,21 @@ def per_image(pattern, datasets=None, **more):
     for ds in datasets if datasets is not None else DATASETS:
         out += expand(pattern, dataset=ds, image=images(ds), **more)
     return out
+
+
+def dense_input(wildcards):
+    """RESCU-I's extra input when the dense source is on: the image's dense RPs."""
+    if not DENSE:
+        return {}
+    return {"dense": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.json"}
+
+
+def rp_methods():
+    """Result folders of the RP discovery table, by row label (the dense source's own row
+    when it is on)."""
+    from rescu.evaluation.tables import RP_METHODS
+
+    return {**RP_METHODS, "Dense source": "dense"} if DENSE else dict(RP_METHODS)
 
 
 def rp_datasets():

@@ -46,7 +46,7 @@ rule rp_tables:
         preds=per_image(
             f"{RESULTS}/{{dataset}}/{{method}}/{{image}}.json",
             rp_datasets(),
-            method=["grasp", "rescu-i", "rescu-ii"],
+            method=list(rp_methods().values()),
         ),
         gt=gt_files(rp_datasets(), "annotations.json"),
         code=EVAL_CODE,
@@ -61,6 +61,7 @@ rule rp_tables:
         figures=FIGURES,
         datasets=dataset_params(rp_datasets()),
         evaluation=config["evaluation"],
+        methods=rp_methods(),
     log:
         LOGS + "/tables/rp_tables.log",
     script:

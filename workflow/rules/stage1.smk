@@ -3,8 +3,28 @@
 # features and affinities).
 
 
+rule dense:
+    # the second RP source (rescu.extension.dense): recurring blobs in the frozen CNN's
+    # feature map; only when dense.enabled
+    input:
+        meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
+        png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
+        code=step_code("dense"),
+    output:
+        json=f"{RESULTS}/{{dataset}}/dense/{{image}}.json",
+    params:
+        dense=config["dense"],
+    log:
+        LOGS + "/{dataset}/dense/{image}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{dataset}}/dense/{{image}}.tsv"
+    script:
+        "../scripts/dense.py"
+
+
 rule rescu_i:
     input:
+        unpack(dense_input),
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
         png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
@@ -14,6 +34,7 @@ rule rescu_i:
         h5=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.rp.h5",
     params:
         stage1=config["stage1"],
+        dense=config["dense"] if DENSE else None,
     log:
         LOGS + "/{dataset}/rescu-i/{image}.log",
     benchmark:

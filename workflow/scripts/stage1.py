@@ -5,4 +5,5 @@ pipeline.setup_logging(snakemake.log[0])
 pipeline.limit_threads(snakemake.threads)
 pipeline.stage1(snakemake.input.features, snakemake.input.meta, snakemake.output.json,
                 snakemake.output.h5, snakemake.params.stage1, method="rescu-i",
-                png=snakemake.input.png)
+                png=snakemake.input.png, dense_json=snakemake.input.get("dense"),
+                dense_params=snakemake.params.dense)

@@ -24,7 +24,8 @@ else:
     ev = EvaluationParams.from_dict(p.evaluation)
     figures = p.get("figures")
     if rule == "rp_tables":
-        T.rp_tables(refs, p.results, ev, out.tsv, out.md, out.scores, out.curves, figures)
+        T.rp_tables(refs, p.results, ev, out.tsv, out.md, out.scores, out.curves, figures,
+                    dict(p.methods))
     elif rule == "ablation_tables":
         T.ablation_tables(refs, p.results, p.variants, ev, out.tsv, out.md)
     elif rule == "stage2_ablation_tables":

@@ -1,0 +1,376 @@
+"""A second source of RPs: recurring blobs in a frozen CNN's dense feature map.
+
+Stage I finds recurrence among SIFT keypoints; small or smooth objects (cars seen from
+above, chess pieces) carry too few keypoints for it. This source works on the frozen
+ImageNet backbone of stage II instead, once per image:
+
+1. **Feature map** (:func:`hypercolumn`): the backbone's stride-8 and stride-16 maps,
+   each L2-normalised per location, the coarse one upsampled, concatenated: one
+   ``(C, h, w)`` map, a cell = 8 pixels of the backbone input.
+2. **Blobs** (:func:`feature_blobs`): centre-surround contrast in feature space at
+   several square sizes (the feature-space analogue of a difference-of-Gaussians blob
+   detector): the mean feature of an ``a x a`` window against the mean of the ring
+   around it (``surround * a`` wide); local maxima over position and size, strongest
+   first. An object differs from its surroundings; plain background does not.
+3. **RPs** (:func:`dense_patterns`): the blobs' mean features, grouped by
+   average-linkage clustering on cosine similarity; a group of ``min_instances`` or more
+   non-overlapping blobs is one RP, its instances the blobs' square boxes. RPs are
+   ranked by the mean centre-surround contrast of their boxes (:func:`box_contrast`)
+   times their rarity (1 - cosine of their mean feature with the image's mean feature:
+   background is what the image mostly is), and the first ``max_patterns`` are kept.
+4. **With stage I** (:func:`combine_sources`): ``mode="both"`` keeps stage I's RPs and
+   adds the dense RPs' instances that do not overlap them; ``"dense"`` keeps the dense
+   RPs only.
+
+Dense RPs have no feature correspondences (``feature_points`` is None): stage II,
+counting and captions use them as they are; the vanishing point and translation
+symmetry steps use their instance centres where they need points. Instances carry
+``source="stage1"`` (found before stage II) and the pattern ``extra["source"] =
+"dense"``.
+
+Measured on every image of ``../shared/data`` in ``docs/results.md`` (section "Dense
+source"); off by default (config ``dense.enabled``) because on facades it costs
+precision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..params import checked_mapping, config_section
+from ..types import Instance, Pattern
+
+#: The modes of :func:`combine_sources`.
+MODES = ("both", "dense")
+
+
+@dataclass(frozen=True)
+@config_section("dense")
+class DenseParams:
+    """Config section ``dense`` (see ``config/config.yaml`` for each key's meaning).
+
+    Attributes
+    ----------
+    enabled : bool
+        Run the dense source and give its RPs to RESCU-I.
+    mode : str
+        ``"both"`` or ``"dense"`` (:func:`combine_sources`).
+    backbone : str
+        Frozen backbone name (:data:`rescu.extension.backbone.BACKBONES`).
+    max_side : int
+        Longer side of the backbone input, pixels (the prepared image is downscaled to
+        it when larger).
+    sizes : tuple of int
+        Blob sides, feature cells (one cell = 8 backbone-input pixels).
+    surround : int
+        Side of the surround window / blob side (odd, >= 3).
+    max_blobs : int
+        Strongest blobs kept before grouping.
+    min_similarity : float
+        Average-linkage cosine similarity at which blobs are one RP, in (0, 1).
+    min_instances : int
+        Smallest RP.
+    max_patterns : int
+        Dense RPs kept per image, by contrast x rarity (:func:`dense_patterns`).
+    overlap_iod : float
+        ``mode="both"``: a dense instance whose IOD with a stage-I instance (either way)
+        exceeds this is dropped.
+    """
+
+    enabled: bool
+    mode: str
+    backbone: str
+    max_side: int
+    sizes: tuple[int, ...]
+    surround: int
+    max_blobs: int
+    min_similarity: float
+    min_instances: int
+    max_patterns: int
+    overlap_iod: float
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"dense.mode must be one of {MODES}, got {self.mode!r}")
+        if not self.sizes or any(int(s) < 1 for s in self.sizes):
+            raise ValueError(f"dense.sizes must be positive cell counts, got {self.sizes}")
+        if self.surround < 3 or self.surround % 2 == 0:
+            raise ValueError(f"dense.surround must be odd and >= 3, got {self.surround}")
+        if not 0.0 < self.min_similarity < 1.0:
+            raise ValueError(f"dense.min_similarity must be in (0, 1), got {self.min_similarity}")
+        if self.min_instances < 2 or self.max_patterns < 1 or self.max_blobs < 2:
+            raise ValueError("dense.min_instances must be >= 2, max_patterns >= 1, "
+                             "max_blobs >= 2")
+        if self.max_side < 64:
+            raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "DenseParams":
+        """From the ``dense`` section (None: the defaults); unknown keys raise ValueError."""
+        d = checked_mapping(cls, d, "dense parameter")
+        if "sizes" in d:
+            d["sizes"] = tuple(int(s) for s in d["sizes"])
+        return cls(**d)
+
+
+# --------------------------------------------------------------------- feature map
+def hypercolumn(backbone: Any, rgb: np.ndarray) -> np.ndarray:
+    """The stride-8 and stride-16 maps of ``backbone`` on ``rgb``, concatenated.
+
+    Parameters
+    ----------
+    backbone : rescu.extension.backbone.FrozenBackbone
+    rgb : (H, W, 3) uint8
+
+    Returns
+    -------
+    (C, ceil(H / 8), ceil(W / 8)) float32: each half L2-normalised per location and
+    scaled by 1 / sqrt(2), so every location has unit norm.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    f8, f16 = backbone.multiscale_maps(rgb)
+    with torch.no_grad():
+        f8 = F.normalize(f8, dim=1)
+        f16 = F.interpolate(F.normalize(f16, dim=1), size=f8.shape[2:], mode="bilinear",
+                            align_corners=False)
+        f = torch.cat([f8, f16], 1)[0] / np.sqrt(2.0)
+    return np.ascontiguousarray(f.numpy(), dtype=np.float32)
+
+
+def box_means(f: np.ndarray, side: int) -> np.ndarray:
+    """Mean of ``f`` (C, h, w) over the ``side x side`` window centred at each cell
+    (reflected at the border) -> (C, h, w) float32."""
+    import cv2
+
+    out = np.empty_like(f)
+    for c in range(f.shape[0]):
+        out[c] = cv2.boxFilter(f[c], -1, (side, side), normalize=True,
+                               borderType=cv2.BORDER_REFLECT)
+    return out
+
+
+def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre-surround blobs of a feature map, strongest first.
+
+    The response at a cell and size ``a`` is ``(1 - cos(m_c, m_r)) * |m_c|`` with ``m_c``
+    the mean feature of the ``a x a`` window and ``m_r`` that of the ring out to
+    ``surround * a``; ``|m_c|`` (<= 1) rewards windows whose features agree. Blobs are
+    the maxima of their 3 x 3 x 3 neighbourhood over (size, y, x).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, unit-norm per cell (:func:`hypercolumn`)
+    sizes : blob sides, cells
+    surround : ring side / blob side
+    max_blobs : how many to return at most
+
+    Returns
+    -------
+    cells : (n, 3) int, ``[size index, y, x]`` of each blob
+    response : (n,) float, descending
+    emb : (n, C) float32, the unit mean feature of each blob's window
+    """
+    from scipy.ndimage import maximum_filter
+
+    resp, means = [], []
+    for a in sizes:
+        mc = box_means(f, int(a))
+        ms = box_means(f, int(a) * surround)
+        inner, outer = float(a * a), float((a * surround) ** 2)
+        mr = (ms * outer - mc * inner) / (outer - inner)
+        nc = np.linalg.norm(mc, axis=0) + 1e-9
+        nr = np.linalg.norm(mr, axis=0) + 1e-9
+        resp.append((1.0 - (mc * mr).sum(0) / (nc * nr)) * nc)
+        means.append(mc / nc)
+    r = np.stack(resp)
+    peaks = np.argwhere((r == maximum_filter(r, size=3, mode="nearest")) & (r > 0))
+    val = r[tuple(peaks.T)]
+    order = np.lexsort((peaks[:, 2], peaks[:, 1], peaks[:, 0], -val))[:max_blobs]
+    peaks, val = peaks[order], val[order]
+    emb = np.array([means[s][:, y, x] for s, y, x in peaks], np.float32).reshape(
+        len(peaks), f.shape[0])
+    return peaks.astype(int), val.astype(float), emb
+
+
+def blob_boxes(cells: np.ndarray, sizes: Sequence[int], cell_px: float) -> np.ndarray:
+    """Square boxes ``[x, y, w, h]`` (pixels of the backbone input) of blobs
+    ``[size index, y, x]`` (:func:`feature_blobs`) -> (n, 4) float."""
+    a = np.array([sizes[s] for s in cells[:, 0]], float) if len(cells) else np.zeros(0)
+    return np.c_[(cells[:, 2] - a / 2 + 0.5) * cell_px, (cells[:, 1] - a / 2 + 0.5) * cell_px,
+                 a * cell_px, a * cell_px] if len(cells) else np.zeros((0, 4))
+
+
+def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float) -> np.ndarray:
+    """Centre-surround contrast of pixel boxes in a feature map.
+
+    ``(1 - cos(m_box, m_ring)) * |m_box|``, with ``m_box`` the mean feature over the
+    box's cells and ``m_ring`` that of the box grown by its own width and height on
+    every side, minus the box (clipped to the map).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32 (:func:`hypercolumn`)
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the backbone input
+    cell_px : pixels per cell
+
+    Returns
+    -------
+    (n,) float in [0, 2]
+    """
+    c, h, w = f.shape
+    ii = np.zeros((c, h + 1, w + 1), np.float64)
+    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+
+    def total(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        return ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
+
+    out = np.zeros(len(boxes))
+    for i, (x, y, bw, bh) in enumerate(np.asarray(boxes, float).reshape(-1, 4)):
+        x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
+        y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
+        x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
+        y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+        dx, dy = x1 - x0, y1 - y0
+        X0, Y0, X1, Y1 = max(0, x0 - dx), max(0, y0 - dy), min(w, x1 + dx), min(h, y1 + dy)
+        inner, outer = dx * dy, (X1 - X0) * (Y1 - Y0)
+        s = total(x0, y0, x1, y1)
+        mc = s / inner
+        mr = (total(X0, Y0, X1, Y1) - s) / (outer - inner) if outer > inner else mc
+        nc, nr = np.linalg.norm(mc) + 1e-9, np.linalg.norm(mr) + 1e-9
+        out[i] = (1.0 - float(mc @ mr) / (nc * nr)) * nc
+    return out
+
+
+def _iod_either(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(len(a), len(b)) max of IOD(a in b) and IOD(b in a) for ``[x, y, w, h]`` boxes."""
+    ax0, ay0 = a[:, 0:1], a[:, 1:2]
+    ax1, ay1 = ax0 + a[:, 2:3], ay0 + a[:, 3:4]
+    bx0, by0 = b[:, 0], b[:, 1]
+    bx1, by1 = bx0 + b[:, 2], by0 + b[:, 3]
+    iw = np.clip(np.minimum(ax1, bx1) - np.maximum(ax0, bx0), 0, None)
+    ih = np.clip(np.minimum(ay1, by1) - np.maximum(ay0, by0), 0, None)
+    inter = iw * ih
+    area_a = np.maximum(a[:, 2:3] * a[:, 3:4], 1e-9)
+    area_b = np.maximum(b[:, 2] * b[:, 3], 1e-9)
+    return np.maximum(inter / area_a, inter / area_b)
+
+
+# ------------------------------------------------------------------------------ RPs
+def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
+                   ) -> list[tuple[float, np.ndarray]]:
+    """RPs of recurring blobs in one feature map (steps 2-3 of the module docstring).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32 (:func:`hypercolumn`)
+    cell_px : backbone-input pixels per cell (8)
+    params : DenseParams
+
+    Returns
+    -------
+    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most ``params.max_patterns``: boxes
+    (n, 4) ``[x, y, w, h]`` in backbone-input pixels, n >= ``params.min_instances``.
+    """
+    from sklearn.cluster import AgglomerativeClustering
+
+    cells, _, emb = feature_blobs(f, params.sizes, params.surround, params.max_blobs)
+    boxes = blob_boxes(cells, params.sizes, cell_px)
+    # a blob overlapping a stronger one (any size) is the same thing
+    keep = np.ones(len(boxes), bool)
+    ov = _iod_either(boxes, boxes) if len(boxes) else np.zeros((0, 0))
+    for i in range(len(boxes)):
+        if keep[i]:
+            keep[i + 1:] &= ov[i, i + 1:] <= 0.5
+    boxes, emb = boxes[keep], emb[keep]
+    if len(boxes) < params.min_instances:
+        return []
+    labels = AgglomerativeClustering(n_clusters=None, metric="cosine", linkage="average",
+                                     distance_threshold=1.0 - params.min_similarity
+                                     ).fit(emb).labels_
+    g = f.reshape(f.shape[0], -1).mean(1)
+    g /= np.linalg.norm(g) + 1e-12
+    out = []
+    for lab in np.unique(labels):
+        m = np.flatnonzero(labels == lab)
+        if len(m) < params.min_instances:
+            continue
+        cen = emb[m].mean(0)
+        rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
+        out.append((float(box_contrast(f, boxes[m], cell_px).mean()) * rarity, boxes[m]))
+    out.sort(key=lambda t: (-t[0], t[1][0, 1], t[1][0, 0]))
+    return out[:params.max_patterns]
+
+
+def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
+               scale_factor: float = 1.0) -> list[Pattern]:
+    """The dense source on one prepared image.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8, the prepared image (processed pixels)
+    params : DenseParams
+    backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
+    scale_factor : processed = original x scale_factor (the prepared image's meta)
+
+    Returns
+    -------
+    list of Pattern (ids 0..; instances in **original** pixels, ``source="stage1"``;
+    ``score`` = contrast x rarity; ``extra={"source": "dense"}``)
+
+    >>> import numpy as np
+    >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
+    []
+    """
+    import cv2
+
+    from .backbone import FrozenBackbone
+
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
+                         f"dtype {rgb.dtype}")
+    if backbone is None:
+        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+    s = min(1.0, params.max_side / max(rgb.shape[:2]))
+    im = cv2.resize(rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else rgb
+    f = hypercolumn(backbone, im)
+    to_orig = 1.0 / (s * float(scale_factor))
+    pats = []
+    for k, (score, boxes) in enumerate(dense_patterns(f, 8.0, params)):
+        b = boxes * to_orig
+        pats.append(Pattern(id=k, score=score, instances=[
+            Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
+            for row in b], extra={"source": "dense"}))
+    return pats
+
+
+def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DenseParams
+                    ) -> list[Pattern]:
+    """Stage I's RPs and the dense ones as one list (ids renumbered 0..).
+
+    ``params.mode == "dense"``: the dense RPs only. ``"both"``: stage I's RPs first, then
+    each dense RP without its instances that overlap a stage-I instance (IOD above
+    ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
+    """
+    if params.mode == "dense":
+        out = list(dense)
+    else:
+        out = list(sparse)
+        taken = np.array([i.bbox for p in sparse for i in p.instances], float).reshape(-1, 4)
+        for p in dense:
+            b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+            ok = (np.ones(len(b), bool) if not len(taken)
+                  else (_iod_either(b, taken) <= params.overlap_iod).all(1))
+            if ok.sum() >= params.min_instances:
+                out.append(Pattern(id=0, score=p.score,
+                                   instances=[i for i, k in zip(p.instances, ok) if k],
+                                   extra=dict(p.extra)))
+    for k, p in enumerate(out):
+        p.id = k
+    return out

@@ -1,0 +1,154 @@
+"""The dense RP source (rescu.extension.dense) and its pipeline step."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from rescu import io, pipeline
+from rescu.extension.dense import (DenseParams, box_contrast, combine_sources, dense_patterns,
+                                   feature_blobs, find_dense)
+from rescu.types import ImageResult, Instance, Pattern
+
+
+def _map(rng, objects):
+    """An (8, 60, 80) unit feature map: background direction plus noise, and square
+    objects ``(kind, y, x, side)`` painted with the kind's own direction."""
+    dirs = np.eye(8)
+    f = dirs[0][:, None, None] + 0.05 * rng.normal(size=(8, 60, 80))
+    for kind, y, x, a in objects:
+        f[:, y:y + a, x:x + a] = dirs[kind][:, None, None] + 0.05 * rng.normal(size=(8, a, a))
+    f /= np.linalg.norm(f, axis=0, keepdims=True)
+    return f.astype(np.float32)
+
+
+OBJECTS = ([(1, 5, 5 + 15 * i, 3) for i in range(4)]          # kind 1: four 3 x 3 blobs
+           + [(2, 40, 10 + 20 * i, 4) for i in range(3)])    # kind 2: three 4 x 4 blobs
+
+
+def _params(**over):
+    return DenseParams.from_dict({**DenseParams.from_dict(None).__dict__, **over})
+
+
+def test_blobs_sit_on_the_objects_strongest_first():
+    f = _map(np.random.default_rng(0), OBJECTS)
+    cells, resp, emb = feature_blobs(f, (2, 3, 4, 5), 3, 50)
+    assert np.all(np.diff(resp) <= 0) and emb.shape == (len(cells), 8)
+    centres = {(y + a / 2, x + a / 2) for _, y, x, a in OBJECTS}
+    top = cells[:len(OBJECTS)]
+    for _, y, x in top:     # each of the strongest blobs lies on an object
+        assert min(abs(y + 0.5 - cy) + abs(x + 0.5 - cx) for cy, cx in centres) <= 2.0
+
+
+def test_dense_patterns_group_each_kind_into_one_rp():
+    f = _map(np.random.default_rng(1), OBJECTS)
+    rps = dense_patterns(f, 8.0, _params(sizes=(2, 3, 4, 5), max_patterns=5))
+    assert sorted(len(b) for _, b in rps[:2]) == [3, 4], [len(b) for _, b in rps]
+    # what else groups (the background's noise) ranks far below the objects
+    assert all(s < 0.2 * rps[1][0] for s, _ in rps[2:])
+    for _, boxes in rps[:2]:  # the box centres, in cells, are on one kind's objects
+        cy = (boxes[:, 1] + boxes[:, 3] / 2) / 8.0
+        kinds = {k for k, y, x, a in OBJECTS for c in cy if abs(c - (y + a / 2)) < 2}
+        assert len(kinds) == 1
+
+
+def test_box_contrast_is_high_on_objects_and_low_on_background():
+    f = _map(np.random.default_rng(2), OBJECTS)
+    on = box_contrast(f, np.array([[40.0, 40.0, 24, 24]]), 8.0)   # the first kind-1 object
+    off = box_contrast(f, np.array([[300.0, 200.0, 24, 24]]), 8.0)
+    assert on[0] > 0.5 > 0.1 > off[0]
+
+
+def test_params_are_checked():
+    for bad in ({"mode": "sparse"}, {"surround": 4}, {"sizes": []}, {"min_similarity": 1.0},
+                {"min_instances": 1}):
+        with pytest.raises(ValueError):
+            _params(**bad)
+    with pytest.raises(ValueError, match="unknown"):
+        DenseParams.from_dict({"nonsense": 1})
+
+
+def _pattern(boxes, source=None):
+    return Pattern(id=9, score=1.0, instances=[Instance(bbox=tuple(b)) for b in boxes],
+                   extra={"source": source} if source else {})
+
+
+def test_combine_sources_drops_dense_instances_on_stage1_ones():
+    sparse = [_pattern([(0, 0, 10, 10), (20, 0, 10, 10)])]
+    dense = [_pattern([(1, 1, 8, 8), (50, 50, 10, 10), (70, 50, 10, 10), (90, 50, 10, 10)],
+                      "dense"),
+             _pattern([(2, 2, 6, 6), (21, 1, 8, 8), (100, 0, 10, 10)], "dense")]
+    both = combine_sources(sparse, dense, _params(mode="both", min_instances=3))
+    assert [p.id for p in both] == [0, 1] and both[1].count == 3
+    assert both[1].extra["source"] == "dense"
+    only = combine_sources(sparse, dense, _params(mode="dense"))
+    assert [p.count for p in only] == [4, 3] and [p.id for p in only] == [0, 1]
+
+
+def _photo(rng):
+    """A grey noisy floor with five red discs and four blue squares (40 px)."""
+    img = np.clip(150 + rng.normal(0, 8, (360, 480, 3)), 0, 255).astype(np.uint8)
+    truth = []
+    for i in range(5):
+        x, y = 40 + 90 * i, 70
+        cv2.circle(img, (x + 20, y + 20), 20, (200, 30, 30), -1)
+        truth.append((x, y, 40, 40))
+    for i in range(4):
+        x, y = 60 + 100 * i, 240
+        img[y:y + 40, x:x + 40] = (30, 40, 190)
+    return img, np.array(truth, float)
+
+
+def test_find_dense_finds_the_discs_in_original_pixels():
+    img, truth = _photo(np.random.default_rng(3))
+    p = _params(max_patterns=4)
+    pats = find_dense(img, p)
+    assert pats and all(q.extra["source"] == "dense" for q in pats)
+    small = cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    pats_small = find_dense(small, p, scale_factor=0.5)   # processed = original x 0.5
+    for found in (pats, pats_small):
+        best = 0
+        for q in found:
+            b = np.array([i.bbox for i in q.instances])
+            cx, cy = b[:, 0] + b[:, 2] / 2, b[:, 1] + b[:, 3] / 2
+            on = [(abs(cx - (t[0] + 20)) < 20) & (abs(cy - (t[1] + 20)) < 20) for t in truth]
+            best = max(best, int(np.any(on, 1).sum()) if len(on) else 0)
+        assert best >= 4, best
+    with pytest.raises(ValueError, match="uint8"):
+        find_dense(img.astype(float), p)
+
+
+def test_dense_step_and_rescu_i_with_it(tmp_path):
+    img, _ = _photo(np.random.default_rng(4))
+    photo = tmp_path / "floor.png"
+    cv2.imwrite(str(photo), img[:, :, ::-1])
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    from rescu.config import load_config
+
+    cfg = load_config(stage2=False)
+    assert pipeline.prepare(str(photo), w("p.png"), w("m.json"), image_name="floor.png",
+                            max_side=cfg["image"]["max_side"],
+                            min_side=cfg["image"]["min_side"]) is None
+    pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])
+    assert pipeline.dense(w("p.png"), w("m.json"), w("d.json"), cfg["dense"]) is None
+    found = ImageResult.from_json(io.read_json(w("d.json")))
+    assert found.method == "dense" and found.patterns
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s.json"), w("s.h5"), cfg["stage1"],
+                    png=w("p.png"), dense_json=w("d.json"), dense_params=cfg["dense"])
+    res = ImageResult.from_json(io.read_json(w("s.json")))
+    n_dense = sum(p.extra.get("source") == "dense" for p in res.patterns)
+    assert n_dense >= 1 and res.extra["n_dense_patterns"] == n_dense
+    # an unreadable prepared image: the dense step records the failure, RESCU-I keeps
+    # stage I's RPs and says the dense source failed
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    f = pipeline.dense(w("bad.png"), w("m.json"), w("d2.json"), cfg["dense"])
+    assert f is not None and "bad.png" in f["message"]
+    assert json.loads((tmp_path / "d2.json").read_text())["patterns"] == []
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s2.json"), w("s2.h5"), cfg["stage1"],
+                    png=w("p.png"), dense_json=w("d2.json"), dense_params=cfg["dense"])
+    res2 = ImageResult.from_json(io.read_json(w("s2.json")))
+    assert "dense_failure" in res2.extra and "failure" not in res2.extra
+    assert all(p.extra.get("source") != "dense" for p in res2.patterns)
