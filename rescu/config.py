@@ -134,7 +134,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .scene.analyse import SceneParams
     from .scene.vp.manhattan import ImageVPParams
     from .discovery.stage1 import Stage1Params
-    from .extension.dense import DenseParams
+    from .discovery.sources import DenseParams
     from .extension.params import Stage2Params, predict_only_error
     from .data.synth import SynthParams
 

@@ -235,7 +235,7 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     ``stage1.refine_boxes``, RESCU-I's boxes are moved onto the edges each RP's instances
     share (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense_json`` (the
     :func:`dense` step's result) RESCU-I's RPs are combined with the dense ones
-    (:func:`rescu.extension.dense.combine_sources`, section ``dense``); a failed dense
+    (:func:`rescu.discovery.sources.combine_sources`, section ``dense``); a failed dense
     step leaves stage I's RPs alone and is recorded as ``extra["dense_failure"]``.
     """
     from .discovery import features as F
@@ -291,7 +291,7 @@ def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
 
 def _add_dense(res: ImageResult, dense_json: str, params: dict[str, Any] | None) -> None:
     """``res.patterns`` combined with the dense step's RPs in ``dense_json`` (in place)."""
-    from .extension import dense as D
+    from .discovery import sources as D
 
     found = ImageResult.from_json(io.read_json(dense_json))
     failure = found.extra.get("failure")

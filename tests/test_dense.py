@@ -1,4 +1,5 @@
-"""The dense RP source (rescu.extension.dense) and its pipeline step."""
+"""The dense RP source (rescu.extension.dense), its combination with stage I
+(rescu.discovery.sources) and its pipeline step."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import numpy as np
 import pytest
 
 from rescu import io, pipeline
-from rescu.extension.dense import (DenseParams, box_contrast, combine_sources, dense_patterns,
-                                   feature_blobs, find_dense)
+from rescu.discovery.sources import DenseParams, combine_sources
+from rescu.extension.dense import box_contrast, dense_patterns, feature_blobs, find_dense
 from rescu.types import ImageResult, Instance, Pattern
 
 

@@ -18,7 +18,7 @@ ImageNet backbone of stage II instead, once per image:
    ranked by the mean centre-surround contrast of their boxes (:func:`box_contrast`)
    times their rarity (1 - cosine of their mean feature with the image's mean feature:
    background is what the image mostly is), and the first ``max_patterns`` are kept.
-4. **With stage I** (:func:`combine_sources`): ``mode="both"`` keeps stage I's RPs and
+4. **With stage I** (:func:`rescu.discovery.sources.combine_sources`): ``mode="both"`` keeps stage I's RPs and
    adds the dense RPs' instances that do not overlap them; ``"dense"`` keeps the dense
    RPs only.
 
@@ -35,85 +35,15 @@ precision.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
-from ..params import checked_mapping, config_section
+from ..discovery.sources import DenseParams, iod_either
 from ..types import Instance, Pattern
 
-#: The modes of :func:`combine_sources`.
-MODES = ("both", "dense")
-
-
-@dataclass(frozen=True)
-@config_section("dense")
-class DenseParams:
-    """Config section ``dense`` (see ``config/config.yaml`` for each key's meaning).
-
-    Attributes
-    ----------
-    enabled : bool
-        Run the dense source and give its RPs to RESCU-I.
-    mode : str
-        ``"both"`` or ``"dense"`` (:func:`combine_sources`).
-    backbone : str
-        Frozen backbone name (:data:`rescu.extension.backbone.BACKBONES`).
-    max_side : int
-        Longer side of the backbone input, pixels (the prepared image is downscaled to
-        it when larger).
-    sizes : tuple of int
-        Blob sides, feature cells (one cell = 8 backbone-input pixels).
-    surround : int
-        Side of the surround window / blob side (odd, >= 3).
-    max_blobs : int
-        Strongest blobs kept before grouping.
-    min_similarity : float
-        Average-linkage cosine similarity at which blobs are one RP, in (0, 1).
-    min_instances : int
-        Smallest RP.
-    max_patterns : int
-        Dense RPs kept per image, by contrast x rarity (:func:`dense_patterns`).
-    overlap_iod : float
-        ``mode="both"``: a dense instance whose IOD with a stage-I instance (either way)
-        exceeds this is dropped.
-    """
-
-    enabled: bool
-    mode: str
-    backbone: str
-    max_side: int
-    sizes: tuple[int, ...]
-    surround: int
-    max_blobs: int
-    min_similarity: float
-    min_instances: int
-    max_patterns: int
-    overlap_iod: float
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"dense.mode must be one of {MODES}, got {self.mode!r}")
-        if not self.sizes or any(int(s) < 1 for s in self.sizes):
-            raise ValueError(f"dense.sizes must be positive cell counts, got {self.sizes}")
-        if self.surround < 3 or self.surround % 2 == 0:
-            raise ValueError(f"dense.surround must be odd and >= 3, got {self.surround}")
-        if not 0.0 < self.min_similarity < 1.0:
-            raise ValueError(f"dense.min_similarity must be in (0, 1), got {self.min_similarity}")
-        if self.min_instances < 2 or self.max_patterns < 1 or self.max_blobs < 2:
-            raise ValueError("dense.min_instances must be >= 2, max_patterns >= 1, "
-                             "max_blobs >= 2")
-        if self.max_side < 64:
-            raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> "DenseParams":
-        """From the ``dense`` section (None: the defaults); unknown keys raise ValueError."""
-        d = checked_mapping(cls, d, "dense parameter")
-        if "sizes" in d:
-            d["sizes"] = tuple(int(s) for s in d["sizes"])
-        return cls(**d)
+__all__ = ["DenseParams", "hypercolumn", "box_means", "feature_blobs", "blob_boxes",
+           "box_contrast", "dense_patterns", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -247,20 +177,6 @@ def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float) -> np.ndarray
     return out
 
 
-def _iod_either(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(len(a), len(b)) max of IOD(a in b) and IOD(b in a) for ``[x, y, w, h]`` boxes."""
-    ax0, ay0 = a[:, 0:1], a[:, 1:2]
-    ax1, ay1 = ax0 + a[:, 2:3], ay0 + a[:, 3:4]
-    bx0, by0 = b[:, 0], b[:, 1]
-    bx1, by1 = bx0 + b[:, 2], by0 + b[:, 3]
-    iw = np.clip(np.minimum(ax1, bx1) - np.maximum(ax0, bx0), 0, None)
-    ih = np.clip(np.minimum(ay1, by1) - np.maximum(ay0, by0), 0, None)
-    inter = iw * ih
-    area_a = np.maximum(a[:, 2:3] * a[:, 3:4], 1e-9)
-    area_b = np.maximum(b[:, 2] * b[:, 3], 1e-9)
-    return np.maximum(inter / area_a, inter / area_b)
-
-
 # ------------------------------------------------------------------------------ RPs
 def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
                    ) -> list[tuple[float, np.ndarray]]:
@@ -283,7 +199,7 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     boxes = blob_boxes(cells, params.sizes, cell_px)
     # a blob overlapping a stronger one (any size) is the same thing
     keep = np.ones(len(boxes), bool)
-    ov = _iod_either(boxes, boxes) if len(boxes) else np.zeros((0, 0))
+    ov = iod_either(boxes, boxes) if len(boxes) else np.zeros((0, 0))
     for i in range(len(boxes)):
         if keep[i]:
             keep[i + 1:] &= ov[i, i + 1:] <= 0.5
@@ -348,29 +264,3 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
             Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
             for row in b], extra={"source": "dense"}))
     return pats
-
-
-def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DenseParams
-                    ) -> list[Pattern]:
-    """Stage I's RPs and the dense ones as one list (ids renumbered 0..).
-
-    ``params.mode == "dense"``: the dense RPs only. ``"both"``: stage I's RPs first, then
-    each dense RP without its instances that overlap a stage-I instance (IOD above
-    ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
-    """
-    if params.mode == "dense":
-        out = list(dense)
-    else:
-        out = list(sparse)
-        taken = np.array([i.bbox for p in sparse for i in p.instances], float).reshape(-1, 4)
-        for p in dense:
-            b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
-            ok = (np.ones(len(b), bool) if not len(taken)
-                  else (_iod_either(b, taken) <= params.overlap_iod).all(1))
-            if ok.sum() >= params.min_instances:
-                out.append(Pattern(id=0, score=p.score,
-                                   instances=[i for i, k in zip(p.instances, ok) if k],
-                                   extra=dict(p.extra)))
-    for k, p in enumerate(out):
-        p.id = k
-    return out
