@@ -1,0 +1,96 @@
+"""What the dense RP source (rescu.extension.dense.find_dense) costs per image.
+
+Usage::
+
+    python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
+
+Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
+chess, aerial cars; a synthetic rendering when absent), resizes each to
+``--megapixels`` and times :func:`rescu.extension.dense.find_dense` (backbone pass,
+centre-surround blobs, grouping, ranking) ``--repeats`` times with the default
+``dense`` section, the backbone loaded once beforehand (as the pipeline's job loads it
+once). Prints per image the median seconds and the number of dense RPs, then the
+median and maximum over images. ``--threads``: torch and OpenCV threads (the
+pipeline's job: 2 with ``--cores 2``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+SETS = ["cmp_facade", "spb_facades", "chess", "aerial_cars"]
+
+
+def photos(per_set: int) -> list[Path]:
+    out = []
+    for s in SETS:
+        d = SHARED / s / "images"
+        if d.is_dir():
+            out += sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".png"))[:per_set]
+    return out
+
+
+def resized(rgb: np.ndarray, megapixels: float) -> np.ndarray:
+    h, w = rgb.shape[:2]
+    s = (megapixels * 1e6 / (w * h)) ** 0.5
+    return cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--megapixels", type=float, default=1.0)
+    ap.add_argument("--per-set", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args(argv)
+    import torch
+
+    from rescu.discovery.sources import DenseParams
+    from rescu.extension.backbone import FrozenBackbone
+    from rescu.extension.dense import find_dense
+
+    torch.set_num_threads(a.threads)
+    cv2.setNumThreads(a.threads)
+    paths = photos(a.per_set)
+    if not paths:
+        print("no ../shared/data: a synthetic rendering stands in", file=sys.stderr)
+        rng = np.random.default_rng(0)
+        img = np.clip(150 + rng.normal(0, 8, (800, 1200, 3)), 0, 255).astype(np.uint8)
+        for i in range(40):
+            x, y = int(rng.integers(20, 1150)), int(rng.integers(20, 750))
+            cv2.circle(img, (x, y), 15, (200, 30, 30), -1)
+        images = [("synthetic", img)]
+    else:
+        images = [(p.parent.parent.name + "/" + p.name,
+                   cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in paths]
+    params = DenseParams.from_dict(None)
+    backbone = FrozenBackbone(params.backbone, feature_stride=16)
+    find_dense(np.zeros((64, 64, 3), np.uint8), params, backbone)   # warm-up
+    times = []
+    print(f"{'image':<48} {'size':>11} {'RPs':>4} {'seconds':>8}")
+    for name, rgb in images:
+        rgb = resized(rgb, a.megapixels)
+        h, w = rgb.shape[:2]
+        runs, n = [], 0
+        for _ in range(a.repeats):
+            t = time.perf_counter()
+            n = len(find_dense(rgb, params, backbone))
+            runs.append(time.perf_counter() - t)
+        med = statistics.median(runs)
+        times.append(med)
+        print(f"{name:<48} {w:>5}x{h:<5} {n:>4} {med:>8.2f}")
+    print(f"median {statistics.median(times):.2f} s, max {max(times):.2f} s over {len(times)} "
+          f"image(s) at {a.megapixels} MP, {a.threads} thread(s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
