@@ -19,29 +19,15 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _photos import median_seconds, photos, resized  # noqa: E402
+
 SETS = ["cmp_facade", "spb_facades", "chess", "aerial_cars"]
-
-
-def photos(per_set: int) -> list[Path]:
-    out = []
-    for s in SETS:
-        d = SHARED / s / "images"
-        if d.is_dir():
-            out += sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".png"))[:per_set]
-    return out
-
-
-def resized(rgb: np.ndarray, megapixels: float) -> np.ndarray:
-    h, w = rgb.shape[:2]
-    s = (megapixels * 1e6 / (w * h)) ** 0.5
-    return cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(a.threads)
     cv2.setNumThreads(a.threads)
-    paths = photos(a.per_set)
+    paths = photos(SETS, a.per_set)
     if not paths:
         print("no ../shared/data: a synthetic rendering stands in", file=sys.stderr)
         rng = np.random.default_rng(0)
@@ -79,14 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, rgb in images:
         rgb = resized(rgb, a.megapixels)
         h, w = rgb.shape[:2]
-        runs, n = [], 0
-        for _ in range(a.repeats):
-            t = time.perf_counter()
-            n = len(find_dense(rgb, params, backbone))
-            runs.append(time.perf_counter() - t)
-        med = statistics.median(runs)
+        med, found = median_seconds(lambda: find_dense(rgb, params, backbone), a.repeats)
         times.append(med)
-        print(f"{name:<48} {w:>5}x{h:<5} {n:>4} {med:>8.2f}")
+        print(f"{name:<48} {w:>5}x{h:<5} {len(found):>4} {med:>8.2f}")
     print(f"median {statistics.median(times):.2f} s, max {max(times):.2f} s over {len(times)} "
           f"image(s) at {a.megapixels} MP, {a.threads} thread(s)")
     return 0

@@ -19,7 +19,6 @@ import argparse
 import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -27,29 +26,16 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _photos import median_seconds, photos, resized  # noqa: E402
+
 from rescu.scene.image_vp import image_vanishing_points  # noqa: E402
 from rescu.scene.vp.lsd import lsd_segments  # noqa: E402
 from rescu.scene.vp.params import VPParams  # noqa: E402
 from rescu.types import ImageResult  # noqa: E402
 
 cv2.setNumThreads(1)
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 SETS = ["york_urban", "cmp_facade", "spb_facades", "chess", "aerial_cars"]
-
-
-def photos(per_set: int) -> list[Path]:
-    out = []
-    for s in SETS:
-        d = SHARED / s / "images"
-        if d.is_dir():
-            out += sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".png"))[:per_set]
-    return out
-
-
-def resized(rgb: np.ndarray, megapixels: float) -> np.ndarray:
-    h, w = rgb.shape[:2]
-    s = (megapixels * 1e6 / (w * h)) ** 0.5
-    return cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-set", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args(argv)
-    paths = photos(a.per_set)
+    paths = photos(SETS, a.per_set)
     if not paths:
         print("no ../shared/data: a synthetic rendering stands in", file=sys.stderr)
         img = np.full((600, 800, 3), 200, np.uint8)
@@ -79,12 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         src = ImageResult(image=name, width=w, height=h, method="rescu-ii")
         n_seg = len(lsd_segments(rgb, vpp.lsd_min_length * float(np.hypot(w, h)),
                                  vpp.lsd_max_segments))
-        ts = []
-        for _ in range(a.repeats):
-            t = time.perf_counter()
-            image_vanishing_points(rgb, 1.0, src)
-            ts.append(time.perf_counter() - t)
-        times.append(statistics.median(ts))
+        times.append(median_seconds(lambda: image_vanishing_points(rgb, 1.0, src),
+                                    a.repeats)[0])
         print(f"{name:<40} {w:>5}x{h:<5} {n_seg:>8} {times[-1]:>8.3f}")
     print(f"\n{len(times)} images at {a.megapixels:g} MP: median {statistics.median(times):.3f} s, "
           f"max {max(times):.3f} s per image (median of {a.repeats} runs each)")
