@@ -38,7 +38,7 @@ def test_help_explains_every_option():
         out = rescu(*args)
         assert out.returncode == 0 and "usage: rescu" in out.stdout
     text = rescu("discover", "--help").stdout
-    for opt in ("--out", "--method", "--config", "--set", "--keep-work", "--quiet"):
+    for opt in ("--out", "--method", "--config", "--set", "--dense", "--keep-work", "--quiet"):
         assert opt in text
 
 
@@ -55,6 +55,17 @@ def test_discover_on_own_photo_and_bad_file(tmp_path):
     assert max(p["count"] for p in d["patterns"]) == 5
     assert (tmp_path / "out" / "shelf.png").stat().st_size > 0
     assert json.loads((tmp_path / "out" / "broken.json").read_text())["failure"]["stage"] == "prepare"
+
+
+def test_discover_dense_adds_the_dense_source(tmp_path):
+    photo = shelf_photo(tmp_path / "shelf.png")
+    out = rescu("discover", str(photo), "--out", str(tmp_path / "out"), "--method", "rescu-i",
+                "--dense", "--quiet")
+    assert out.returncode == 0, out.stderr
+    d = json.loads((tmp_path / "out" / "shelf.json").read_text())
+    assert d["extra"]["n_dense_patterns"] == sum(p.get("source") == "dense"
+                                                 for p in d["patterns"])
+    assert max(p["count"] for p in d["patterns"]) == 5     # stage I's RP is still there
 
 
 def test_discover_usage_errors_exit_2(tmp_path):

@@ -128,7 +128,9 @@ def test_validate_config_checks_every_section():
            ({"caption": {"captioner": "gpt"}}, "caption.captioner"),
            ({"features": {"n_features": 0}}, "features.n_features"),
            ({"synthetic": {"min_rps": 0}}, "synthetic.min_rps"),
-           ({"evaluation": {"iod_h": 1.5}}, "evaluation.iod_h")]
+           ({"evaluation": {"iod_h": 1.5}}, "evaluation.iod_h"),
+           ({"dense": {"mode": "sparse"}}, "dense.mode"),
+           ({"dense": {"surround": 4}}, "dense.surround")]
     for over, needle in bad:
         with pytest.raises(InputError, match=needle.replace(".", r"\.")):
             load_config(overrides=over)
