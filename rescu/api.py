@@ -22,6 +22,21 @@ from .types import ImageResult
 METHODS = ("rescu-ii", "rescu-i", "grasp")
 
 
+def _dense_step(cfg: dict[str, Any], w: Any) -> None:
+    """The pipeline's dense step with its thread count (config ``threads``, as in the
+    workflow), the caller's torch / OpenCV thread settings restored afterwards."""
+    import cv2
+    import torch
+
+    restore = (torch.get_num_threads(), cv2.getNumThreads())
+    pipeline.limit_threads((cfg.get("threads") or {}).get("stage2_features", 2), torch=True)
+    try:
+        pipeline.dense(w("image.png"), w("meta.json"), w("dense.json"), cfg["dense"])
+    finally:
+        torch.set_num_threads(restore[0])
+        cv2.setNumThreads(restore[1])
+
+
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
              config: dict[str, Any] | None = None, keep_work: bool = False,
              name: str | None = None, validated: bool = False) -> ImageResult:
@@ -115,7 +130,7 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         s1 = "grasp" if method == "grasp" else "rescu-i"
         dense = s1 == "rescu-i" and bool(cfg["dense"]["enabled"])
         if dense:
-            pipeline.dense(w("image.png"), w("meta.json"), w("dense.json"), cfg["dense"])
+            _dense_step(cfg, w)
         pipeline.stage1(w("features.h5"), w("meta.json"), w(f"{s1}.json"), w(f"{s1}.rp.h5"),
                         cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1,
                         png=w("image.png"), dense_json=w("dense.json") if dense else None,

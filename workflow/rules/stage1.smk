@@ -14,6 +14,8 @@ rule dense:
         json=f"{RESULTS}/{{dataset}}/dense/{{image}}.json",
     params:
         dense=config["dense"],
+        threads=config["threads"]["stage2_features"],
+    threads: config["threads"]["stage2_features"]
     log:
         LOGS + "/{dataset}/dense/{image}.log",
     benchmark:

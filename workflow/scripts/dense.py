@@ -2,6 +2,6 @@
 from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])
-pipeline.limit_threads(snakemake.threads)
+pipeline.limit_threads(snakemake.params.threads, torch=True)  # config threads: same floats under any --cores
 pipeline.dense(snakemake.input.png, snakemake.input.meta, snakemake.output.json,
                snakemake.params.dense)
