@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..evaluation.metrics import cover_matrix
 from ..params import checked_mapping, config_section
 from ..types import Pattern
 
@@ -88,20 +89,6 @@ class DenseParams:
         return cls(**d)
 
 
-def iod_either(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(len(a), len(b)) max of IOD(a in b) and IOD(b in a) for ``[x, y, w, h]`` boxes."""
-    ax0, ay0 = a[:, 0:1], a[:, 1:2]
-    ax1, ay1 = ax0 + a[:, 2:3], ay0 + a[:, 3:4]
-    bx0, by0 = b[:, 0], b[:, 1]
-    bx1, by1 = bx0 + b[:, 2], by0 + b[:, 3]
-    iw = np.clip(np.minimum(ax1, bx1) - np.maximum(ax0, bx0), 0, None)
-    ih = np.clip(np.minimum(ay1, by1) - np.maximum(ay0, by0), 0, None)
-    inter = iw * ih
-    area_a = np.maximum(a[:, 2:3] * a[:, 3:4], 1e-9)
-    area_b = np.maximum(b[:, 2] * b[:, 3], 1e-9)
-    return np.maximum(inter / area_a, inter / area_b)
-
-
 def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DenseParams
                     ) -> list[Pattern]:
     """Stage I's RPs and the dense ones as one list (ids renumbered 0..).
@@ -118,7 +105,7 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
         for p in dense:
             b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
             ok = (np.ones(len(b), bool) if not len(taken)
-                  else (iod_either(b, taken) <= params.overlap_iod).all(1))
+                  else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
             if ok.sum() >= params.min_instances:
                 out.append(Pattern(id=0, score=p.score,
                                    instances=[i for i, k in zip(p.instances, ok) if k],

@@ -39,11 +39,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..discovery.sources import DenseParams, iod_either
+from ..discovery.sources import DenseParams
+from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
 
 __all__ = ["DenseParams", "hypercolumn", "box_means", "feature_blobs", "blob_boxes",
-           "box_contrast", "dense_patterns", "find_dense"]
+           "integral_map", "box_contrast", "dense_patterns", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -136,7 +137,17 @@ def blob_boxes(cells: np.ndarray, sizes: Sequence[int], cell_px: float) -> np.nd
                  a * cell_px, a * cell_px] if len(cells) else np.zeros((0, 4))
 
 
-def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float) -> np.ndarray:
+def integral_map(f: np.ndarray) -> np.ndarray:
+    """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
+    :func:`box_contrast`)."""
+    c, h, w = f.shape
+    ii = np.zeros((c, h + 1, w + 1), np.float64)
+    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+    return ii
+
+
+def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
+                 integral: np.ndarray | None = None) -> np.ndarray:
     """Centre-surround contrast of pixel boxes in a feature map.
 
     ``(1 - cos(m_box, m_ring)) * |m_box|``, with ``m_box`` the mean feature over the
@@ -148,14 +159,14 @@ def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float) -> np.ndarray
     f : (C, h, w) float32 (:func:`hypercolumn`)
     boxes : (n, 4) ``[x, y, w, h]``, pixels of the backbone input
     cell_px : pixels per cell
+    integral : :func:`integral_map` of ``f`` when already computed (None: computed here)
 
     Returns
     -------
     (n,) float in [0, 2]
     """
     c, h, w = f.shape
-    ii = np.zeros((c, h + 1, w + 1), np.float64)
-    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+    ii = integral_map(f) if integral is None else integral
 
     def total(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         return ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
@@ -199,7 +210,7 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     boxes = blob_boxes(cells, params.sizes, cell_px)
     # a blob overlapping a stronger one (any size) is the same thing
     keep = np.ones(len(boxes), bool)
-    ov = iod_either(boxes, boxes) if len(boxes) else np.zeros((0, 0))
+    ov = cover_matrix(boxes, boxes) if len(boxes) else np.zeros((0, 0))
     for i in range(len(boxes)):
         if keep[i]:
             keep[i + 1:] &= ov[i, i + 1:] <= 0.5
@@ -209,6 +220,7 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     labels = AgglomerativeClustering(n_clusters=None, metric="cosine", linkage="average",
                                      distance_threshold=1.0 - params.min_similarity
                                      ).fit(emb).labels_
+    ii = integral_map(f)
     g = f.reshape(f.shape[0], -1).mean(1)
     g /= np.linalg.norm(g) + 1e-12
     out = []
@@ -218,7 +230,7 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
             continue
         cen = emb[m].mean(0)
         rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
-        out.append((float(box_contrast(f, boxes[m], cell_px).mean()) * rarity, boxes[m]))
+        out.append((float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity, boxes[m]))
     out.sort(key=lambda t: (-t[0], t[1][0, 1], t[1][0, 0]))
     return out[:params.max_patterns]
 
