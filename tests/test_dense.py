@@ -65,7 +65,7 @@ def test_box_contrast_is_high_on_objects_and_low_on_background():
 
 def test_params_are_checked():
     for bad in ({"mode": "sparse"}, {"surround": 4}, {"sizes": []}, {"min_similarity": 1.0},
-                {"min_instances": 1}):
+                {"min_instances": 1}, {"overlap_iod": 1.5}, {"max_side": 10}):
         with pytest.raises(ValueError):
             _params(**bad)
     with pytest.raises(ValueError, match="unknown"):

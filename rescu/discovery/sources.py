@@ -77,6 +77,8 @@ class DenseParams:
         if self.min_instances < 2 or self.max_patterns < 1 or self.max_blobs < 2:
             raise ValueError("dense.min_instances must be >= 2, max_patterns >= 1, "
                              "max_blobs >= 2")
+        if not 0.0 <= self.overlap_iod <= 1.0:
+            raise ValueError(f"dense.overlap_iod must be in [0, 1], got {self.overlap_iod}")
         if self.max_side < 64:
             raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
 
