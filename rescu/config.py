@@ -130,7 +130,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .evaluation.core import EvaluationParams
     from .discovery.features import FeatureParams
     from .discovery.grasp import GraspParams
-    from .pipeline import ablation_overrides
+    from .discovery.ablation import SOURCE_ROWS, ablation_overrides
     from .scene.analyse import SceneParams
     from .scene.vp.manhattan import ImageVPParams
     from .discovery.stage1 import Stage1Params
@@ -149,9 +149,13 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     build("stage1", lambda: Stage1Params.from_dict(s1))
     build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
     build("dense", lambda: DenseParams.from_dict(config["dense"]))
-    for name, spec in (config.get("ablation") or {}).get("variants", {}).items():
+    ablation = config.get("ablation") or {}
+    for name, spec in ablation.get("variants", {}).items():
         build(f"ablation.variants.{name}",
               lambda: Stage1Params.from_dict({**s1, **ablation_overrides(spec)}))
+        if ablation.get("sources", True) and name in SOURCE_ROWS:
+            raise InputError(f"ablation.variants.{name}: the name of a source row "
+                             f"(ablation.sources); rename the variant")
     s2 = config["stage2"]
     build("stage2", lambda: Stage2Params.from_dict(s2))
     ab2 = config.get("stage2_ablation") or {}

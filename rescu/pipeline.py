@@ -331,44 +331,33 @@ def _prepared_gray(png: str | None, meta_path: str) -> np.ndarray | None:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
-def ablation_overrides(spec: Any) -> dict[str, Any]:
-    """Stage-I parameter overrides of one ablation variant.
-
-    A variant is either a list of the adaptive parameters (``[P_d, P_s]``) or a mapping
-    ``{adaptive: [...], orientation_mode: paper}`` of ``stage1`` keys to override
-    (``adaptive`` and ``orientation_mode`` only).
-    """
-    if isinstance(spec, (list, tuple)):
-        return {"adaptive": list(spec)}
-    if isinstance(spec, dict):
-        unknown = sorted(set(spec) - {"adaptive", "orientation_mode"})
-        if unknown:
-            raise ValueError(f"ablation variant keys {unknown} not allowed "
-                             "(adaptive, orientation_mode)")
-        if "adaptive" not in spec:
-            raise ValueError("an ablation variant mapping needs 'adaptive'")
-        return {k: (list(v) if k == "adaptive" else v) for k, v in spec.items()}
-    raise ValueError(f"an ablation variant must be a list or a mapping, got {spec!r}")
-
-
 def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
              params: dict[str, Any], variants: dict[str, Any],
-             png: str | None = None) -> Failure | None:
+             png: str | None = None, dense_json: str | None = None,
+             dense_params: dict[str, Any] | None = None) -> Failure | None:
     """Stage I once per ablation variant (which of P_d, P_s, P_theta are adaptive, and
-    optionally another ``orientation_mode``; see :func:`ablation_overrides`).
+    optionally another ``orientation_mode``; see
+    :func:`rescu.discovery.ablation.ablation_overrides`).
 
     ``out_jsons`` maps each variant name to its per-image result JSON (method
     ``rescu-i[<variant>]``). Features are loaded once. ``png``: as :func:`stage1`.
+
+    With ``dense_json`` (the :func:`dense` step's result) and ``dense_params``, also the
+    source rows, which ``out_jsons`` must name too
+    (:func:`rescu.discovery.ablation.source_rows`; a variant with ``params``' own
+    parameters gives the sparse RPs).
     """
+    from .discovery import ablation as A
     from .discovery import features as F
     from .discovery import stage1 as S1
 
     meta = io.read_json(meta_path)
-    overrides = {name: ablation_overrides(v) for name, v in variants.items()}
+    overrides = {name: A.ablation_overrides(v) for name, v in variants.items()}
 
     def run() -> None:
         feats = F.load_features(features_h5)
         gray = _prepared_gray(png if params.get("refine_boxes") else None, meta_path)
+        done: list[tuple[Any, list[Pattern]]] = []
         for name, over in overrides.items():
             p = S1.Stage1Params.from_dict({**params, **over})
             o = S1.discover(feats, p)
@@ -377,12 +366,38 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)
+            done.append((p, res.patterns))
+        if dense_json is not None:
+            _source_rows(feats, meta, gray, params, done, dense_json, dense_params, out_jsons)
 
     def empty(f: Failure) -> None:
-        for name in variants:
+        for name in out_jsons:
             io.write_json(out_jsons[name], empty_result(meta, f"rescu-i[{name}]", f))
 
     return _guard("ablation", _h5_failure(features_h5), run, empty)
+
+
+def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
+                 params: dict[str, Any], done: list[tuple[Any, list[Pattern]]],
+                 dense_json: str, dense_params: dict[str, Any] | None,
+                 out_jsons: dict[str, str]) -> None:
+    """The source rows of :func:`ablation` (``done``: the variants' parameters and RPs)."""
+    from .discovery import ablation as A
+    from .discovery import sources as D
+    from .discovery import stage1 as S1
+
+    p = S1.Stage1Params.from_dict(params)
+    sparse = next((pats for q, pats in done if q == p), None)
+    if sparse is None:
+        sparse = _rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
+                                   float(meta["scale_factor"]))
+    found = ImageResult.from_json(io.read_json(dense_json))
+    rows = A.source_rows(sparse, found.patterns, D.DenseParams.from_dict(dense_params),
+                         found.extra.get("failure"))
+    for name, (pats, extra) in rows.items():
+        res = empty_result(meta, f"rescu-i[{name}]", None)
+        res.patterns, res.extra = pats, {**res.extra, **extra}
+        io.write_json(out_jsons[name], res)
 
 
 # --------------------------------------------------------------------------- stage II

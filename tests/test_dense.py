@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from rescu import io, pipeline
+from rescu.discovery.ablation import SOURCE_ROWS
 from rescu.discovery.sources import DenseParams, combine_sources
-from rescu.extension.dense import box_contrast, dense_patterns, feature_blobs, find_dense
+from rescu.extension.dense import (box_contrast, dense_patterns, feature_blobs, find_dense,
+                                  touching_sides)
 from rescu.types import ImageResult, Instance, Pattern
 
 
@@ -56,6 +58,28 @@ def test_dense_patterns_group_each_kind_into_one_rp():
         assert len(kinds) == 1
 
 
+def test_touching_sides_counts_abutting_neighbours():
+    grid = np.array([[10.0 * c, 10.0 * r, 10, 10] for r in range(3) for c in range(3)])
+    sides = touching_sides(grid, 0.35)
+    assert sides[4] == 4 and sides[0] == 2 and sides[1] == 3   # centre, corner, edge
+    spaced = grid * [2, 2, 1, 1]                                 # gaps of one box side
+    assert touching_sides(spaced, 0.35).sum() == 0
+    assert touching_sides(grid[:1], 0.35).tolist() == [0.0]
+
+
+def test_dense_patterns_drop_a_group_that_tiles_the_plane():
+    # a 3 x 8 block of kind-3 tiles with one-cell joints, beside the spaced objects
+    tiles = [(3, 20 + 5 * r, 10 + 5 * c, 4) for r in range(3) for c in range(8)]
+    f = _map(np.random.default_rng(3), OBJECTS + tiles)
+    keep_all = dense_patterns(f, 8.0, _params(sizes=(2, 3, 4, 5), max_patterns=5,
+                                             max_touching=4.0))
+    tiled = [b for _, b in keep_all if touching_sides(b, 0.35).mean() > 0.5]
+    assert len(tiled) == 1 and len(tiled[0]) >= 20           # the tiles group ...
+    kept = dense_patterns(f, 8.0, _params(sizes=(2, 3, 4, 5), max_patterns=5))
+    assert len(kept) == len(keep_all) - 1                    # ... is what the default drops
+    assert sorted(len(b) for _, b in kept[:2]) == [3, 4]
+
+
 def test_box_contrast_is_high_on_objects_and_low_on_background():
     f = _map(np.random.default_rng(2), OBJECTS)
     on = box_contrast(f, np.array([[40.0, 40.0, 24, 24]]), 8.0)   # the first kind-1 object
@@ -65,7 +89,8 @@ def test_box_contrast_is_high_on_objects_and_low_on_background():
 
 def test_params_are_checked():
     for bad in ({"mode": "sparse"}, {"surround": 4}, {"sizes": []}, {"min_similarity": 1.0},
-                {"min_instances": 1}, {"overlap_iod": 1.5}, {"max_side": 10}):
+                {"min_instances": 1}, {"overlap_iod": 1.5}, {"max_side": 10},
+                {"max_touching": 5}, {"touch_tolerance": 0.5}):
         with pytest.raises(ValueError):
             _params(**bad)
     with pytest.raises(ValueError, match="unknown"):
@@ -153,3 +178,24 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
     res2 = ImageResult.from_json(io.read_json(w("s2.json")))
     assert "dense_failure" in res2.extra and "failure" not in res2.extra
     assert all(p.extra.get("source") != "dense" for p in res2.patterns)
+    # the stage-I ablation's source rows: stage I alone, the dense RPs alone, both; with a
+    # failed dense step the dense-only row is empty and the both row is stage I's
+    rows = {n: w(f"a_{i}.json") for i, n in enumerate(["all", *SOURCE_ROWS])}
+    assert pipeline.ablation(w("f.h5"), w("m.json"), rows, cfg["stage1"],
+                             {"all": ["P_d", "P_s", "P_theta"]}, png=w("p.png"),
+                             dense_json=w("d.json"), dense_params=cfg["dense"]) is None
+    got = {n: ImageResult.from_json(io.read_json(p)) for n, p in rows.items()}
+    assert got["sparse-only"].method == "rescu-i[sparse-only]"
+    assert [p.to_json() for p in got["sparse-only"].patterns] == \
+        [p.to_json() for p in got["all"].patterns]           # the same parameters, reused
+    assert [len(p.instances) for p in got["dense-only"].patterns] == \
+        [len(p.instances) for p in found.patterns]
+    assert [p.to_json() for p in got["sparse+dense"].patterns] == \
+        [p.to_json() for p in res.patterns]                   # = RESCU-I with the source on
+    assert pipeline.ablation(w("f.h5"), w("m.json"), rows, cfg["stage1"],
+                             {"all": ["P_d", "P_s", "P_theta"]}, png=w("p.png"),
+                             dense_json=w("d2.json"), dense_params=cfg["dense"]) is None
+    got = {n: ImageResult.from_json(io.read_json(p)) for n, p in rows.items()}
+    assert got["dense-only"].patterns == [] and "dense_failure" in got["dense-only"].extra
+    assert [p.to_json() for p in got["sparse+dense"].patterns] == \
+        [p.to_json() for p in got["sparse-only"].patterns]

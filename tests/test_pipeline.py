@@ -3,14 +3,14 @@ from __future__ import annotations
 
 import pytest
 
-from rescu import pipeline
+from rescu.discovery.ablation import ablation_overrides
 from rescu.discovery import stage1
 
 
 def test_ablation_variant_list_and_mapping() -> None:
-    assert pipeline.ablation_overrides([]) == {"adaptive": []}
-    assert pipeline.ablation_overrides(["P_d", "P_s"]) == {"adaptive": ["P_d", "P_s"]}
-    over = pipeline.ablation_overrides({"adaptive": ["P_theta"], "orientation_mode": "paper"})
+    assert ablation_overrides([]) == {"adaptive": []}
+    assert ablation_overrides(["P_d", "P_s"]) == {"adaptive": ["P_d", "P_s"]}
+    over = ablation_overrides({"adaptive": ["P_theta"], "orientation_mode": "paper"})
     assert over == {"adaptive": ["P_theta"], "orientation_mode": "paper"}
     p = stage1.Stage1Params.from_dict(over)
     assert p.orientation_mode == "paper" and tuple(p.adaptive) == ("P_theta",)
@@ -23,7 +23,7 @@ def test_ablation_variant_list_and_mapping() -> None:
 ])
 def test_ablation_variant_errors(spec, match) -> None:
     with pytest.raises(ValueError, match=match):
-        pipeline.ablation_overrides(spec)
+        ablation_overrides(spec)
 
 
 def test_retain_freed_memory_on_glibc():

@@ -130,7 +130,10 @@ def test_validate_config_checks_every_section():
            ({"synthetic": {"min_rps": 0}}, "synthetic.min_rps"),
            ({"evaluation": {"iod_h": 1.5}}, "evaluation.iod_h"),
            ({"dense": {"mode": "sparse"}}, "dense.mode"),
-           ({"dense": {"surround": 4}}, "dense.surround")]
+           ({"dense": {"surround": 4}}, "dense.surround"),
+           ({"dense": {"max_touching": 5}}, "dense.max_touching"),
+           ({"ablation": {"variants": {"dense-only": ["P_d"]}}},
+            "ablation.variants.dense-only: the name of a source row")]
     for over, needle in bad:
         with pytest.raises(InputError, match=needle.replace(".", r"\.")):
             load_config(overrides=over)

@@ -242,6 +242,9 @@ def test_default_run_has_no_ablation_and_paper_run_has_every_table(tmp_path):
     for name in ("ablation", "stage2_ablation", "scene_no_ac", "ablation_tables",
                  "stage2_ablation_tables", "summary"):
         assert jobs.get(name), (name, jobs)
+    # ablation.sources: the source rows need the dense step on each ablation image
+    assert jobs.get("dense") == jobs["ablation"], jobs
+    assert re.search(r"output: [^\n]*ablation/sparse\+dense/\S+\.json", proc.stdout)
     assert_outputs_under(proc, "results/paper/")
 
 

@@ -19,7 +19,6 @@ from ..types import Pattern
 #: The modes of :func:`combine_sources`.
 MODES = ("both", "dense")
 
-
 @dataclass(frozen=True)
 @config_section("dense")
 class DenseParams:
@@ -51,6 +50,13 @@ class DenseParams:
     overlap_iod : float
         ``mode="both"``: a dense instance whose IOD with a stage-I instance (either way)
         exceeds this is dropped.
+    max_touching : float
+        A dense RP whose instances abut others of the RP on more than this many sides
+        on average (of 4; :func:`rescu.extension.dense.touching_sides`) tiles the plane
+        (board squares, floor tiles, brick) and is dropped; 4 keeps every RP.
+    touch_tolerance : float
+        A neighbour abuts a side when its centre lies one median box side away in that
+        direction, within this fraction of the side on each axis.
     """
 
     enabled: bool
@@ -64,6 +70,8 @@ class DenseParams:
     min_instances: int
     max_patterns: int
     overlap_iod: float
+    max_touching: float
+    touch_tolerance: float
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -79,6 +87,11 @@ class DenseParams:
                              "max_blobs >= 2")
         if not 0.0 <= self.overlap_iod <= 1.0:
             raise ValueError(f"dense.overlap_iod must be in [0, 1], got {self.overlap_iod}")
+        if not 0.0 <= self.max_touching <= 4.0:
+            raise ValueError(f"dense.max_touching must be in [0, 4], got {self.max_touching}")
+        if not 0.0 < self.touch_tolerance < 0.5:
+            raise ValueError("dense.touch_tolerance must be in (0, 0.5), got "
+                             f"{self.touch_tolerance}")
         if self.max_side < 64:
             raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
 
@@ -115,3 +128,4 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     for k, p in enumerate(out):
         p.id = k
     return out
+

@@ -17,7 +17,10 @@ ImageNet backbone of stage II instead, once per image:
    non-overlapping blobs is one RP, its instances the blobs' square boxes. RPs are
    ranked by the mean centre-surround contrast of their boxes (:func:`box_contrast`)
    times their rarity (1 - cosine of their mean feature with the image's mean feature:
-   background is what the image mostly is), and the first ``max_patterns`` are kept.
+   background is what the image mostly is). A group whose boxes abut one another on
+   more than ``max_touching`` sides on average (:func:`touching_sides`) tiles the
+   plane (board squares, floor tiles) and is dropped; the first ``max_patterns`` of the
+   rest are kept.
 4. **With stage I** (:func:`rescu.discovery.sources.combine_sources`): ``mode="both"`` keeps stage I's RPs and
    adds the dense RPs' instances that do not overlap them; ``"dense"`` keeps the dense
    RPs only.
@@ -44,7 +47,7 @@ from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
 
 __all__ = ["DenseParams", "hypercolumn", "box_means", "feature_blobs", "blob_boxes",
-           "integral_map", "box_contrast", "dense_patterns", "find_dense"]
+           "integral_map", "box_contrast", "touching_sides", "dense_patterns", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -188,6 +191,38 @@ def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
     return out
 
 
+def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
+    """On how many of its four sides each box abuts another box of the set.
+
+    A box abuts another on its right (left, below, above) when the other's centre lies
+    one median box width (height) to the right (...) within ``tolerance`` x the median
+    width and height on each axis: the boxes tile the plane there, with no gap.
+
+    Parameters
+    ----------
+    boxes : (n, 4) ``[x, y, w, h]``, any pixel unit
+    tolerance : fraction of the median box side, in (0, 0.5)
+
+    Returns
+    -------
+    (n,) float in {0, 1, 2, 3, 4}
+
+    >>> touching_sides(np.array([[0, 0, 10, 10], [10, 0, 10, 10], [40, 0, 10, 10]]), 0.35)
+    array([1., 1., 0.])
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if len(b) < 2:
+        return np.zeros(len(b))
+    side = np.maximum(np.median(b[:, 2:], axis=0), 1e-9)
+    c = b[:, :2] + b[:, 2:] / 2
+    d = (c[None, :, :] - c[:, None, :]) / side          # (n, n, 2) in box sides
+    out = np.zeros(len(b))
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        out += ((np.abs(d[..., 0] - dx) < tolerance)
+                & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
+    return out
+
+
 # ------------------------------------------------------------------------------ RPs
 def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
                    ) -> list[tuple[float, np.ndarray]]:
@@ -201,8 +236,10 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
 
     Returns
     -------
-    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most ``params.max_patterns``: boxes
-    (n, 4) ``[x, y, w, h]`` in backbone-input pixels, n >= ``params.min_instances``.
+    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most
+    ``params.max_patterns``, none that tiles the plane (mean :func:`touching_sides`
+    above ``params.max_touching``): boxes (n, 4) ``[x, y, w, h]`` in backbone-input
+    pixels, n >= ``params.min_instances``.
     """
     from sklearn.cluster import AgglomerativeClustering
 
@@ -226,7 +263,8 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     out = []
     for lab in np.unique(labels):
         m = np.flatnonzero(labels == lab)
-        if len(m) < params.min_instances:
+        if len(m) < params.min_instances or (
+                touching_sides(boxes[m], params.touch_tolerance).mean() > params.max_touching):
             continue
         cen = emb[m].mean(0)
         rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)

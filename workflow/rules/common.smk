@@ -6,11 +6,15 @@ from pathlib import Path
 from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
 from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
+from rescu.discovery.ablation import SOURCE_ROWS
 from rescu.imports import step_dependencies
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
 DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) feeds RESCU-I
+# the dense step's parameters: what finds the dense RPs, not whether or how RESCU-I takes them
+# (so switching dense.enabled or dense.mode does not rerun the dense or ablation jobs)
+DENSE_STEP = {**config["dense"], "enabled": True, "mode": "both"}
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
 BASEDIR = Path(workflow.basedir)
 
@@ -120,6 +124,20 @@ def rp_datasets():
 
 def vp_datasets():
     return [d for d, v in DATASETS.items() if v["has_vps"]]
+
+
+def ablation_variants():
+    """Rows of the stage-I ablation: the configured variants, then (``ablation.sources``)
+    the source rows of ``rescu.discovery.sources.SOURCE_ROWS``."""
+    extra = list(SOURCE_ROWS) if config["ablation"].get("sources", True) else []
+    return list(config["ablation"]["variants"]) + extra
+
+
+def ablation_dense_input(wildcards):
+    """The ablation step's extra input with ``ablation.sources``: the image's dense RPs."""
+    if not config["ablation"].get("sources", True):
+        return {}
+    return {"dense": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.json"}
 
 
 def ablation_datasets():

@@ -73,7 +73,7 @@ rule ablation_tables:
         preds=per_image(
             f"{RESULTS}/{{dataset}}/ablation/{{variant}}/{{image}}.json",
             ablation_datasets(),
-            variant=list(config["ablation"]["variants"]),
+            variant=ablation_variants(),
         ),
         gt=gt_files(ablation_datasets(), "annotations.json"),
         code=EVAL_CODE,
@@ -84,7 +84,7 @@ rule ablation_tables:
         results=RESULTS,
         datasets=dataset_params(ablation_datasets()),
         evaluation=config["evaluation"],
-        variants=list(config["ablation"]["variants"]),
+        variants=ablation_variants(),
     log:
         LOGS + "/tables/ablation_tables.log",
     script:

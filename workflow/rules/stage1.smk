@@ -5,7 +5,7 @@
 
 rule dense:
     # the second RP source (rescu.extension.dense): recurring blobs in the frozen CNN's
-    # feature map; only when dense.enabled
+    # feature map; when dense.enabled (for RESCU-I) or ablation.sources (paper runs)
     input:
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
         png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
@@ -13,7 +13,7 @@ rule dense:
     output:
         json=f"{RESULTS}/{{dataset}}/dense/{{image}}.json",
     params:
-        dense=config["dense"],
+        dense=DENSE_STEP,
         threads=config["threads"]["stage2_features"],
     threads: config["threads"]["stage2_features"]
     log:
@@ -65,6 +65,7 @@ rule grasp:
 
 rule ablation:
     input:
+        unpack(ablation_dense_input),
         features=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
         png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
@@ -72,11 +73,13 @@ rule ablation:
     output:
         expand(
             f"{RESULTS}/{{{{dataset}}}}/ablation/{{variant}}/{{{{image}}}}.json",
-            variant=config["ablation"]["variants"],
+            variant=ablation_variants(),
         ),
     params:
         stage1=config["stage1"],
         variants=config["ablation"]["variants"],
+        rows=ablation_variants(),
+        dense=DENSE_STEP,
     log:
         LOGS + "/{dataset}/ablation/{image}.log",
     benchmark:
