@@ -90,7 +90,7 @@ def test_box_contrast_is_high_on_objects_and_low_on_background():
 def test_params_are_checked():
     for bad in ({"mode": "sparse"}, {"surround": 4}, {"sizes": []}, {"min_similarity": 1.0},
                 {"min_instances": 1}, {"overlap_iod": 1.5}, {"max_side": 10},
-                {"max_touching": 5}, {"touch_tolerance": 0.5}):
+                {"max_touching": 5}, {"touch_tolerance": 0.5}, {"min_side": 2000}):
         with pytest.raises(ValueError):
             _params(**bad)
     with pytest.raises(ValueError, match="unknown"):
@@ -130,12 +130,16 @@ def _photo(rng):
 
 def test_find_dense_finds_the_discs_in_original_pixels():
     img, truth = _photo(np.random.default_rng(3))
-    p = _params(max_patterns=4)
+    p = _params(max_patterns=4)                  # 480 px: upscaled to min_side = 960
+    native = _params(max_patterns=4, min_side=240)
+    down = _params(max_patterns=4, min_side=240, max_side=400)
     pats = find_dense(img, p)
     assert pats and all(q.extra["source"] == "dense" for q in pats)
     small = cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    pats_small = find_dense(small, p, scale_factor=0.5)   # processed = original x 0.5
-    for found in (pats, pats_small):
+    runs = [pats, find_dense(small, p, scale_factor=0.5),   # processed = original x 0.5
+            find_dense(img, native), find_dense(small, native, scale_factor=0.5),
+            find_dense(img, down)]
+    for found in runs:
         best = 0
         for q in found:
             b = np.array([i.bbox for i in q.instances])

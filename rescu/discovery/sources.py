@@ -35,6 +35,10 @@ class DenseParams:
     max_side : int
         Longer side of the backbone input, pixels (the prepared image is downscaled to
         it when larger).
+    min_side : int
+        A prepared image whose longer side is shorter is upscaled to it (blob sizes are
+        in feature cells, so small photos would leave small objects under the smallest
+        size); ``<= max_side``.
     sizes : tuple of int
         Blob sides, feature cells (one cell = 8 backbone-input pixels).
     surround : int
@@ -63,6 +67,7 @@ class DenseParams:
     mode: str
     backbone: str
     max_side: int
+    min_side: int
     sizes: tuple[int, ...]
     surround: int
     max_blobs: int
@@ -94,6 +99,9 @@ class DenseParams:
                              f"{self.touch_tolerance}")
         if self.max_side < 64:
             raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
+        if not 0 < self.min_side <= self.max_side:
+            raise ValueError(f"dense.min_side must be in [1, max_side = {self.max_side}], "
+                             f"got {self.min_side}")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "DenseParams":

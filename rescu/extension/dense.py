@@ -4,7 +4,8 @@ Stage I finds recurrence among SIFT keypoints; small or smooth objects (cars see
 above, chess pieces) carry too few keypoints for it. This source works on the frozen
 ImageNet backbone of stage II instead, once per image:
 
-1. **Feature map** (:func:`hypercolumn`): the backbone's stride-8 and stride-16 maps,
+1. **Feature map** (:func:`hypercolumn`), on the prepared image scaled to a longer side
+   within [``min_side``, ``max_side``]: the backbone's stride-8 and stride-16 maps,
    each L2-normalised per location, the coarse one upsampled, concatenated: one
    ``(C, h, w)`` map, a cell = 8 pixels of the backbone input.
 2. **Blobs** (:func:`feature_blobs`): centre-surround contrast in feature space at
@@ -303,8 +304,11 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
                          f"dtype {rgb.dtype}")
     if backbone is None:
         backbone = FrozenBackbone(params.backbone, feature_stride=16)
-    s = min(1.0, params.max_side / max(rgb.shape[:2]))
-    im = cv2.resize(rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else rgb
+    longer = max(rgb.shape[:2])
+    s = min(1.0, params.max_side / longer) if longer >= params.min_side \
+        else params.min_side / longer
+    im = rgb if s == 1 else cv2.resize(
+        rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
     f = hypercolumn(backbone, im)
     to_orig = 1.0 / (s * float(scale_factor))
     pats = []
