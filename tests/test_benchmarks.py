@@ -100,3 +100,19 @@ def test_stage1_variants_refusals(tmp_path, capsys):
     assert s1.main([str(tmp_path), "--set", "max_patterns=8"]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
     assert not (tmp_path / "benchmarks").exists()
+
+
+def test_dense_variants_refusals(tmp_path, capsys):
+    dv = load("dense_variants")
+    with pytest.raises(SystemExit):          # not a dense key
+        dv.main([str(tmp_path), "--set", "no_such_key=1"])
+    assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):          # a value DenseParams refuses
+        dv.main([str(tmp_path), "--set", "max_touching=9"])
+    assert "max_touching" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        dv.main([str(tmp_path), "--dataset", "nowhere"])
+    assert "nowhere" in capsys.readouterr().err
+    assert dv.main([str(tmp_path), "--set", "max_touching=4"]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    assert not (tmp_path / "benchmarks").exists()
