@@ -342,10 +342,8 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
     ``out_jsons`` maps each variant name to its per-image result JSON (method
     ``rescu-i[<variant>]``). Features are loaded once. ``png``: as :func:`stage1`.
 
-    With ``dense_json`` (the :func:`dense` step's result) and ``dense_params``, also the
-    source rows, which ``out_jsons`` must name too
-    (:func:`rescu.discovery.ablation.source_rows`; a variant with ``params``' own
-    parameters gives the sparse RPs).
+    With ``dense_json`` (:func:`dense`'s result) and ``dense_params``, also the source rows,
+    named in ``out_jsons`` too (:func:`rescu.discovery.ablation.source_rows`).
     """
     from .discovery import ablation as A
     from .discovery import features as F
@@ -391,9 +389,12 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
     if sparse is None:
         sparse = _rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
                                    float(meta["scale_factor"]))
-    found = ImageResult.from_json(io.read_json(dense_json))
-    rows = A.source_rows(sparse, found.patterns, D.DenseParams.from_dict(dense_params),
-                         found.extra.get("failure"))
+    try:        # an unreadable dense result costs the dense rows, not the variants
+        found = ImageResult.from_json(io.read_json(dense_json))
+        dense, failure = found.patterns, found.extra.get("failure")
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        dense, failure = [], failure_record("dense", e)
+    rows = A.source_rows(sparse, dense, D.DenseParams.from_dict(dense_params), failure)
     for name, (pats, extra) in rows.items():
         res = empty_result(meta, f"rescu-i[{name}]", None)
         res.patterns, res.extra = pats, {**res.extra, **extra}

@@ -203,3 +203,11 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
     assert got["dense-only"].patterns == [] and "dense_failure" in got["dense-only"].extra
     assert [p.to_json() for p in got["sparse+dense"].patterns] == \
         [p.to_json() for p in got["sparse-only"].patterns]
+    # an unreadable dense result costs the source rows only, never the variants' results
+    (tmp_path / "d3.json").write_text("{not json")
+    assert pipeline.ablation(w("f.h5"), w("m.json"), rows, cfg["stage1"],
+                             {"all": ["P_d", "P_s", "P_theta"]}, png=w("p.png"),
+                             dense_json=w("d3.json"), dense_params=cfg["dense"]) is None
+    got = {n: ImageResult.from_json(io.read_json(p)) for n, p in rows.items()}
+    assert "failure" not in got["all"].extra and got["all"].patterns
+    assert got["dense-only"].extra["dense_failure"]["stage"] == "dense"
