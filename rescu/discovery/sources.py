@@ -19,6 +19,7 @@ from ..types import Pattern
 #: The modes of :func:`combine_sources`.
 MODES = ("both", "dense")
 
+
 @dataclass(frozen=True)
 @config_section("dense")
 class DenseParams:
@@ -136,4 +137,3 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     for k, p in enumerate(out):
         p.id = k
     return out
-

@@ -128,7 +128,7 @@ def vp_datasets():
 
 def ablation_variants():
     """Rows of the stage-I ablation: the configured variants, then (``ablation.sources``)
-    the source rows of ``rescu.discovery.sources.SOURCE_ROWS``."""
+    the source rows of ``rescu.discovery.ablation.SOURCE_ROWS``."""
     extra = list(SOURCE_ROWS) if config["ablation"].get("sources", True) else []
     return list(config["ablation"]["variants"]) + extra
 
