@@ -18,6 +18,42 @@ def run_parser(doc: str) -> argparse.ArgumentParser:
     return ap
 
 
+def variants_parser(doc: str) -> argparse.ArgumentParser:
+    """Parser of a study that re-runs one step with ``--set KEY=VALUE`` on a finished run:
+    ``results``, ``--dataset`` (repeatable), ``--config``, ``--set``, ``--name``,
+    ``--workers``."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run")
+    ap.add_argument("--dataset", action="append", default=[], help="repeatable")
+    ap.add_argument("--config", type=Path, default=None)
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--name", default=None)
+    ap.add_argument("--workers", type=int, default=1)
+    return ap
+
+
+def print_side_by_side(data: Path, folders: dict[str, Path], dataset: str) -> None:
+    """The RP metrics (mean ± std over the images with a result in every folder) of each
+    folder of per-image results, by row label; with two folders also the paired
+    Wilcoxon p-value of each metric (all images)."""
+    from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
+                                       summary_markdown, summary_table)
+    from rescu.evaluation.metrics import TABLE_METRICS as metrics
+
+    images = images_with(data, *folders.values())
+    if not images:
+        print(f"{dataset}: no image with results in {', '.join(map(str, folders.values()))}")
+        return
+    df = evaluate_rp_dataset(data, folders, images=images)
+    df["dataset"] = dataset
+    print("\n" + summary_markdown(summary_table(df, metrics), metrics, decimals=3))
+    if len(folders) == 2:
+        sig = significance_table(df, metrics)
+        sig = sig[sig.subset == "all"]
+        print(frame_markdown(sig[["metric", "n_pairs", "mean_a", "mean_b", "p_value"]],
+                             decimals=3))
+
+
 def run_dataset(ap: argparse.ArgumentParser, a: argparse.Namespace
                 ) -> tuple[dict[str, Any], Path]:
     """``(config, dataset folder)`` of ``a.dataset`` as the run saw them; a dataset that is

@@ -51,25 +51,14 @@ def _one(job: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    from _cli import claim_variant_folder, images_with, run_jobs
+    from _cli import claim_variant_folder, print_side_by_side, run_jobs, variants_parser
 
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
     from rescu.discovery.sources import DenseParams
-    from rescu.evaluation.core import (evaluate_rp_dataset, frame_markdown, significance_table,
-                                       summary_markdown, summary_table)
-    from rescu.evaluation.metrics import TABLE_METRICS as metrics
     from rescu.params import deep_merge
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", action="append", default=[], help="repeatable")
-    ap.add_argument("--config", type=Path, default=None)
-    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--workers", type=int, default=1)
+    ap = variants_parser(__doc__)
     a = ap.parse_args(argv)
     if a.workers < 1:
         ap.error("--workers must be at least 1")
@@ -109,18 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         folders = {name: out}
         if (run / "dense").is_dir():
             folders = {"run's dense source": run / "dense", name: out}
-        images = images_with(data, *folders.values())
-        if not images:
-            print(f"{ds}: no image with results")
-            continue
-        df = evaluate_rp_dataset(data, folders, images=images)
-        df["dataset"] = ds
-        print("\n" + summary_markdown(summary_table(df, metrics), metrics, decimals=3))
-        if len(folders) == 2:
-            sig = significance_table(df, metrics)
-            sig = sig[sig.subset == "all"]
-            print(frame_markdown(sig[["metric", "n_pairs", "mean_a", "mean_b", "p_value"]],
-                                 decimals=3))
+        print_side_by_side(data, folders, ds)
     return 0
 
 
