@@ -58,13 +58,13 @@ def source_rows(sparse: list[Pattern], dense: list[Pattern], params: DenseParams
 
     out: dict[str, tuple[list[Pattern], dict[str, Any]]] = {}
     for name, mode in SOURCE_ROWS.items():
-        mine, theirs = copy.deepcopy(sparse), copy.deepcopy(dense)
         extra: dict[str, Any] = {"ablation": {"source": name}}
-        if mode is None:
-            out[name] = (mine, extra)
+        if mode is None or (failure and mode == "both"):
+            pats = copy.deepcopy(sparse)
         elif failure:
-            out[name] = (mine if mode == "both" else [], {**extra, "dense_failure": failure})
-        else:
-            out[name] = (combine_sources(mine, theirs, dataclasses.replace(params, mode=mode)),
-                         extra)
+            pats = []
+        else:       # combine_sources renumbers the patterns it is given: copies
+            pats = combine_sources(copy.deepcopy(sparse), copy.deepcopy(dense),
+                                   dataclasses.replace(params, mode=mode))
+        out[name] = (pats, {**extra, "dense_failure": failure} if failure and mode else extra)
     return out

@@ -15,6 +15,8 @@ DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) fee
 # the dense step's parameters: what finds the dense RPs, not whether or how RESCU-I takes them
 # (so switching dense.enabled or dense.mode does not rerun the dense or ablation jobs)
 DENSE_STEP = {**config["dense"], "enabled": True, "mode": "both"}
+# the stage-I ablation's source rows (sparse-only, dense-only, sparse+dense; they need the dense step)
+ABLATION_SOURCES = bool(config["ablation"].get("sources", True))
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
 BASEDIR = Path(workflow.basedir)
 
@@ -129,13 +131,13 @@ def vp_datasets():
 def ablation_variants():
     """Rows of the stage-I ablation: the configured variants, then (``ablation.sources``)
     the source rows of ``rescu.discovery.ablation.SOURCE_ROWS``."""
-    extra = list(SOURCE_ROWS) if config["ablation"].get("sources", True) else []
+    extra = list(SOURCE_ROWS) if ABLATION_SOURCES else []
     return list(config["ablation"]["variants"]) + extra
 
 
 def ablation_dense_input(wildcards):
     """The ablation step's extra input with ``ablation.sources``: the image's dense RPs."""
-    if not config["ablation"].get("sources", True):
+    if not ABLATION_SOURCES:
         return {}
     return {"dense": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.json"}
 

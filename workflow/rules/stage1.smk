@@ -79,7 +79,7 @@ rule ablation:
         stage1=config["stage1"],
         variants=config["ablation"]["variants"],
         rows=ablation_variants(),
-        dense=DENSE_STEP,
+        dense=DENSE_STEP if ABLATION_SOURCES else None,
     log:
         LOGS + "/{dataset}/ablation/{image}.log",
     benchmark:
