@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rescu.discovery.extent import (edge_box_transform, gradient_images, mean_gradient_frame,
-                                    refine_pattern_boxes, transform_boxes)
+                                    refine_pattern_boxes, transform_boxes, untransform_boxes)
 from rescu.evaluation.metrics import iou_matrix
 from rescu.types import Instance, Pattern
 
@@ -36,6 +36,12 @@ def test_boxes_straddling_two_objects_move_onto_the_objects():
     after = np.array([i.bbox for i in pat.instances])
     iou = np.diag(iou_matrix(after, truth))
     assert before.max() < 0.5 and iou.min() > 0.75
+    # the transform is recorded, and undoing it gives stage I's boxes back (stage II's
+    # merge compares the instances on those)
+    t = pat.extra["box_transform"]
+    assert len(t) == 4 and t != [0.0, 0.0, 1.0, 1.0]
+    assert np.allclose(untransform_boxes(after, t), found)
+    assert np.array_equal(untransform_boxes(after, None), after)
 
 
 def test_scale_factor_keeps_boxes_in_original_pixels():

@@ -212,6 +212,30 @@ def _stage2_inputs():
     return res, feats_d, ckpt
 
 
+def test_merge_compares_the_features_before_the_box_refinement():
+    """RESCU-I's box refinement moves each RP's boxes by a transform of its own; the
+    features step then also pools the boxes before it (``merge_instance_features``),
+    and the merge's appearance test uses those: here the refined boxes' features of
+    B look like nothing of A, the unrefined ones continue A's row."""
+    res, feats_d, ckpt = _stage2_inputs()
+    res.patterns[0].extra["box_transform"] = [0.0, 0.0, 1.0, 1.0]
+    res.patterns[2].extra["box_transform"] = [0.0, 0.2, 1.0, 0.8]
+    unrefined = feats_d["instance_features"].copy()
+    refined = unrefined.copy()
+    refined[7:] = drift_feats(0, 3, base=4, drift=5)      # B's refined crops: other features
+    with_both = dict(feats_d, instance_features=refined.astype(np.float32),
+                     merge_instance_features=unrefined)
+    out = predict_stage2(with_both, ckpt, res, Stage2Params())
+    assert [p.count for p in out.patterns] == [6, 4]
+    # the parts' transforms differ: the merged RP records none; each instance keeps its box
+    assert "box_transform" not in out.patterns[0].extra
+    assert [i.bbox for i in out.patterns[0].instances] == (
+        [i.bbox for i in res.patterns[2].instances] + [i.bbox for i in res.patterns[0].instances])
+    only_refined = dict(feats_d, instance_features=refined.astype(np.float32))
+    kept = predict_stage2(only_refined, ckpt, res, Stage2Params())
+    assert [p.count for p in kept.patterns] == [3, 4, 3]
+
+
 def test_predict_stage2_merges_last():
     res, feats_d, ckpt = _stage2_inputs()
     out = predict_stage2(feats_d, ckpt, res, Stage2Params())

@@ -87,6 +87,7 @@ def test_feature_dict_shapes(six):
     assert feats["proposal_features"].shape == (P, D) and feats["proposal_scores"].shape == (P,)
     assert feats["instance_features"].shape == (4, D)
     assert feats["aug_instance_features"].shape == (2, 4, D)
+    assert "merge_instance_features" not in feats        # no box refinement recorded
     assert bytes(feats["backbone"]).decode() == "efficientnet-lite0"
     h, w = img.shape[:2]
     b = feats["proposals"]
@@ -123,6 +124,24 @@ def test_deterministic(six, tmp_path):
     for k, v in ckpt["state_dict"].items():
         assert torch.equal(v, ckpt2["state_dict"][k]), k
     assert predict_stage2(feats2, ckpt2, s1, p).to_json() == out.to_json()
+
+
+def test_features_before_the_box_refinement_for_the_merge(six):
+    """A stage-I RP that records RESCU-I's box refinement gets the features of its
+    boxes before it too (``merge_instance_features``, what the merge compares)."""
+    img, boxes, s1, p, feats, *_ = six
+    from rescu.discovery.extent import transform_boxes
+
+    for t in ([0.25, 0.0, 1.0, 1.0],            # moved right: the same backbone scale
+              [0.25, 0.0, 0.5, 0.5]):           # and halved: a scale of their own
+        moved = result(img, [transform_boxes(np.array(boxes[:4]), t, img.shape[1::-1])])
+        moved.patterns[0].extra["box_transform"] = t
+        got = compute_stage2_features(img, 1.0, moved, p)
+        assert got["merge_instance_features"].shape == got["instance_features"].shape
+        # the unrefined boxes are s1's: their features are s1's instance features
+        assert np.allclose(got["merge_instance_features"], feats["instance_features"],
+                           atol=1e-5)
+        assert not np.allclose(got["instance_features"], feats["instance_features"], atol=1e-3)
 
 
 def test_occluders_cover_a_band_of_chosen_boxes_only():

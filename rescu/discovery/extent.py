@@ -151,7 +151,9 @@ def refine_pattern_boxes(gray: np.ndarray, scale_factor: float, patterns: list[P
         processed = original x scale_factor; the patterns' boxes are in original pixels.
     patterns : list of Pattern
         Modified in place: each instance's ``bbox`` (one transform per pattern; a
-        pattern with a box of zero width or height is left as it is).
+        pattern with a box of zero width or height is left as it is), and
+        ``extra["box_transform"]`` = ``[dx, dy, sx, sy]`` (:func:`edge_box_transform`;
+        :func:`untransform_boxes` gives the boxes before it, for stage II's merge).
     shifts, scales : sequence of float
         As :func:`edge_box_transform`.
 
@@ -169,7 +171,39 @@ def refine_pattern_boxes(gray: np.ndarray, scale_factor: float, patterns: list[P
         if len(b) == 0 or (b[:, 2:] <= 0).any():
             continue
         ax, ay = mean_gradient_frame(gx, gy, b * scale_factor)
-        nb = transform_boxes(b, edge_box_transform(ax, ay, shifts, scales), size)
+        t = edge_box_transform(ax, ay, shifts, scales)
+        nb = transform_boxes(b, t, size)
         for inst, box in zip(p.instances, nb):
             inst.bbox = (float(box[0]), float(box[1]), float(box[2]), float(box[3]))
+        p.extra["box_transform"] = [float(v) for v in t]
     return patterns
+
+
+def untransform_boxes(boxes: np.ndarray, t: Sequence[float] | None) -> np.ndarray:
+    """The boxes before :func:`transform_boxes` with ``t = (dx, dy, sx, sy)``.
+
+    Exact for a box that was not clipped at the image border (a clipped one comes back
+    with the clipped side's share of the shift and scale); ``t`` None: ``boxes``.
+
+    Parameters
+    ----------
+    boxes : (N, 4) float ``[x, y, w, h]``, moved boxes
+    t : the transform a pattern's ``extra["box_transform"]`` records, or None
+
+    Returns
+    -------
+    (N, 4) float, the same pixels
+
+    >>> b = np.array([[10.0, 20.0, 30.0, 40.0]])
+    >>> t = (0.1, -0.2, 1.2, 0.8)
+    >>> untransform_boxes(transform_boxes(b, t, (1000, 1000)), t).round(6).tolist()
+    [[10.0, 20.0, 30.0, 40.0]]
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if t is None:
+        return b.copy()
+    dx, dy, sx, sy = (float(v) for v in t)
+    w, h = b[:, 2] / sx, b[:, 3] / sy
+    cx = b[:, 0] + b[:, 2] / 2 - w * dx
+    cy = b[:, 1] + b[:, 3] / 2 - h * dy
+    return np.stack([cx - w / 2, cy - h / 2, w, h], axis=1)

@@ -128,6 +128,10 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         with >= ``min_instances`` instances, ``proposals`` (P, 4) original pixels, ``proposal_scores`` (P,),
         ``proposal_features`` (P, D), ``instance_boxes`` (N, 4) original pixels,
         ``instance_rp`` (N,) position in ``rp_index``, ``instance_features`` (N, D),
+        ``merge_instance_features`` (N, D) — only when RESCU-I refined boxes: the
+        instances' features on their boxes before the refinement, at the backbone scale
+        those boxes give (:func:`backbone_scale`), which the split-RP merge compares
+        (:func:`_unrefined_boxes`),
         ``jitter_boxes`` (J, 4) / ``jitter_parent`` (J,) / ``jitter_features`` (J, D) —
         deformed instance boxes, ``hard_negative_boxes`` (Q, 4) / ``hard_negative_features``
         (Q, D), ``aug_proposal_index`` (M,) and, per augmented copy,
@@ -157,6 +161,7 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
     from .proposals import clip_boxes
 
     inst = clip_boxes(inst, size)
+    unrefined = _unrefined_boxes(stage1, rps, sf, size)
     pp = params.proposals.proposal_params()
     boxes, scores = propose(rgb, [inst[inst_rp == k] for k in range(len(rps))], pp)
     is_lat = np.zeros(len(boxes), np.int8)
@@ -175,20 +180,21 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         if m else np.zeros((0,), np.int64)
 
     bb = get_backbone(params)
-    base = min(1.0, params.backbone.input_side / float(max(w, h)))
-    if params.backbone.instance_target_px > 0:
-        # instance-adaptive scale: median instance shorter side -> instance_target_px
-        short = float(np.median(np.minimum(inst[:, 2], inst[:, 3])))
-        base = params.backbone.instance_target_px / max(short, 1.0)
-    base = min(base, params.backbone.max_backbone_side
-               / (float(max(w, h)) * max(params.backbone.input_scales)))
+    base = backbone_scale(inst, size, params)
     scales = [base * s for s in params.backbone.input_scales]
+    # the merge's boxes at the scale they would have had without the refinement
+    scales_u = None if unrefined is None else [
+        backbone_scale(unrefined, size, params) * s for s in params.backbone.input_scales]
     aug_rng = copy.deepcopy(rng)  # the same augmented copies for a fine-tuned backbone
 
     def pooled(net) -> dict[str, np.ndarray]:
         r = copy.deepcopy(aug_rng)
-        pf, inf_, jf, hf = image_features(net, rgb, [boxes, inst, jit, hneg], scales,
-                                          params.backbone.pool_size)
+        same = scales_u == scales
+        sets = [boxes, inst, jit, hneg] + ([unrefined] if same else [])
+        pf, inf_, jf, hf, *mf = image_features(net, rgb, sets, scales,
+                                               params.backbone.pool_size)
+        if unrefined is not None and not same:
+            mf = image_features(net, rgb, [unrefined], scales_u, params.backbone.pool_size)
         aug: dict[str, list[np.ndarray]] = {"inst": [], "jit": [], "hneg": [], "prop": []}
         for k in range(params.examples.n_augment):
             img, sc, flip = augment_image(rgb, k, r)
@@ -206,8 +212,9 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
         def stack(lst: list[np.ndarray], n: int) -> np.ndarray:
             return np.stack(lst).astype(np.float32) if lst else np.zeros((0, n, d), np.float32)
 
+        merge = {"merge_instance_features": mf[0]} if mf else {}
         return {"proposal_features": pf, "instance_features": inf_, "jitter_features": jf,
-                "hard_negative_features": hf,
+                "hard_negative_features": hf, **merge,
                 "aug_instance_features": stack(aug["inst"], len(inst)),
                 "aug_jitter_features": stack(aug["jit"], len(jit)),
                 "aug_hard_negative_features": stack(aug["hneg"], len(hneg)),
@@ -239,6 +246,36 @@ def compute_stage2_features(rgb: np.ndarray, scale_factor: float, stage1: ImageR
             out.update(pooled(tuned))
         out["finetune_info"] = to_bytes(json.dumps(info))
     return out
+
+
+def backbone_scale(inst: np.ndarray, size: tuple[int, int], params: Stage2Params) -> float:
+    """The backbone's base input scale for an image of ``size`` (W, H) pixels whose
+    instances are ``inst`` (N, 4) in those pixels: ``input_side`` over the longer side,
+    or with ``instance_target_px`` the median instance shorter side brought to it;
+    capped so that no input side exceeds ``max_backbone_side``."""
+    w, h = size
+    base = min(1.0, params.backbone.input_side / float(max(w, h)))
+    if params.backbone.instance_target_px > 0:
+        # instance-adaptive scale: median instance shorter side -> instance_target_px
+        short = float(np.median(np.minimum(inst[:, 2], inst[:, 3])))
+        base = params.backbone.instance_target_px / max(short, 1.0)
+    return min(base, params.backbone.max_backbone_side
+               / (float(max(w, h)) * max(params.backbone.input_scales)))
+
+
+def _unrefined_boxes(stage1: ImageResult, rps: list[tuple[int, np.ndarray]], sf: float,
+                     size: tuple[int, int]) -> np.ndarray | None:
+    """The stage-I instance boxes (rows as ``instance_boxes``, processed pixels, clipped)
+    before RESCU-I's box refinement (each pattern's ``extra["box_transform"]`` undone,
+    :func:`rescu.discovery.extent.untransform_boxes`); None when no RP was refined."""
+    from ..discovery.extent import untransform_boxes
+    from .proposals import clip_boxes
+
+    ts = [stage1.patterns[i].extra.get("box_transform") for i, _ in rps]
+    if all(t is None for t in ts):
+        return None
+    b = np.concatenate([untransform_boxes(bx, t) for (_, bx), t in zip(rps, ts)])
+    return clip_boxes((b * sf).astype(np.float32), size)
 
 
 def _finetune_examples(feats: dict[str, np.ndarray], params: Stage2Params,

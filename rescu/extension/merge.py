@@ -34,12 +34,21 @@ that the parts are one pattern: the frozen ImageNet features of every stage-I in
 Merging is agglomerative: the most similar admissible pair (largest
 ``S_AB / min(S_AA, S_BB)``) is merged first and the evidence recomputed for the merged
 RP, until no admissible pair is left. The merged RP has the lower id's position, the
-higher score, the union of the instances (duplicates, IoU > ``duplicate_iou``, removed:
-the stage-I / higher-score instance stays), stage-I instances first (A's then B's) and
-stage-II instances after, feature points stacked block-diagonally (A's visual words are
-missing, NaN, in B's instances and vice versa, so column n still belongs to
-``instances[n]``), A's scene results (A = the higher score), ``stage2_added`` summed and
-``merged_from`` (the original ids). Patterns are renumbered 0..K-1 in order.
+higher score, the union of the instances (each keeps its box; of two duplicates, IoU >
+``duplicate_iou``, the stage-I / higher-score instance stays), stage-I instances first
+(A's then B's) and stage-II instances after, feature points stacked block-diagonally
+(A's visual words are missing, NaN, in B's instances and vice versa, so column n still
+belongs to ``instances[n]``), A's scene results (A = the higher score), ``stage2_added``
+summed and ``merged_from`` (the original ids); ``box_transform`` only when both parts
+had the same. Patterns are renumbered 0..K-1 in order.
+
+The tests and the search for duplicates compare the instances on their boxes *before*
+RESCU-I's box refinement. The refinement moves each RP's boxes by one transform of its
+own (``extra["box_transform"]``), so two parts of one row get different boxes, sizes
+and rows, and their features differ more than the parts do (``docs/studies/merge.md``).
+The appearance test takes the features of those boxes when the features step made them
+(``merge_instance_features``); the geometry tests and the duplicates undo each RP's
+transform.
 """
 
 from __future__ import annotations
@@ -107,6 +116,15 @@ class MergeParams:
 # ----------------------------------------------------------------------------- evidence
 def _boxes(p: Pattern) -> np.ndarray:
     return np.array([i.bbox for i in p.instances], np.float64).reshape(-1, 4)
+
+
+def _unrefined(p: Pattern) -> np.ndarray:
+    """All instance boxes of ``p`` before RESCU-I's box refinement (its
+    ``extra["box_transform"]`` undone; :func:`rescu.discovery.extent.untransform_boxes`),
+    (K, 4): what the size, conflict and line tests compare."""
+    from ..discovery.extent import untransform_boxes
+
+    return untransform_boxes(_boxes(p), p.extra.get("box_transform"))
 
 
 def _iou_cover(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,19 +221,23 @@ def pair_evidence(feats_a: np.ndarray, feats_b: np.ndarray, boxes_a: np.ndarray,
 
 
 # ----------------------------------------------------------------------------- merging
-def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float) -> Pattern:
-    """One pattern from A (the higher score) and B; see the module docstring."""
+def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float, geom_a: np.ndarray,
+               geom_b: np.ndarray) -> tuple[Pattern, np.ndarray]:
+    """One pattern from A (the higher score) and B (see the module docstring), and the
+    boxes of its instances the tests compare (``geom_a`` / ``geom_b``: A's and B's, in
+    the order of their instances; duplicates are found on them)."""
     ia = [(ins, 0, n) for n, ins in enumerate(a.instances)]
     ib = [(ins, 1, n) for n, ins in enumerate(b.instances)]
+    geom = {0: np.asarray(geom_a, float).reshape(-1, 4), 1: np.asarray(geom_b, float).reshape(-1, 4)}
 
     def rank(t: tuple[Instance, int, int]) -> tuple[int, float, int, int]:
         return (0 if t[0].source == "stage1" else 1, -float(t[0].score), t[1], t[2])
 
     kept: list[tuple[Instance, int, int]] = []
     for t in sorted(ia + ib, key=rank):           # stage-I and higher score win duplicates
-        bx = np.array([t[0].bbox], float)
+        bx = geom[t[1]][t[2]][None]
         if kept:
-            iou, _ = _iou_cover(bx, np.array([k[0].bbox for k in kept], float))
+            iou, _ = _iou_cover(bx, np.array([geom[k[1]][k[2]] for k in kept], float))
             if (iou > duplicate_iou).any():
                 continue
         kept.append(t)
@@ -254,8 +276,10 @@ def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float) -> Pattern:
         extra["stage2_added"] = sum(1 for i in out.instances if i.source == "stage2")
     extra["merged_from"] = sorted(set(a.extra.get("merged_from", [a.id]))
                                   | set(b.extra.get("merged_from", [b.id])))
+    if a.extra.get("box_transform") != b.extra.get("box_transform"):
+        extra.pop("box_transform", None)        # RESCU-I's box refinement: one per part
     out.extra = extra
-    return out
+    return out, np.array([geom[src][n] for _, src, n in order], float).reshape(-1, 4)
 
 
 def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats: np.ndarray,
@@ -266,12 +290,15 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
     Parameters
     ----------
     result : ImageResult
-        RESCU-II result (original pixels); not modified.
+        RESCU-II result (original pixels); not modified. A pattern's
+        ``extra["box_transform"]`` (RESCU-I's box refinement) is undone for the size,
+        conflict and line tests.
     inst_boxes : (N, 4) float
         Stage-I instance boxes with features, ``[x, y, w, h]`` original pixels (only
         checked for shape; the features identify the instances).
     inst_feats : (N, D) float
-        Frozen backbone feature of each of those instances.
+        Frozen backbone feature of each of those instances (the features step's
+        ``merge_instance_features`` where RESCU-I refined the boxes).
     inst_pattern : (N,) int
         Position in ``result.patterns`` of the RP each instance belongs to.
     params : MergeParams
@@ -295,29 +322,30 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
         raise ValueError(f"inst_pattern must index result.patterns (0..{len(result.patterns) - 1}),"
                          f" got values in [{ip.min()}, {ip.max()}]")
     out = copy.deepcopy(result)
-    # groups: position -> (pattern, feature rows)
-    groups: dict[int, tuple[Pattern, np.ndarray]] = {
-        k: (p, f[ip == k]) for k, p in enumerate(out.patterns)}
+    # groups: position -> (pattern, feature rows, boxes of the geometry tests)
+    groups: dict[int, tuple[Pattern, np.ndarray, np.ndarray]] = {
+        k: (p, f[ip == k], _unrefined(p)) for k, p in enumerate(out.patterns)}
     log: list[dict[str, Any]] = []
     while True:
         best: tuple[float, int, int, dict[str, Any]] | None = None
         keys = sorted(groups)
         for x, ka in enumerate(keys):
             for kb in keys[x + 1:]:
-                pa, fa = groups[ka]
-                pb, fb = groups[kb]
-                ev = pair_evidence(fa, fb, _boxes(pa), _boxes(pb), params)
+                pa, fa, ba = groups[ka]
+                pb, fb, bb = groups[kb]
+                ev = pair_evidence(fa, fb, ba, bb, params)
                 if ev["merge"] and (best is None or ev["ratio"] > best[0]):
                     best = (ev["ratio"], ka, kb, ev)
         if best is None:
             break
         _, ka, kb, ev = best
-        pa, fa = groups[ka]
-        pb, fb = groups[kb]
+        pa, fa, ba = groups[ka]
+        pb, fb, bb = groups[kb]
         log.append({"ids": [int(pa.id), int(pb.id)], **ev})
         first, second = (pa, pb) if float(pa.score) >= float(pb.score) else (pb, pa)
-        merged = _merge_two(first, second, params.duplicate_iou)
-        groups[ka] = (merged, np.concatenate([fa, fb]))
+        ga, gb = (ba, bb) if first is pa else (bb, ba)
+        merged, geom = _merge_two(first, second, params.duplicate_iou, ga, gb)
+        groups[ka] = (merged, np.concatenate([fa, fb]), geom)
         del groups[kb]
     if not log:
         return out, log

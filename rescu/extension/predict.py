@@ -244,7 +244,8 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
 def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[int],
                  params: Stage2Params) -> ImageResult:
     """The last step of :func:`predict_stage2`: merge RPs that are parts of one pattern
-    (:func:`rescu.extension.merge.merge_split_patterns` on the stage-I instance features);
+    (:func:`rescu.extension.merge.merge_split_patterns` on the stage-I instance features,
+    those of the boxes before RESCU-I's refinement where the features file has them);
     ``extra["stage2"]["merged"]`` lists the merged id pairs (ids before the merge)."""
     if not params.predict.merge.enabled or len(rp_index) < 2:
         return out
@@ -252,8 +253,11 @@ def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[
 
     inst_rp = np.asarray(feats["instance_rp"], np.int64).reshape(-1)
     pattern_of = np.asarray(rp_index, np.int64)[inst_rp]
+    # the features of the boxes before RESCU-I's refinement when it made them: one
+    # transform per RP gives two parts of one row different boxes (docs/studies/merge.md)
+    inst_f = feats.get("merge_instance_features", feats["instance_features"])
     res, log = merge_split_patterns(out, np.asarray(feats["instance_boxes"], np.float64),
-                                    np.asarray(feats["instance_features"], np.float64),
+                                    np.asarray(inst_f, np.float64),
                                     pattern_of, params.predict.merge.merge_params())
     if log:
         res.extra["stage2"] = dict(res.extra.get("stage2", {}),
