@@ -460,3 +460,15 @@ def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> No
     assert not any(r["same"] for r in ED.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, []))
     with pytest.raises(ValueError, match="inst_feats"):
         ED.merge_pair_rows(res, [0, 2, 3], feats[:5], inst_rp, gts)
+    # RESCU-I's box refinement shrank the right part's boxes to a quarter: the size
+    # test fails on the moved boxes, and passes with the recorded transform undone
+    from rescu.discovery.extent import transform_boxes
+
+    t = [0.0, 0.0, 0.25, 0.25]
+    moved = transform_boxes(np.array(right, float), t, (400, 400))
+    res.patterns[2] = pat(2, moved.tolist())
+    assert not {(r["a"], r["b"]): r for r in ED.merge_pair_rows(
+        res, [0, 2, 3], feats, inst_rp, gts)}[(0, 2)]["merge"]
+    res.patterns[2].extra["box_transform"] = t
+    back = {(r["a"], r["b"]): r for r in ED.merge_pair_rows(res, [0, 2, 3], feats, inst_rp, gts)}
+    assert back[(0, 2)]["merge"] and back[(0, 2)]["size_ratio"] == pytest.approx(1.0)

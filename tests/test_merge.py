@@ -236,6 +236,26 @@ def test_merge_compares_the_features_before_the_box_refinement():
     assert [p.count for p in kept.patterns] == [3, 4, 3]
 
 
+def test_tests_and_duplicates_on_the_boxes_before_the_refinement():
+    """B's boxes were moved down half a box by RESCU-I's refinement; A's stage-II
+    instance sits on B's first object at A's phase. On the moved boxes that pair is a
+    conflict (half overlapping); with B's transform undone it is one object, counted once."""
+    a_b, b_b = row_boxes(0, 3), row_boxes(3, 3, y=60.0)
+    fa, fb = drift_feats(0, 3), drift_feats(3, 3)
+    pa = pattern(0, a_b, 5.0, stage2=row_boxes(3, 1))
+    pb = pattern(1, b_b, 6.0)
+    rp = np.array([0] * 3 + [1] * 3)
+    boxes, feats = np.concatenate([a_b, b_b]), np.concatenate([fa, fb])
+    out, log = merge_split_patterns(image([pa, pb]), boxes, feats, rp)
+    assert not log and [p.count for p in out.patterns] == [4, 3]
+    pb.extra["box_transform"] = [0.0, 0.5, 1.0, 1.0]
+    out, log = merge_split_patterns(image([pa, pb]), boxes, feats, rp)
+    assert [p.count for p in out.patterns] == [6] and log[0]["conflicts"] == 0
+    # B's stage-I instance won the duplicate and keeps its own (refined) box
+    assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 6
+    assert out.patterns[0].instances[0].bbox == tuple(b_b[0])
+
+
 def test_predict_stage2_merges_last():
     res, feats_d, ckpt = _stage2_inputs()
     out = predict_stage2(feats_d, ckpt, res, Stage2Params())

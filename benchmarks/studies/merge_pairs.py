@@ -4,7 +4,8 @@ labelled by the ground truth.
 For every image of a finished run with two or more stage-II RPs, computes
 :func:`rescu.merge.pair_evidence` (the test ``rescu.stage2`` runs before merging, with
 the config's ``stage2.predict.merge`` section) on the stored stage-I instance features
-(``<results>/<dataset>/stage2/<image>.feats.h5``) and boxes (``rescu-i/<image>.json``),
+(``<results>/<dataset>/stage2/<image>.feats.h5``; those of the boxes before RESCU-I's
+box refinement, as the merge) and boxes (``rescu-i/<image>.json``, the refinement undone),
 and labels the pair *same* when both RPs are assigned to the same ground-truth RP,
 *different* when to two, *unlabelled* when either is assigned to none
 (:func:`rescu.evaluation.merge_pair_rows`: the RP-level matching of the tables). Prints the
@@ -67,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         s1 = read_result(a.results / a.dataset / "rescu-i" / f"{name}.json")
         rows += [dict(image=name, **r) for r in merge_pair_rows(
-            s1, rp_index, arr["instance_features"], arr["instance_rp"], truth.get(name, []),
+            s1, rp_index, arr.get("merge_instance_features", arr["instance_features"]),
+            arr["instance_rp"], truth.get(name, []),
             params, a.iod)]
     df = pd.DataFrame(rows)
     if df.empty:

@@ -127,12 +127,15 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     Parameters
     ----------
     stage1 : ImageResult
-        The RESCU-I result (its instance boxes are the evidence's boxes).
+        The RESCU-I result: its instance boxes are assigned to the GT; the evidence
+        takes them before the box refinement (each RP's ``extra["box_transform"]``
+        undone), as the pipeline's merge does.
     rp_index : sequence of int
         Positions in ``stage1.patterns`` of the RPs stage II works on (``rp_index`` of
         the stage-II features file).
     inst_feats : (N, D) float
-        Backbone feature of every stage-I instance (``instance_features``).
+        Backbone feature of every stage-I instance (``merge_instance_features`` where
+        the features file has it, else ``instance_features``: what the merge compares).
     inst_rp : (N,) int
         Position in ``rp_index`` of each instance's RP (``instance_rp``).
     gt_rps : sequence of GroundTruthRP
@@ -162,14 +165,19 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     if f.ndim != 2 or len(f) != len(irp):
         raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
                          f"got {f.shape}")
+    from ..discovery.extent import untransform_boxes
+
     boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
              for pi in rp_index]
+    # the merge's tests see each RP's boxes before RESCU-I's box refinement
+    tested = [untransform_boxes(b, stage1.patterns[pi].extra.get("box_transform"))
+              for b, pi in zip(boxes, rp_index)]
     assigned = score_image(boxes, [g.boxes for g in gt_rps], h, min_rp_precision).rp_assignment
     label = [-1 if g is None else int(g) for g in assigned]
     rows = []
     for x in range(len(rp_index)):
         for y in range(x + 1, len(rp_index)):
-            ev = pair_evidence(f[irp == x], f[irp == y], boxes[x], boxes[y], params)
+            ev = pair_evidence(f[irp == x], f[irp == y], tested[x], tested[y], params)
             if np.isnan(ev["ratio"]):       # an RP with fewer than 2 featured instances
                 continue
             rows.append({"a": int(rp_index[x]), "b": int(rp_index[y]), "gt_a": label[x],
