@@ -42,6 +42,9 @@ def test_boxes_straddling_two_objects_move_onto_the_objects():
     assert len(t) == 4 and t != [0.0, 0.0, 1.0, 1.0]
     assert np.allclose(untransform_boxes(after, t), found)
     assert np.array_equal(untransform_boxes(after, None), after)
+    for bad in ([0.0, 0.0, 0.0, 1.0], [0.1, 0.2, 1.0]):
+        with pytest.raises(ValueError, match="box_transform"):
+            untransform_boxes(after, bad)
 
 
 def test_scale_factor_keeps_boxes_in_original_pixels():

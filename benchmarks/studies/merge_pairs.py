@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
+    from rescu.extension.merge import compared_features
     from rescu.extension.params import Stage2Params
 
     ap = run_parser(__doc__)
@@ -68,8 +69,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         s1 = read_result(a.results / a.dataset / "rescu-i" / f"{name}.json")
         rows += [dict(image=name, **r) for r in merge_pair_rows(
-            s1, rp_index, arr.get("merge_instance_features", arr["instance_features"]),
-            arr["instance_rp"], truth.get(name, []),
+            s1, rp_index, compared_features(arr), arr["instance_rp"], truth.get(name, []),
             params, a.iod)]
     df = pd.DataFrame(rows)
     if df.empty:

@@ -194,6 +194,8 @@ def untransform_boxes(boxes: np.ndarray, t: Sequence[float] | None) -> np.ndarra
     -------
     (N, 4) float, the same pixels
 
+    Raises ValueError when ``t`` is not four numbers with positive scales.
+
     >>> b = np.array([[10.0, 20.0, 30.0, 40.0]])
     >>> t = (0.1, -0.2, 1.2, 0.8)
     >>> untransform_boxes(transform_boxes(b, t, (1000, 1000)), t).round(6).tolist()
@@ -202,8 +204,18 @@ def untransform_boxes(boxes: np.ndarray, t: Sequence[float] | None) -> np.ndarra
     b = np.asarray(boxes, float).reshape(-1, 4)
     if t is None:
         return b.copy()
+    if len(t) != 4 or not float(t[2]) > 0 or not float(t[3]) > 0:
+        raise ValueError(f"box_transform must be [dx, dy, sx, sy] with sx, sy > 0, got {t}")
     dx, dy, sx, sy = (float(v) for v in t)
     w, h = b[:, 2] / sx, b[:, 3] / sy
     cx = b[:, 0] + b[:, 2] / 2 - w * dx
     cy = b[:, 1] + b[:, 3] / 2 - h * dy
     return np.stack([cx - w / 2, cy - h / 2, w, h], axis=1)
+
+
+def unrefined_boxes(p: Pattern) -> np.ndarray:
+    """All instance boxes of ``p`` (K, 4) before RESCU-I's box refinement: its
+    ``extra["box_transform"]`` undone (:func:`untransform_boxes`), the boxes as they are
+    when it has none. What stage II's split-RP merge compares."""
+    b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+    return untransform_boxes(b, p.extra.get("box_transform"))

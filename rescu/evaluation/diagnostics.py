@@ -165,13 +165,11 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     if f.ndim != 2 or len(f) != len(irp):
         raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
                          f"got {f.shape}")
-    from ..discovery.extent import untransform_boxes
+    from ..discovery.extent import unrefined_boxes
 
     boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
              for pi in rp_index]
-    # the merge's tests see each RP's boxes before RESCU-I's box refinement
-    tested = [untransform_boxes(b, stage1.patterns[pi].extra.get("box_transform"))
-              for b, pi in zip(boxes, rp_index)]
+    tested = [unrefined_boxes(stage1.patterns[pi]) for pi in rp_index]   # as the merge
     assigned = score_image(boxes, [g.boxes for g in gt_rps], h, min_rp_precision).rp_assignment
     label = [-1 if g is None else int(g) for g in assigned]
     rows = []

@@ -266,15 +266,15 @@ def backbone_scale(inst: np.ndarray, size: tuple[int, int], params: Stage2Params
 def _unrefined_boxes(stage1: ImageResult, rps: list[tuple[int, np.ndarray]], sf: float,
                      size: tuple[int, int]) -> np.ndarray | None:
     """The stage-I instance boxes (rows as ``instance_boxes``, processed pixels, clipped)
-    before RESCU-I's box refinement (each pattern's ``extra["box_transform"]`` undone,
-    :func:`rescu.discovery.extent.untransform_boxes`); None when no RP was refined."""
-    from ..discovery.extent import untransform_boxes
+    before RESCU-I's box refinement (:func:`rescu.discovery.extent.unrefined_boxes`);
+    None when no RP was refined."""
+    from ..discovery.extent import unrefined_boxes
     from .proposals import clip_boxes
 
-    ts = [stage1.patterns[i].extra.get("box_transform") for i, _ in rps]
-    if all(t is None for t in ts):
+    pats = [stage1.patterns[i] for i, _ in rps]
+    if all(p.extra.get("box_transform") is None for p in pats):
         return None
-    b = np.concatenate([untransform_boxes(bx, t) for (_, bx), t in zip(rps, ts)])
+    b = np.concatenate([unrefined_boxes(p) for p in pats])
     return clip_boxes((b * sf).astype(np.float32), size)
 
 

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from ..discovery.extent import unrefined_boxes
 from ..evaluation.metrics import cover_matrix, iou_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Instance, Pattern
@@ -118,13 +119,12 @@ def _boxes(p: Pattern) -> np.ndarray:
     return np.array([i.bbox for i in p.instances], np.float64).reshape(-1, 4)
 
 
-def _unrefined(p: Pattern) -> np.ndarray:
-    """All instance boxes of ``p`` before RESCU-I's box refinement (its
-    ``extra["box_transform"]`` undone; :func:`rescu.discovery.extent.untransform_boxes`),
-    (K, 4): what the size, conflict and line tests compare."""
-    from ..discovery.extent import untransform_boxes
-
-    return untransform_boxes(_boxes(p), p.extra.get("box_transform"))
+def compared_features(feats: dict[str, np.ndarray]) -> np.ndarray:
+    """The stage-I instance features (N, D) the merge compares, from a stage-II features
+    dict: ``merge_instance_features`` (those of the boxes before RESCU-I's refinement)
+    where the features step made them, else ``instance_features``."""
+    return np.asarray(feats.get("merge_instance_features", feats["instance_features"]),
+                      np.float64)
 
 
 def _iou_cover(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -228,7 +228,8 @@ def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float, geom_a: np.ndarray,
     the order of their instances; duplicates are found on them)."""
     ia = [(ins, 0, n) for n, ins in enumerate(a.instances)]
     ib = [(ins, 1, n) for n, ins in enumerate(b.instances)]
-    geom = {0: np.asarray(geom_a, float).reshape(-1, 4), 1: np.asarray(geom_b, float).reshape(-1, 4)}
+    geom = {0: np.asarray(geom_a, float).reshape(-1, 4),
+            1: np.asarray(geom_b, float).reshape(-1, 4)}
 
     def rank(t: tuple[Instance, int, int]) -> tuple[int, float, int, int]:
         return (0 if t[0].source == "stage1" else 1, -float(t[0].score), t[1], t[2])
@@ -324,7 +325,7 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
     out = copy.deepcopy(result)
     # groups: position -> (pattern, feature rows, boxes of the geometry tests)
     groups: dict[int, tuple[Pattern, np.ndarray, np.ndarray]] = {
-        k: (p, f[ip == k], _unrefined(p)) for k, p in enumerate(out.patterns)}
+        k: (p, f[ip == k], unrefined_boxes(p)) for k, p in enumerate(out.patterns)}
     log: list[dict[str, Any]] = []
     while True:
         best: tuple[float, int, int, dict[str, Any]] | None = None

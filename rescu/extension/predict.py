@@ -249,15 +249,12 @@ def _merge_split(out: ImageResult, feats: dict[str, np.ndarray], rp_index: list[
     ``extra["stage2"]["merged"]`` lists the merged id pairs (ids before the merge)."""
     if not params.predict.merge.enabled or len(rp_index) < 2:
         return out
-    from .merge import merge_split_patterns
+    from .merge import compared_features, merge_split_patterns
 
     inst_rp = np.asarray(feats["instance_rp"], np.int64).reshape(-1)
     pattern_of = np.asarray(rp_index, np.int64)[inst_rp]
-    # the features of the boxes before RESCU-I's refinement when it made them: one
-    # transform per RP gives two parts of one row different boxes (docs/studies/merge.md)
-    inst_f = feats.get("merge_instance_features", feats["instance_features"])
     res, log = merge_split_patterns(out, np.asarray(feats["instance_boxes"], np.float64),
-                                    np.asarray(inst_f, np.float64),
+                                    compared_features(feats),
                                     pattern_of, params.predict.merge.merge_params())
     if log:
         res.extra["stage2"] = dict(res.extra.get("stage2", {}),
