@@ -230,3 +230,20 @@ def test_image_vp_joins_patterns_that_share_the_dominant_vp():
     out = SC.analyse_scene(result(a, b, c), p)
     np.testing.assert_array_equal(out.vanishing_point.homogeneous,
                                   out.patterns[0].vanishing_point.homogeneous)
+
+
+def test_image_vp_from_the_rows_of_patterns_too_small_for_a_vp_of_their_own():
+    # two RPs on one plane, each one row followed by two visual words: 2 implicit lines
+    # each, fewer than vp.min_lines = 3, so neither has a VP of its own
+    a = make_pattern(H_PERSP, np.arange(5.0), pid=0, noise=0.3, seed=1)
+    b = make_pattern(H_PERSP @ np.array([[1, 0, 0], [0, 1, 3.0], [0, 0, 1]]),
+                     np.arange(4.0), pid=1, noise=0.3, seed=2)
+    a.feature_points, b.feature_points = a.feature_points[[0, 4]], b.feature_points[[1, 5]]
+    out = SC.analyse_scene(result(a, b))
+    assert all(p.vanishing_point is None for p in out.patterns)
+    assert out.vanishing_point is not None and out.vanishing_point.support == 4
+    gt = H_PERSP @ np.array([1.0, 0, 0])
+    assert vector_error(out.vanishing_point.homogeneous, gt, (640, 480)) < 1.0  # degrees
+    # union_rows off: only patterns with a VP of their own give the image VP
+    p = SC.SceneParams.from_dict({"vp": {"union_rows": False}})
+    assert SC.analyse_scene(result(a, b), p).vanishing_point is None

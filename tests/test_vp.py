@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from rescu import layout as L
 from rescu.scene.vp.errors import closest_gt_error, point_error, success_rate, vector_error
 from rescu.evaluation.vpd import paired_test
-from rescu.scene.vp.estimator import joint_vanishing_point, rp_vanishing_point
+from rescu.scene.vp.estimator import (joint_vanishing_point, rp_vanishing_point,
+                                      union_vanishing_point)
 from rescu.scene.vp.geometry import _normaliser, ac_mask
 from rescu.scene.vp.lines import Lines, pattern_lines
 from rescu.scene.vp.lsd import line_vanishing_point
@@ -424,6 +425,49 @@ def test_joint_vp_merges_patterns_sharing_the_vp_only():
     assert used_off == [0] and np.array_equal(vp_off.homogeneous, vps[0].homogeneous)
     with pytest.raises(ValueError, match="same length"):
         joint_vanishing_point(sets, vps[:2], SIZE)
+
+
+def _pattern(h: np.ndarray, nx: int, seed: int, words: list[int] | None = None,
+             params: VPParams = VPParams(spacing_alpha=0)) -> tuple[Lines, object]:
+    """One row of nx instances on the plane seen by h: its implicit lines and own VP."""
+    b, f = grid(h, nx=nx, ny=1, noise=0.3, seed=seed)
+    if words is not None:
+        f = f[words]
+    vp, rows = rp_vanishing_point(b, f, SIZE, params)
+    c, sz = L.instance_centres_sizes(b)
+    return pattern_lines(f, c, rows, sz), vp
+
+
+def test_union_vp_finds_the_vp_of_patterns_too_small_for_their_own():
+    p = VPParams(spacing_alpha=0)
+    # two rows of one plane, two visual words each: 2 lines, fewer than min_lines = 3
+    a, va = _pattern(H_PERSP, 5, 1, [0, 4])
+    b, vb = _pattern(H_PERSP @ np.array([[1, 0, 0], [0, 1, 3.0], [0, 0, 1]]), 5, 2, [1, 5])
+    assert va is None and vb is None and len(a) == len(b) == 2
+    vp, refused = union_vanishing_point([a, b], [va, vb], SIZE, p)
+    assert refused is None and vp.support == 4
+    assert vector_error(vp.homogeneous, unit(H_PERSP @ [1.0, 0, 0]), SIZE) < 0.5
+    assert union_vanishing_point([Lines.empty()], [None], SIZE, p) == (None, None)
+    with pytest.raises(ValueError, match="same length"):
+        union_vanishing_point([a, b], [va], SIZE, p)
+
+
+def test_union_vp_refused_by_a_pattern_whose_own_vp_differs():
+    p = VPParams(spacing_alpha=0)
+    turn = 0.1  # radians: the second plane's rows point to another VP
+    rot = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0],
+                    [0, 0, 1]])
+    a, va = _pattern(H_PERSP, 6, 1)
+    b, vb = _pattern(H_PERSP @ np.array([[1, 0, 0], [0, 1, 1.5], [0, 0, 1]]) @ rot, 6, 2)
+    assert va is not None and vb is not None
+    vp, refused = union_vanishing_point([a, b], [va, vb], SIZE, p)
+    assert vp is None and refused in (0, 1)
+    # without the test (level 0) the union VP is kept, off both patterns' own VPs
+    vp, refused = union_vanishing_point([a, b], [va, vb], SIZE,
+                                        VPParams(spacing_alpha=0, joint_alpha=0))
+    gt = unit(H_PERSP @ [1.0, 0, 0])
+    assert refused is None and vp.support > max(len(a), len(b))  # rows of both
+    assert vector_error(vp.homogeneous, gt, SIZE) > vector_error(va.homogeneous, gt, SIZE)
 
 
 def test_new_params_validated():

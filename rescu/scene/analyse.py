@@ -12,14 +12,19 @@ returns a copy in which
   score, then earlier pattern; :func:`rescu.scene.counting.dominant_pattern`), None without
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
-  RP instances. Each pattern's VP is re-estimated jointly with the patterns that share
-  it (likelihood-ratio test, :func:`rescu.scene.vp.estimator.joint_vanishing_point`) and the group
-  with the most instances wins (ties: the group of the more dominant pattern), so
-  without sharing it is the dominant pattern's VP, and when that has none the VP of
-  the largest other pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own
-  VP, else the VP with the largest support among the others. None when no pattern has
-  a VP — in particular an ImageResult with no patterns comes back with no VP, no
-  dominant pattern and nothing else changed (the documented empty result).
+  RP instances. With ``vp.union_rows`` it is first sought among the rows of all
+  patterns together (:func:`rescu.scene.vp.estimator.union_vanishing_point`: lines
+  weighted by their track length, so rows of several patterns that each have too few
+  lines for a VP of their own still find theirs), kept when every pattern with a VP of
+  its own accepts it (likelihood-ratio test of level ``vp.joint_alpha``). Otherwise
+  each pattern's VP is re-estimated jointly with the patterns that share it
+  (:func:`rescu.scene.vp.estimator.joint_vanishing_point`) and the group with the most
+  instances wins (ties: the group of the more dominant pattern), so without sharing it
+  is the dominant pattern's VP, and when that has none the VP of the largest other
+  pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own VP, else the VP with
+  the largest support among the others. None when no pattern has a VP (nor the union
+  of their rows) — in particular an ImageResult with no patterns comes back with no VP,
+  no dominant pattern and nothing else changed (the documented empty result).
 
 ``method``, instances, scores and captions are unchanged. All coordinates are original
 pixels. :func:`rectify_pattern` warps the region of one pattern so that its VP goes to
@@ -38,7 +43,7 @@ import numpy as np
 from .. import layout as L
 from . import counting as CNT
 from . import symmetry as S
-from .vp.estimator import joint_vanishing_point, rp_vanishing_point
+from .vp.estimator import joint_vanishing_point, rp_vanishing_point, union_vanishing_point
 from .vp.geometry import INFINITY_EPS
 from .vp.lines import Lines, pattern_lines
 from .vp.params import VPParams
@@ -269,7 +274,9 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
               params: SceneParams) -> VanishingPoint | None:
     """The dominant VP: the VP shared by the most RP instances.
 
-    Every pattern with a VP seeds a group: its VP re-estimated with the other patterns that
+    With ``params.vp.union_rows``, the VP of all patterns' rows together when every
+    pattern with a VP accepts it (:func:`union_vanishing_point`). Otherwise every
+    pattern with a VP seeds a group: its VP re-estimated with the other patterns that
     share it (:func:`rescu.scene.vp.estimator.joint_vanishing_point`, the others tried in
     order of decreasing VP support, i.e. number of inlier implicit lines, then count). The
     group with the most instances in total gives the image VP; ties go to the group seeded
@@ -277,6 +284,12 @@ def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     Without any sharing this is the dominant pattern's own VP whenever it has one; a large
     spurious RP no longer outvotes several smaller RPs along one 3D direction.
     """
+    if params.vp.union_rows:
+        rowed = [p for p in patterns if p.extra.get("rows")]
+        vp, _ = union_vanishing_point([pattern_implicit_lines(p, params) for p in rowed],
+                                      [p.vanishing_point for p in rowed], size, params.vp)
+        if vp is not None:
+            return vp
     have = [i for i in range(len(patterns)) if patterns[i].vanishing_point is not None]
     if not have:
         return None

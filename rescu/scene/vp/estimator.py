@@ -6,7 +6,8 @@ fits their implicit lines (:func:`rescu.scene.vp.lines.pattern_lines`) and runs
 spacing model) is asked of a :data:`RowTest` the caller passes (the scene step passes
 the translation-symmetry test), so this module does not import the symmetry test.
 :func:`joint_vanishing_point` re-estimates a VP on the tracks of several patterns that
-share it.
+share it; :func:`union_vanishing_point` finds the VP that the rows of all patterns
+together point to (the scene step's image VP, when every pattern with a VP accepts it).
 """
 
 from __future__ import annotations
@@ -173,3 +174,80 @@ def joint_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoi
                              params.infinity_noise_px * t[0, 0])
     v_px = _canonical(np.linalg.solve(t, v))
     return VanishingPoint(v_px, inside_image(v_px, image_size), len(pts)), used
+
+
+def union_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoint | None],
+                          image_size: tuple[int, int], params: VPParams = VPParams(),
+                          ) -> tuple[VanishingPoint | None, int | None]:
+    """The VP that the rows of all patterns together point to, checked against their own VPs.
+
+    All patterns' implicit lines vote in one :func:`rescu.scene.vp.ransac.ransac_vp`, each
+    line weighted by the length of its feature track (the number of instances it
+    follows), so a VP that several patterns share, each with too few lines for a VP of its
+    own, is found as well. The union can mix the rows of patterns that point to different
+    but nearby VPs (two facades, nearly parallel rows); so every pattern that has a VP of
+    its own and at least two inlier tracks must accept the union VP: the likelihood-ratio
+    statistic ``(C(v_union) - C(v_own)) / sigma^2`` of its inlier tracks (ML costs of
+    :func:`rescu.scene.vp.refine.ml_refine_vp`, ``v_own`` the free ML VP started from its
+    own VP, ``sigma^2`` its residual variance floored at ``precision_floor_px``) must stay
+    below the ``1 - joint_alpha`` quantile of chi^2(2).
+
+    Parameters
+    ----------
+    line_sets : list of Lines
+        Implicit lines of each pattern (with ``points``), pixels; may be empty.
+    vps : list of VanishingPoint or None
+        Each pattern's own VP (None: the pattern has none and is not asked).
+    image_size : (int, int)
+        ``(width, height)``, pixels.
+    params : VPParams
+
+    Returns
+    -------
+    vp : VanishingPoint or None
+        The union VP (``support``: its inlier lines); None when there are too few lines
+        or a pattern refuses it.
+    refused : int or None
+        The index of the first pattern that refused the union VP, else None.
+    """
+    if len(line_sets) != len(vps):
+        raise ValueError(f"line_sets and vps must have the same length, got "
+                         f"{len(line_sets)} and {len(vps)}")
+    parts, owner = [], []
+    for k, lines in enumerate(line_sets):
+        if len(lines) == 0 or lines.points is None:
+            continue
+        track = np.array([float(len(q)) for q in lines.points])
+        parts.append(Lines(lines.midpoints, lines.directions, track, lines.precision,
+                           lines.points, lines.positions))
+        owner += [k] * len(lines)
+    if not parts:
+        return None, None
+    union = Lines.concat(parts)
+    vp = ransac_vp(union, image_size, params)
+    if vp is None:
+        return None, None
+    t = _normaliser(image_size)
+    v = t @ np.asarray(vp.homogeneous, float)
+    v = v / np.linalg.norm(v)
+    mids = union.midpoints * t[0, 0] + t[:2, 2]
+    inl = _sin_errors(v, mids, union.directions) < np.sin(np.radians(params.inlier_angle_deg))
+    own = np.asarray(owner)
+    crit = _chi2_ppf(1 - params.joint_alpha, 2) if params.joint_alpha > 0 else np.inf
+    floor2 = (params.precision_floor_px * t[0, 0]) ** 2
+    assert union.points is not None
+    for k in dict.fromkeys(own[inl].tolist()):
+        if vps[k] is None:
+            continue
+        pts = [union.points[i] * t[0, 0] + t[:2, 2] for i in np.nonzero(inl & (own == k))[0]
+               if len(union.points[i]) >= 2]
+        if len(pts) < 2:
+            continue
+        scat, n_pts = _track_scatter(pts)
+        vo = t @ np.asarray(vps[k].homogeneous, float)
+        c_own = float(_track_costs(ml_refine_vp(pts, vo / np.linalg.norm(vo)), scat).sum())
+        c_union = float(_track_costs(v, scat).sum())
+        sigma2 = max(c_own / max(n_pts - len(pts) - 2, 1), floor2)
+        if (c_union - c_own) / sigma2 >= crit:
+            return None, int(k)
+    return vp, None

@@ -63,6 +63,11 @@ class VPParams:
         (:func:`rescu.scene.vp.estimator.joint_vanishing_point`: the patterns share the VP
         unless the joint fit is significantly worse); 0: the image VP is the dominant
         pattern's own.
+    union_rows : bool
+        Seek the image VP first among the rows of all patterns together
+        (:func:`rescu.scene.vp.estimator.union_vanishing_point`, checked against each
+        pattern's own VP at level ``joint_alpha``); False: only the groups of patterns
+        that share a VP (:func:`rescu.scene.vp.estimator.joint_vanishing_point`).
     spacing_alpha : float
         Level of the likelihood-ratio test that accepts the *spacing model* on rows that
         pass the translation-symmetry test (:func:`rescu.scene.vp.refine.spacing_refine_vp`:
@@ -88,6 +93,7 @@ class VPParams:
     ml_refine: bool
     register_centres: bool
     joint_alpha: float
+    union_rows: bool
     spacing_alpha: float
     seed: int
 
