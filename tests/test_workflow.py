@@ -388,6 +388,34 @@ def test_vp_ac_sweep_reproduces_the_pipelines_vp_at_its_own_settings(finished_ru
     assert "run the pipeline first" in capsys.readouterr().err
 
 
+def test_rp_image_vp_study_recomputes_the_scene_steps_image_vp(finished_run, capsys):
+    """benchmarks/studies/rp_image_vp.py at the config's settings gives every image the VP
+    of the run's scene/ JSON, and prints one row per dataset."""
+    sys.path.insert(0, str(REPO / "benchmarks" / "studies"))
+    import rp_image_vp as RV
+
+    from rescu import io
+    from rescu.config import load_config
+    from rescu.scene.analyse import SceneParams
+
+    work, cfg_path = finished_run
+    res = work / "results"
+    params = SceneParams.from_config(load_config(cfg_path)["scene"])
+    n = 0
+    for f in sorted((res / "synthetic" / "scene").glob("*.json")):
+        src = io.read_result(f)
+        vp = RV.image_vp(src, params, "track")
+        if src.vanishing_point is None:
+            assert vp is None, f.name
+        else:
+            n += 1
+            np.testing.assert_allclose(vp.homogeneous, src.vanishing_point.homogeneous,
+                                       atol=1e-8, err_msg=f.name)
+    assert n > 0
+    assert RV.main([str(res), "--datasets", "synthetic", "--weights", "one"]) == 0
+    assert "synthetic" in capsys.readouterr().out
+
+
 def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_run, capsys):
     """benchmarks/studies/completion_variants.py with no override recomputes exactly the run's
     scene/ JSONs, prints both rows, and refuses its folder for other settings."""

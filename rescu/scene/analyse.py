@@ -239,7 +239,7 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     res.vanishing_point = None
     if dom is not None:
         if params.vp.joint_alpha > 0:
-            res.vanishing_point = _image_vp(res.patterns, dom, size, params)
+            res.vanishing_point = rp_image_vp(res.patterns, dom, size, params)
         elif res.patterns[dom].vanishing_point is not None:
             res.vanishing_point = copy.deepcopy(res.patterns[dom].vanishing_point)
         else:
@@ -270,8 +270,8 @@ def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True
                            params.vp.precision_floor_px, equal)
 
 
-def _image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
-              params: SceneParams) -> VanishingPoint | None:
+def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
+                params: SceneParams) -> VanishingPoint | None:
     """The dominant VP: the VP shared by the most RP instances.
 
     With ``params.vp.union_rows``, the VP of all patterns' rows together when every

@@ -178,6 +178,7 @@ def joint_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoi
 
 def union_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoint | None],
                           image_size: tuple[int, int], params: VPParams = VPParams(),
+                          weights: Sequence[np.ndarray] | None = None,
                           ) -> tuple[VanishingPoint | None, int | None]:
     """The VP that the rows of all patterns together point to, checked against their own VPs.
 
@@ -201,6 +202,8 @@ def union_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoi
     image_size : (int, int)
         ``(width, height)``, pixels.
     params : VPParams
+    weights : list of (L_k,) float arrays or None
+        Each line's vote instead of its track length (a study of the weighting).
 
     Returns
     -------
@@ -210,15 +213,17 @@ def union_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoi
     refused : int or None
         The index of the first pattern that refused the union VP, else None.
     """
-    if len(line_sets) != len(vps):
-        raise ValueError(f"line_sets and vps must have the same length, got "
-                         f"{len(line_sets)} and {len(vps)}")
+    if len(line_sets) != len(vps) or (weights is not None and len(weights) != len(vps)):
+        raise ValueError(f"line_sets, vps (and weights) must have the same length, got "
+                         f"{len(line_sets)}, {len(vps)}"
+                         + ("" if weights is None else f" and {len(weights)}"))
     parts, owner = [], []
     for k, lines in enumerate(line_sets):
         if len(lines) == 0 or lines.points is None:
             continue
-        track = np.array([float(len(q)) for q in lines.points])
-        parts.append(Lines(lines.midpoints, lines.directions, track, lines.precision,
+        vote = (np.array([float(len(q)) for q in lines.points]) if weights is None
+                else np.asarray(weights[k], float).reshape(len(lines)))
+        parts.append(Lines(lines.midpoints, lines.directions, vote, lines.precision,
                            lines.points, lines.positions))
         owner += [k] * len(lines)
     if not parts:
