@@ -116,3 +116,17 @@ def test_dense_variants_refusals(tmp_path, capsys):
     assert dv.main([str(tmp_path), "--set", "max_touching=4"]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
     assert not (tmp_path / "benchmarks").exists()
+
+
+def test_precision_breakdown_without_a_run_and_on_an_empty_one(tmp_path, capsys):
+    pb = load("precision_breakdown")
+    assert pb.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    (tmp_path / "synthetic" / "rescu-ii").mkdir(parents=True)
+    (tmp_path / "data" / "synthetic").mkdir(parents=True)
+    (tmp_path / "data" / "synthetic" / "annotations.json").write_text(
+        '{"images": [], "annotations": [], "categories": []}')
+    assert pb.main([str(tmp_path)]) == 0
+    assert "0 images, 0 detected instances" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        pb.main([str(tmp_path), "--dataset", "no_such_set"])

@@ -311,6 +311,34 @@ def test_count_errors_lists_missed_and_extra_instances(tiny) -> None:
             == more.groupby(["image", "gt_rp"])["gt_count"].first()).all()
 
 
+def test_detection_breakdown_puts_every_instance_in_one_class() -> None:
+    a = [(0.0, 0, 10, 10), (20.0, 0, 10, 10), (40.0, 0, 10, 10)]    # GT RP 0
+    b = [(0.0, 50, 10, 10), (20.0, 50, 10, 10)]                     # GT RP 1
+    det = [[(1.0, 1, 8, 8), (21.0, 1, 8, 8), (22.0, 2, 6, 6),       # 2 credited, 1 second
+            (1.0, 51, 8, 8)],                                       # on GT RP 1's object
+           [(100.0, 100, 5, 5), (120.0, 100, 5, 5)]]                # on nothing
+    out = ED.detection_breakdown(det, [a, b])
+    assert out == {"n_det": 6, "assigned": 2, "other_rp": 1, "duplicate": 1,
+                   "background": 2, "n_rps": 2, "background_rps": 1,
+                   "background_rp_instances": 2}
+    assert list(out) == list(ED.BREAKDOWN_COLUMNS)
+    # the credited count is the paper's instance precision's numerator
+    from rescu.evaluation.metrics import score_image
+    assert score_image(det, [a, b]).instance_precision == pytest.approx(2 / 6)
+    assert ED.detection_breakdown([], [a])["n_det"] == 0
+    assert ED.detection_breakdown(det, [])["background"] == 6
+
+
+def test_precision_breakdown_of_the_truth_is_all_credited(tiny) -> None:
+    ds, preds, tmp = tiny
+    df = ED.precision_breakdown(ds, preds["gt"])
+    assert list(df.columns) == ["image", *ED.BREAKDOWN_COLUMNS] and len(df) > 0
+    assert (df["assigned"] == df["n_det"]).all() and df["background"].sum() == 0
+    moved = ED.precision_breakdown(ds, write_preds(tmp / "p_far", "far", jitter=1000.0))
+    assert (moved["background"] == moved["n_det"]).all()
+    assert (moved["background_rps"] == moved["n_rps"]).all()
+
+
 def test_truth_instance_at_finds_the_record_centred_in_the_box() -> None:
     recs = [{"center": [10.0, 10.0], "row": 0}, {"center": [40.0, 10.0], "row": 1},
             {"row": 2}, "not a record"]

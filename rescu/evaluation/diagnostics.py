@@ -1,5 +1,6 @@
 """Diagnostics the benchmarks print, no table of a run: why counts are wrong, which truth
-instance a box is, and whether stage II's split-RP merge is right on an image.
+instance a box is, where instance precision goes, and whether stage II's split-RP merge
+is right on an image.
 
 They live in the library (not beside ``benchmarks/``) so that a benchmark script imports
 them as ``rescu.evaluation.diagnostics`` from wherever it lies, without a path of its
@@ -18,7 +19,7 @@ from ..io import GroundTruthRP
 from ..types import ImageResult
 from .core import _load
 from .counting import _score_counting
-from .metrics import IOD_H, MIN_RP_PRECISION, match_boxes, score_image
+from .metrics import IOD_H, MIN_RP_PRECISION, iod_matrix, match_boxes, score_image
 
 if TYPE_CHECKING:     # imported where used: the evaluation rules never read stage II's code
     from ..extension.merge import MergeParams
@@ -114,6 +115,77 @@ def count_errors(dataset_dir: str | Path, pred_dir: str | Path, h: float = IOD_H
     cols = ["image", "gt_rp", "pattern", "det_count", "gt_count", "kind", "x", "y", "w",
             "h", "source", "row", "col", "occluded_fraction", "blur_sigma", "equal_spacing"]
     return pd.DataFrame(rows, columns=cols)
+
+
+BREAKDOWN_COLUMNS = ("n_det", "assigned", "other_rp", "duplicate", "background", "n_rps",
+                     "background_rps", "background_rp_instances")
+"""The counts of :func:`detection_breakdown`, in order."""
+
+
+def detection_breakdown(det_rps: Sequence[Sequence[Sequence[float]]],
+                        gt_rps: Sequence[Sequence[Sequence[float]]], h: float = IOD_H,
+                        min_rp_precision: float = MIN_RP_PRECISION) -> dict[str, int]:
+    """Where one image's detected instances go under the paper's instance metric.
+
+    Every detected instance falls in exactly one of
+
+    * ``assigned``: credited by the paper's metric (matched, IOD > ``h`` one-to-one, to an
+      instance of the GT RP its RP is assigned to; :func:`score_image`);
+    * ``other_rp``: not credited, but matched one-to-one to a GT instance when matching
+      runs across all RPs (the *any RP* figure minus the paper's: an instance on an
+      object of another GT RP, or its RP assigned elsewhere);
+    * ``duplicate``: on some GT box (IOD > ``h``) that another detection already took;
+    * ``background``: on no GT box at all (IOD <= ``h`` with every one).
+
+    ``n_rps`` counts the detected RPs, ``background_rps`` those with every instance on
+    background and ``background_rp_instances`` their instances.
+
+    >>> gt = [[(0, 0, 10, 10), (20, 0, 10, 10)]]
+    >>> detection_breakdown([[(1, 1, 8, 8), (21, 1, 8, 8), (22, 2, 6, 6)],
+    ...                      [(50, 50, 5, 5), (60, 50, 5, 5)]], gt)["background"]
+    2
+    """
+    det_all = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
+    gt_all = np.asarray([b for rp in gt_rps for b in rp], float).reshape(-1, 4)
+    n = len(det_all)
+    sc = score_image(det_rps, gt_rps, h, min_rp_precision)
+    assigned = int(round(sc.instance_precision * n)) if n else 0
+    n_any = int(round(sc.instance_precision_any * n)) if n else 0
+    on_gt = (iod_matrix(det_all, gt_all) > h).any(axis=1) if len(gt_all) and n \
+        else np.zeros(n, bool)
+    background = int(n - on_gt.sum())
+    bg_rps = bg_inst = 0
+    start = 0
+    for rp in det_rps:
+        k = len(rp)
+        if k and not on_gt[start:start + k].any():
+            bg_rps, bg_inst = bg_rps + 1, bg_inst + k
+        start += k
+    return {"n_det": n, "assigned": assigned, "other_rp": n_any - assigned,
+            "duplicate": n - n_any - background, "background": background,
+            "n_rps": len(det_rps), "background_rps": bg_rps,
+            "background_rp_instances": bg_inst}
+
+
+def precision_breakdown(dataset_dir: str | Path, pred_dir: str | Path, h: float = IOD_H,
+                        min_rp_precision: float = MIN_RP_PRECISION) -> pd.DataFrame:
+    """:func:`detection_breakdown` of every image of a dataset with a prediction.
+
+    Returns
+    -------
+    DataFrame
+        ``image`` and the :data:`BREAKDOWN_COLUMNS`, one row per image.
+    """
+    ds = _load(dataset_dir, {"pred": pred_dir}, None)
+    rows = []
+    for f, gts in ds.gt.items():
+        res = ds.preds["pred"][f]
+        if res is None:
+            continue
+        det = [[ins.bbox for ins in p.instances] for p in res.patterns]
+        rows.append({"image": f, **detection_breakdown(det, [g.boxes for g in gts], h,
+                                                         min_rp_precision)})
+    return pd.DataFrame(rows, columns=["image", *BREAKDOWN_COLUMNS])
 
 
 def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
