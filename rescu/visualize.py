@@ -1,5 +1,6 @@
-"""Pictures of what was found: instances per RP in their own colour, the vanishing point
-with its supporting lines, and the caption."""
+"""Pictures of what was found: instances per RP in their own colour, each RP's vanishing
+point with its supporting lines, the image's vanishing points (the joint estimator's
+``vanishing_points``: VP1 the dominant one) and the caption."""
 
 from __future__ import annotations
 
@@ -44,7 +45,10 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     (H', W' + caption band, 3) uint8
         Stage-I instances drawn solid, stage-II dashed-looking (thinner) boxes; lines from
         each instance centre towards the pattern's VP (or an arrow when the VP is far
-        away); the caption in a band below.
+        away); the image's VPs (``result.extra["vanishing_points"]``, dominant first) as
+        white rings labelled VP1, VP2, VP3, or, when outside the picture, white arrows
+        from its centre towards them (:func:`_draw_image_vps`); the caption in a band
+        below.
     """
     import cv2
 
@@ -93,6 +97,7 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
                 label += " TS"
             cv2.putText(img, label, (round(x), max(12, round(y) - 4)), cv2.FONT_HERSHEY_SIMPLEX,
                         0.4 + 0.1 * thick, col, thick, cv2.LINE_AA)
+    _draw_image_vps(img, result, s, thick)
     text = ""
     if result.caption:
         text = result.caption.get("enhanced") or result.caption.get("base") or ""
@@ -111,3 +116,38 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
         cv2.putText(band, line, (6, 20 + 18 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
                     cv2.LINE_AA)
     return np.vstack([img, band])
+
+
+def _draw_image_vps(img: np.ndarray, result: ImageResult, s: float, thick: int) -> None:
+    """Draw the image's VPs (``result.extra["vanishing_points"]``, original pixels) on
+    ``img`` (original * ``s``) in place: a white ring with a black edge and the label
+    ``VP<k>`` where the VP lies in the picture, else a white arrow from the picture's
+    centre towards it (a VP at infinity: along its direction) with the label at its tip."""
+    import cv2
+
+    h, w = img.shape[:2]
+    centre = np.array([w / 2.0, h / 2.0])
+    for k, v in enumerate(result.extra.get("vanishing_points") or []):
+        try:
+            hx, hy, hw = (float(c) for c in v["homogeneous"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        label = f"VP{k + 1}"
+        font, fs = cv2.FONT_HERSHEY_SIMPLEX, 0.45 + 0.1 * thick
+        if abs(hw) > 1e-12 and 0 <= hx / hw * s < w and 0 <= hy / hw * s < h:
+            p = (round(hx / hw * s), round(hy / hw * s))
+            r = 5 * thick + 6
+            cv2.circle(img, p, r, (0, 0, 0), thick + 3, cv2.LINE_AA)
+            cv2.circle(img, p, r, (255, 255, 255), thick + 1, cv2.LINE_AA)
+            tip = (p[0] + r + 2, p[1] - r)
+        else:
+            d = (np.array([hx / hw * s, hy / hw * s]) - centre if abs(hw) > 1e-12
+                 else np.array([hx, hy]))
+            d = d / (np.linalg.norm(d) + 1e-12) * 0.3 * min(h, w)
+            a, b = tuple(round(c) for c in centre), tuple(round(c) for c in centre + d)
+            cv2.arrowedLine(img, a, b, (0, 0, 0), thick + 3, cv2.LINE_AA, tipLength=0.15)
+            cv2.arrowedLine(img, a, b, (255, 255, 255), thick + 1, cv2.LINE_AA,
+                            tipLength=0.15)
+            tip = (b[0] + 4, b[1] + 4)
+        cv2.putText(img, label, tip, font, fs, (0, 0, 0), thick + 2, cv2.LINE_AA)
+        cv2.putText(img, label, tip, font, fs, (255, 255, 255), thick, cv2.LINE_AA)

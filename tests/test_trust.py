@@ -288,3 +288,26 @@ def test_degraded_result_is_drawn_with_its_patterns(monkeypatch):
     img = visualize.overlay(np.zeros((40, 60, 3), np.uint8), 1.0, res)
     assert img.shape[0] > 40
     assert texts == ["Two similar objects. [stage2-train failed; rescu-i's result shown]"]
+
+
+def test_overlay_marks_the_images_vps():
+    import numpy as np
+
+    from rescu import visualize
+    from rescu.types import ImageResult
+
+    vps = [{"homogeneous": [30.0, 20.0, 1.0]},          # inside: a ring at (60, 40) (x2)
+           {"homogeneous": [1.0, 0.0, 0.0]},            # at infinity: an arrow
+           {"homogeneous": "bad"}]                      # malformed: skipped
+    res = ImageResult(image="x.jpg", width=100, height=60, method="rescu-ii", patterns=[],
+                      extra={"vanishing_points": vps})
+    rgb = np.zeros((120, 200, 3), np.uint8)
+    img = visualize.overlay(rgb, 2.0, res)[:120]
+    white = (img == 255).all(axis=2)
+    ys, xs = np.nonzero(white)
+    ring = np.hypot(xs - 60, ys - 40)
+    assert ((ring > 5) & (ring < 25)).any() and not white[40, 60]   # a ring, hollow
+    # the arrow runs right from the centre (100, 60), 0.3 x the shorter side long
+    assert white[60, 102:130].all() and not white[60, 185:].any()  # the label at its tip
+    plain = visualize.overlay(rgb, 2.0, ImageResult("x.jpg", 100, 60, "rescu-ii", []))[:120]
+    assert not (plain == 255).all(axis=2).any()
