@@ -283,6 +283,23 @@ def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     by the more dominant pattern (the dominant pattern first, then by count, score, order).
     Without any sharing this is the dominant pattern's own VP whenever it has one; a large
     spurious RP no longer outvotes several smaller RPs along one 3D direction.
+
+    Parameters
+    ----------
+    patterns : list of Pattern
+        Analysed patterns (:func:`analyse_pattern`: ``vanishing_point`` and
+        ``extra["rows"]`` set), original pixels.
+    dom : int
+        Index of the dominant pattern in ``patterns``.
+    size : (int, int)
+        ``(width, height)`` of the image, original pixels.
+    params : SceneParams
+
+    Returns
+    -------
+    VanishingPoint or None
+        Unit-norm homogeneous VP in original pixels; None when neither the union of the
+        rows nor any pattern gives one.
     """
     if params.vp.union_rows:
         rowed = [p for p in patterns if p.extra.get("rows")]
