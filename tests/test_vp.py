@@ -453,6 +453,8 @@ def test_union_vp_finds_the_vp_of_patterns_too_small_for_their_own():
     # equal votes instead of track lengths: the same VP here
     same, _ = union_vanishing_point([a, b], [va, vb], SIZE, p, [np.ones(2), np.ones(2)])
     np.testing.assert_allclose(same.homogeneous, vp.homogeneous, atol=1e-9)
+    with pytest.raises(ValueError, match="one vote per line"):
+        union_vanishing_point([a, b], [va, vb], SIZE, p, [np.ones(2), np.ones(3)])
 
 
 def test_union_vp_refused_by_a_pattern_whose_own_vp_differs():

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +30,8 @@ from rescu import io
 from rescu.evaluation.vpd import _camera
 from rescu.params import config_defaults
 from rescu.scene import counting as CNT
-from rescu.scene.analyse import SceneParams, pattern_implicit_lines, rp_image_vp
+from rescu.scene.analyse import SceneParams, rp_image_vp
 from rescu.scene.vp.errors import closest_gt_error
-from rescu.scene.vp.estimator import union_vanishing_point
 
 
 def image_vp(src, params: SceneParams, weights: str):
@@ -41,18 +39,9 @@ def image_vp(src, params: SceneParams, weights: str):
     dom = CNT.dominant_pattern(src.patterns)
     if dom is None:
         return None
-    size = (int(src.width), int(src.height))
-    if weights != "track" and params.vp.union_rows:
-        rowed = [p for p in src.patterns if p.extra.get("rows")]
-        lines = [pattern_implicit_lines(p, params) for p in rowed]
-        votes = [np.full(len(ln), float(p.count) if weights == "count" else 1.0)
-                 for ln, p in zip(lines, rowed)]
-        vp, _ = union_vanishing_point(lines, [p.vanishing_point for p in rowed], size,
-                                      params.vp, votes)
-        if vp is not None:
-            return vp
-        params = replace(params, vp=replace(params.vp, union_rows=False))
-    return rp_image_vp(src.patterns, dom, size, params)
+    votes = None if weights == "track" else (
+        lambda p, lines: np.full(len(lines), float(p.count) if weights == "count" else 1.0))
+    return rp_image_vp(src.patterns, dom, (int(src.width), int(src.height)), params, votes)
 
 
 def main(argv: list[str] | None = None) -> int:

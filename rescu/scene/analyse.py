@@ -36,7 +36,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -271,7 +271,9 @@ def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True
 
 
 def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
-                params: SceneParams) -> VanishingPoint | None:
+                params: SceneParams,
+                votes: Callable[[Pattern, Lines], np.ndarray] | None = None,
+                ) -> VanishingPoint | None:
     """The dominant VP: the VP shared by the most RP instances.
 
     With ``params.vp.union_rows``, the VP of all patterns' rows together when every
@@ -294,6 +296,9 @@ def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
     size : (int, int)
         ``(width, height)`` of the image, original pixels.
     params : SceneParams
+    votes : callable or None
+        ``votes(pattern, its implicit lines)`` -> (L,) vote of each line in the union
+        (a study of the weighting); None: each line's track length.
 
     Returns
     -------
@@ -301,18 +306,21 @@ def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
         Unit-norm homogeneous VP in original pixels; None when neither the union of the
         rows nor any pattern gives one.
     """
-    if params.vp.union_rows:
-        rowed = [p for p in patterns if p.extra.get("rows")]
-        vp, _ = union_vanishing_point([pattern_implicit_lines(p, params) for p in rowed],
-                                      [p.vanishing_point for p in rowed], size, params.vp)
+    have = [i for i in range(len(patterns)) if patterns[i].vanishing_point is not None]
+    rowed = [i for i in range(len(patterns)) if patterns[i].extra.get("rows")]
+    # each pattern's implicit lines once, for the union and the groups alike
+    lines = {i: pattern_implicit_lines(patterns[i], params)
+             for i in (rowed if params.vp.union_rows else []) + have}
+    if params.vp.union_rows and rowed:
+        vp, _ = union_vanishing_point(
+            [lines[i] for i in rowed], [patterns[i].vanishing_point for i in rowed], size,
+            params.vp, None if votes is None else [votes(patterns[i], lines[i]) for i in rowed])
         if vp is not None:
             return vp
-    have = [i for i in range(len(patterns)) if patterns[i].vanishing_point is not None]
     if not have:
         return None
     seeds = sorted(have, key=lambda i: (i != dom, -patterns[i].count,
                                         -float(patterns[i].score), i))
-    lines = {i: pattern_implicit_lines(patterns[i], params) for i in have}
     best: tuple[int, VanishingPoint | None] | None = None
     for s in seeds:
         order = [s] + sorted((i for i in have if i != s),

@@ -222,7 +222,10 @@ def union_vanishing_point(line_sets: Sequence[Lines], vps: Sequence[VanishingPoi
         if len(lines) == 0 or lines.points is None:
             continue
         vote = (np.array([float(len(q)) for q in lines.points]) if weights is None
-                else np.asarray(weights[k], float).reshape(len(lines)))
+                else np.asarray(weights[k], float).reshape(-1))
+        if vote.shape != (len(lines),):
+            raise ValueError(f"weights[{k}] must hold one vote per line ({len(lines)}), "
+                             f"got {vote.size}")
         parts.append(Lines(lines.midpoints, lines.directions, vote, lines.precision,
                            lines.points, lines.positions))
         owner += [k] * len(lines)
