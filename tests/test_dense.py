@@ -46,6 +46,21 @@ def test_blobs_sit_on_the_objects_strongest_first():
         assert min(abs(y + 0.5 - cy) + abs(x + 0.5 - cx) for cy, cx in centres) <= 2.0
 
 
+def test_blobs_stay_inside_the_map():
+    # objects cut by the left and top edges: no blob window may leave the map (its ring
+    # would be reflected features); the whole objects inside are still found
+    f = _map(np.random.default_rng(3), OBJECTS + [(3, 20, 0, 3), (3, 0, 40, 2)])
+    sizes = (2, 3, 4, 5)
+    cells, _, _ = feature_blobs(f, sizes, 3, 300)
+    a = np.array([sizes[s] for s in cells[:, 0]]) / 2.0
+    assert np.all(cells[:, 1] + 0.5 - a >= 0) and np.all(cells[:, 2] + 0.5 - a >= 0)
+    assert np.all(cells[:, 1] + 0.5 + a <= f.shape[1])
+    assert np.all(cells[:, 2] + 0.5 + a <= f.shape[2])
+    centres = [(y + k / 2, x + k / 2) for _, y, x, k in OBJECTS]
+    for cy, cx in centres:
+        assert any(abs(y + 0.5 - cy) + abs(x + 0.5 - cx) <= 2.0 for _, y, x in cells[:10])
+
+
 def test_dense_patterns_group_each_kind_into_one_rp():
     f = _map(np.random.default_rng(1), OBJECTS)
     rps = dense_patterns(f, 8.0, _params(sizes=(2, 3, 4, 5), max_patterns=5))

@@ -96,7 +96,8 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
     The response at a cell and size ``a`` is ``(1 - cos(m_c, m_r)) * |m_c|`` with ``m_c``
     the mean feature of the ``a x a`` window and ``m_r`` that of the ring out to
     ``surround * a``; ``|m_c|`` (<= 1) rewards windows whose features agree. Blobs are
-    the maxima of their 3 x 3 x 3 neighbourhood over (size, y, x).
+    the maxima of their 3 x 3 x 3 neighbourhood over (size, y, x) whose window lies
+    inside the map (a window cut by the border is compared with reflected features).
 
     Parameters
     ----------
@@ -125,6 +126,12 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
         means.append(mc / nc)
     r = np.stack(resp)
     peaks = np.argwhere((r == maximum_filter(r, size=3, mode="nearest")) & (r > 0))
+    # a window that leaves the map is measured against reflected features: its contrast
+    # is an artefact of the border, not an object (such blobs recur along every edge)
+    a = np.asarray(sizes, float)[peaks[:, 0]] / 2.0
+    inside = ((peaks[:, 1] + 0.5 - a >= 0) & (peaks[:, 1] + 0.5 + a <= f.shape[1])
+              & (peaks[:, 2] + 0.5 - a >= 0) & (peaks[:, 2] + 0.5 + a <= f.shape[2]))
+    peaks = peaks[inside]
     val = r[tuple(peaks.T)]
     order = np.lexsort((peaks[:, 2], peaks[:, 1], peaks[:, 0], -val))[:max_blobs]
     peaks, val = peaks[order], val[order]
