@@ -130,3 +130,58 @@ def test_precision_breakdown_without_a_run_and_on_an_empty_one(tmp_path, capsys)
     assert "0 images, 0 detected instances" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         pb.main([str(tmp_path), "--dataset", "no_such_set"])
+
+
+def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
+    import json
+
+    import cv2
+    import numpy as np
+
+    from rescu import pipeline
+    from rescu.config import load_config
+
+    do = load("dense_oracle")
+    with pytest.raises(SystemExit):          # a value DenseParams refuses
+        do.main([str(tmp_path), "--set", "max_touching=9"])
+    assert "max_touching" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        do.main([str(tmp_path), "--dataset", "nowhere"])
+    assert "nowhere" in capsys.readouterr().err
+    assert do.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    # one photo of five red discs on a grey floor, annotated as one GT RP
+    rng = np.random.default_rng(3)
+    img = np.clip(150 + rng.normal(0, 8, (360, 480, 3)), 0, 255).astype(np.uint8)
+    boxes = []
+    for i in range(5):
+        x, y = 40 + 90 * i, 150
+        cv2.circle(img, (x + 20, y + 20), 20, (200, 30, 30), -1)
+        boxes.append([x, y, 40, 40])
+    data = tmp_path / "data" / "synthetic"
+    (data / "images").mkdir(parents=True)
+    cv2.imwrite(str(data / "images" / "floor.png"), img[:, :, ::-1])
+    (data / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/floor.png", "width": 480, "height": 360}],
+        "annotations": [{"id": k + 1, "image_id": 1, "category_id": 0, "bbox": b}
+                        for k, b in enumerate(boxes)],
+        "categories": [{"id": 0, "name": "disc"}]}))
+    prep = tmp_path / "synthetic" / "prepared"
+    prep.mkdir(parents=True)
+    cfg = load_config(stage2=False)
+    assert pipeline.prepare(str(data / "images" / "floor.png"), str(prep / "floor.png"),
+                            str(prep / "floor.meta.json"), image_name="images/floor.png",
+                            max_side=cfg["image"]["max_side"],
+                            min_side=cfg["image"]["min_side"]) is None
+    assert do.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "## synthetic: 1 images" in out and "| oracle, every good |" in out
+    rows = (tmp_path / "benchmarks" / "dense-oracle" / "synthetic.tsv").read_text()
+    lines = rows.strip().split("\n")
+    assert lines[0].split("\t") == ["image", "rank", "n", "score", "touching", "precision",
+                                    "selected"]
+    prec = [float(r.split("\t")[5]) for r in lines[1:]]
+    assert max(prec) == 1.0              # a candidate lies on the discs and only on them
+    # the oracle's best group finds the discs: its row has precision 1
+    best = next(r for r in out.splitlines() if r.startswith("| oracle, best one |"))
+    assert float(best.split("|")[2]) == 1.0

@@ -255,3 +255,34 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
                          **{k: ev[k] for k in ("merge", "ratio", "s_ab", "s_aa", "s_bb",
                                                "size_ratio", "conflicts", "line_residual")}})
     return rows
+
+
+def rp_precisions(det_rps: Sequence[Sequence[Sequence[float]]],
+                  gt_rps: Sequence[Sequence[Sequence[float]]], h: float = IOD_H
+                  ) -> np.ndarray:
+    """Each detected RP's instance precision against its best GT RP, on its own.
+
+    The share of the RP's instances matched one-to-one (IOD > ``h``) to instances of the
+    GT RP that gives the highest share (:func:`score_image` of that RP alone). An RP is
+    acceptable to the paper's RP-level metric at 0.5 or more (with two matches).
+
+    Parameters
+    ----------
+    det_rps : list of lists of ``[x, y, w, h]``, pixels
+    gt_rps : list of lists of ``[x, y, w, h]``, pixels
+
+    Returns
+    -------
+    (len(det_rps),) float in [0, 1]; 0 for an RP without instances or an image without
+    GT RPs
+
+    >>> gt = [[(0, 0, 10, 10), (20, 0, 10, 10)]]
+    >>> rp_precisions([[(1, 1, 8, 8), (50, 50, 5, 5)], [(50, 50, 5, 5)]], gt).tolist()
+    [0.5, 0.0]
+    """
+    out = np.zeros(len(det_rps))
+    for i, rp in enumerate(det_rps):
+        if len(rp) and len(gt_rps):
+            out[i] = max(len(match_boxes(np.asarray(rp, float), np.asarray(gt, float), h))
+                         for gt in gt_rps) / len(rp)
+    return out

@@ -39,6 +39,7 @@ precision.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -47,8 +48,9 @@ from ..discovery.sources import DenseParams
 from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
 
-__all__ = ["DenseParams", "hypercolumn", "box_means", "feature_blobs", "blob_boxes",
-           "integral_map", "box_contrast", "touching_sides", "dense_patterns", "find_dense"]
+__all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
+           "blob_boxes", "integral_map", "box_contrast", "touching_sides", "dense_candidates",
+           "dense_patterns", "dense_map", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -232,22 +234,38 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ RPs
-def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
-                   ) -> list[tuple[float, np.ndarray]]:
-    """RPs of recurring blobs in one feature map (steps 2-3 of the module docstring).
+@dataclass
+class DenseCandidate:
+    """One group of recurring blobs, before the selection of :func:`dense_patterns`.
+
+    Attributes
+    ----------
+    boxes : (n, 4) float, ``[x, y, w, h]`` in backbone-input pixels, strongest blob first
+    score : float, mean box contrast (:func:`box_contrast`) x rarity (1 - cosine of the
+        group's mean feature with the image's mean feature)
+    touching : float, mean :func:`touching_sides` of the boxes (0..4)
+    """
+
+    boxes: np.ndarray
+    score: float
+    touching: float
+
+
+def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
+                     ) -> list[DenseCandidate]:
+    """Every group of ``params.min_instances`` or more recurring blobs of one feature map
+    (step 3 of the module docstring before the selection), best score first.
 
     Parameters
     ----------
     f : (C, h, w) float32 (:func:`hypercolumn`)
     cell_px : backbone-input pixels per cell (8)
-    params : DenseParams
+    params : DenseParams (``sizes``, ``surround``, ``max_blobs``, ``min_similarity``,
+        ``min_instances``, ``touch_tolerance``)
 
     Returns
     -------
-    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most
-    ``params.max_patterns``, none that tiles the plane (mean :func:`touching_sides`
-    above ``params.max_touching``): boxes (n, 4) ``[x, y, w, h]`` in backbone-input
-    pixels, n >= ``params.min_instances``.
+    list of :class:`DenseCandidate`, by descending score (ties: top-left first)
     """
     from sklearn.cluster import AgglomerativeClustering
 
@@ -271,14 +289,71 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     out = []
     for lab in np.unique(labels):
         m = np.flatnonzero(labels == lab)
-        if len(m) < params.min_instances or (
-                touching_sides(boxes[m], params.touch_tolerance).mean() > params.max_touching):
+        if len(m) < params.min_instances:
             continue
         cen = emb[m].mean(0)
         rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
-        out.append((float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity, boxes[m]))
-    out.sort(key=lambda t: (-t[0], t[1][0, 1], t[1][0, 0]))
-    return out[:params.max_patterns]
+        out.append(DenseCandidate(
+            boxes=boxes[m], score=float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity,
+            touching=float(touching_sides(boxes[m], params.touch_tolerance).mean())))
+    out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
+    return out
+
+
+def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
+                   ) -> list[tuple[float, np.ndarray]]:
+    """RPs of recurring blobs in one feature map (steps 2-3 of the module docstring).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32 (:func:`hypercolumn`)
+    cell_px : backbone-input pixels per cell (8)
+    params : DenseParams
+
+    Returns
+    -------
+    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most
+    ``params.max_patterns``, none that tiles the plane (mean :func:`touching_sides`
+    above ``params.max_touching``): boxes (n, 4) ``[x, y, w, h]`` in backbone-input
+    pixels, n >= ``params.min_instances``.
+    """
+    kept = [c for c in dense_candidates(f, cell_px, params)
+            if c.touching <= params.max_touching]
+    return [(c.score, c.boxes) for c in kept[:params.max_patterns]]
+
+
+def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
+              ) -> tuple[np.ndarray, float]:
+    """The feature map the dense source works on, and the scale it was taken at.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8, the prepared image
+    params : DenseParams (``backbone``, ``max_side``, ``min_side``)
+    backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
+
+    Returns
+    -------
+    f : (C, h, w) float32 (:func:`hypercolumn`) of ``rgb`` resized by ``s``
+    s : float, backbone-input pixels per prepared-image pixel (longer side brought into
+        [``min_side``, ``max_side``])
+    """
+    import cv2
+
+    from .backbone import FrozenBackbone
+
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
+                         f"dtype {rgb.dtype}")
+    if backbone is None:
+        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+    longer = max(rgb.shape[:2])
+    s = min(1.0, params.max_side / longer) if longer >= params.min_side \
+        else params.min_side / longer
+    im = rgb if s == 1 else cv2.resize(
+        rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    return hypercolumn(backbone, im), float(s)
 
 
 def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
@@ -301,22 +376,7 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
     []
     """
-    import cv2
-
-    from .backbone import FrozenBackbone
-
-    rgb = np.asarray(rgb)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
-                         f"dtype {rgb.dtype}")
-    if backbone is None:
-        backbone = FrozenBackbone(params.backbone, feature_stride=16)
-    longer = max(rgb.shape[:2])
-    s = min(1.0, params.max_side / longer) if longer >= params.min_side \
-        else params.min_side / longer
-    im = rgb if s == 1 else cv2.resize(
-        rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-    f = hypercolumn(backbone, im)
+    f, s = dense_map(rgb, params, backbone)
     to_orig = 1.0 / (s * float(scale_factor))
     pats = []
     for k, (score, boxes) in enumerate(dense_patterns(f, 8.0, params)):
