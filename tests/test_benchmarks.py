@@ -185,3 +185,39 @@ def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
     # the oracle's best group finds the discs: its row has precision 1
     best = next(r for r in out.splitlines() if r.startswith("| oracle, best one |"))
     assert float(best.split("|")[2]) == 1.0
+
+
+def test_compare_folders_refusals_and_a_comparison(tmp_path, capsys):
+    import json
+
+    cf = load("compare_folders")
+    with pytest.raises(SystemExit):
+        cf.main([str(tmp_path), "before"])
+    assert "LABEL=FOLDER" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cf.main([str(tmp_path), f"a={tmp_path}", f"a={tmp_path}"])
+    assert "given twice" in capsys.readouterr().err
+    assert cf.main([str(tmp_path), f"a={tmp_path}"]) == 2
+    assert "annotations.json: not found" in capsys.readouterr().err
+    # one image, one GT RP of two boxes; folder a finds both, folder b one and a stray
+    (tmp_path / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/x.png", "width": 100, "height": 100}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 0, "bbox": [0, 0, 10, 10]},
+                        {"id": 2, "image_id": 1, "category_id": 0, "bbox": [20, 0, 10, 10]}],
+        "categories": [{"id": 0, "name": "o"}]}))
+
+    from rescu.types import ImageResult, Instance, Pattern
+
+    for name, boxes in (("a", [(0, 0, 10, 10), (20, 0, 10, 10)]),
+                        ("b", [(0, 0, 10, 10), (60, 60, 10, 10)])):
+        res = ImageResult(image="images/x.png", width=100, height=100, method="m",
+                          patterns=[Pattern(id=0, score=1.0, instances=[
+                              Instance(bbox=b, score=1.0) for b in boxes])])
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "x.json").write_text(json.dumps(res.to_json()))
+    assert cf.main([str(tmp_path), f"a={tmp_path / 'a'}", f"b={tmp_path / 'b'}"]) == 0
+    out = capsys.readouterr().out
+    row = {r.split("|")[1].strip(): r.split("|") for r in out.splitlines() if r.startswith("| a ")
+           or r.startswith("| b ")}
+    assert "1.000" in row["a"][3] and "0.500" in row["b"][3]     # instance precision
+    assert "p_value" in out
