@@ -1,6 +1,6 @@
 """Diagnostics the benchmarks print, no table of a run: why counts are wrong, which truth
-instance a box is, where instance precision goes, and whether stage II's split-RP merge
-is right on an image.
+instance a box is, where instance precision goes, how precise each RP is on its own, and
+whether stage II's split-RP merge is right on an image.
 
 They live in the library (not beside ``benchmarks/``) so that a benchmark script imports
 them as ``rescu.evaluation.diagnostics`` from wherever it lies, without a path of its
