@@ -26,7 +26,7 @@ Usage (after a run with the datasets, from the repository root)::
     python benchmarks/studies/dense_oracle.py results/realdev --config config/realdev.yaml \\
         --dataset aerial_cars --dataset chess [--set min_similarity=0.5]
 
-About a second per image (one backbone pass, two threads) plus the backbone's load.
+One to two seconds per image (one backbone pass, two threads) plus the backbone's load.
 """
 
 from __future__ import annotations
