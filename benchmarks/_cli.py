@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any, Callable
 
@@ -103,6 +104,22 @@ def run_jobs(fn: Callable[[Any], Any], jobs: list[Any], workers: int) -> list[An
         with mp.get_context("spawn").Pool(workers) as pool:
             return list(pool.imap_unordered(fn, jobs))
     return [fn(j) for j in jobs]
+
+
+def check_run_datasets(ap: argparse.ArgumentParser, cfg: dict[str, Any], results: Path,
+                       sets: list[str], folder: str) -> bool:
+    """Each of ``sets`` is a dataset of the config (else a usage error) with
+    ``<results>/<dataset>/<folder>`` made by a run; False (and a message) when one is
+    missing."""
+    for ds in sets:
+        if ds not in cfg["datasets"]:
+            ap.error(f"dataset {ds!r} is not in the config")
+    for ds in sets:
+        if not (results / ds / folder).is_dir():
+            print(f"{results / ds / folder}: not found (run the pipeline first)",
+                  file=sys.stderr)
+            return False
+    return True
 
 
 def images_with(data: Path, *folders: Path) -> list[str]:

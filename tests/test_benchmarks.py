@@ -161,8 +161,10 @@ def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
     data = tmp_path / "data" / "synthetic"
     (data / "images").mkdir(parents=True)
     cv2.imwrite(str(data / "images" / "floor.png"), img[:, :, ::-1])
+    (data / "images" / "broken.png").write_bytes(b"not a png")
     (data / "annotations.json").write_text(json.dumps({
-        "images": [{"id": 1, "file_name": "images/floor.png", "width": 480, "height": 360}],
+        "images": [{"id": 1, "file_name": "images/floor.png", "width": 480, "height": 360},
+                   {"id": 2, "file_name": "images/broken.png", "width": 480, "height": 360}],
         "annotations": [{"id": k + 1, "image_id": 1, "category_id": 0, "bbox": b}
                         for k, b in enumerate(boxes)],
         "categories": [{"id": 0, "name": "disc"}]}))
@@ -173,8 +175,15 @@ def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
                             str(prep / "floor.meta.json"), image_name="images/floor.png",
                             max_side=cfg["image"]["max_side"],
                             min_side=cfg["image"]["min_side"]) is None
+    # an image the run could not prepare is skipped with a message, the rest scored
+    assert pipeline.prepare(str(data / "images" / "broken.png"), str(prep / "broken.png"),
+                            str(prep / "broken.meta.json"), image_name="images/broken.png",
+                            max_side=cfg["image"]["max_side"],
+                            min_side=cfg["image"]["min_side"]) is not None
     assert do.main([str(tmp_path)]) == 0
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
+    assert "synthetic/broken: skipped" in cap.err
     assert "## synthetic: 1 images" in out and "| oracle, every good |" in out
     rows = (tmp_path / "benchmarks" / "dense-oracle" / "synthetic.tsv").read_text()
     lines = rows.strip().split("\n")

@@ -42,31 +42,29 @@ from _cli import parse_sets  # noqa: E402
 
 
 def _auc(good: Any, score: Any) -> float:
-    """ROC AUC of ``score`` for ``good`` (ties count half); NaN without both classes."""
+    """ROC AUC of ``score`` for ``good``; NaN without both classes."""
     import numpy as np
+    from sklearn.metrics import roc_auc_score
 
-    good, score = np.asarray(good, bool), np.asarray(score, float)
-    pos, neg = score[good], score[~good]
-    if not len(pos) or not len(neg):
-        return float("nan")
-    return float(((pos[:, None] > neg[None]).sum() + 0.5 * (pos[:, None] == neg[None]).sum())
-                 / (len(pos) * len(neg)))
+    good = np.asarray(good, bool)
+    return float(roc_auc_score(good, score)) if 0 < good.sum() < len(good) else float("nan")
 
 
 def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import pandas as pd
 
-    from _cli import variants_parser
+    from _cli import check_run_datasets, variants_parser
 
     from rescu import pipeline
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
+    from rescu.evaluation.core import write_tsv
     from rescu.evaluation.diagnostics import rp_precisions
     from rescu.evaluation.metrics import score_image
     from rescu.extension.backbone import FrozenBackbone
     from rescu.extension.dense import DenseParams, dense_candidates, dense_map
-    from rescu.io import load_coco_rps
+    from rescu.io import InputError, load_coco_rps
     from rescu.params import deep_merge
 
     ap = variants_parser(__doc__)
@@ -77,13 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TypeError) as e:
         ap.error(str(e))
     sets = a.dataset or ["synthetic"]
-    for ds in sets:
-        if ds not in cfg["datasets"]:
-            ap.error(f"dataset {ds!r} is not in the config")
-        if not (a.results / ds / "prepared").is_dir():
-            print(f"{a.results / ds / 'prepared'}: not found (run the pipeline first)",
-                  file=sys.stderr)
-            return 2
+    if not check_run_datasets(ap, cfg, a.results, sets, "prepared"):
+        return 2
     pipeline.limit_threads(2, torch=True)
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
     out_dir = a.results / "benchmarks" / "dense-oracle"
@@ -101,8 +94,14 @@ def main(argv: list[str] | None = None) -> int:
             if not png.is_file():
                 print(f"{ds}/{stem}: no prepared image, skipped", file=sys.stderr)
                 continue
-            rgb, m = pipeline.read_prepared(str(png), str(meta))
-            fmap, s = dense_map(rgb, params, backbone)
+            try:
+                rgb, m = pipeline.read_prepared(str(png), str(meta))
+                if m.get("failure"):
+                    raise InputError(f"{meta}: the run could not prepare this image")
+                fmap, s = dense_map(rgb, params, backbone)
+            except (InputError, ValueError) as e:
+                print(f"{ds}/{stem}: skipped ({e})", file=sys.stderr)
+                continue
             cands = dense_candidates(fmap, 8.0, params)
             to_orig = 1.0 / (s * float(m["scale_factor"]))
             boxes = [(c.boxes * to_orig).tolist() for c in cands]
@@ -122,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                       "selected": k in picks["pipeline"]} for k, c in enumerate(cands)]
         df = pd.DataFrame(rows, columns=["image", "rank", "n", "score", "touching",
                                          "precision", "selected"])
-        df.to_csv(out_dir / f"{ds}.tsv", sep="\t", index=False)
+        write_tsv(df, out_dir / f"{ds}.tsv")
         n_img = len(scores["pipeline"])
         flat_df = df[df.touching <= params.max_touching]
         print(f"## {ds}: {n_img} images, {len(df) / max(n_img, 1):.1f} candidate groups "

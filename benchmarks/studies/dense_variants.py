@@ -51,7 +51,8 @@ def _one(job: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _cli import claim_variant_folder, print_side_by_side, run_jobs, variants_parser
+    from _cli import (check_run_datasets, claim_variant_folder, print_side_by_side,
+                      run_jobs, variants_parser)
 
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
@@ -72,13 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     name = a.name or ("_".join(f"{k}={v}" for k, v in over.items()) or "config")
     base = a.results / "benchmarks" / "dense-variants" / name
     sets = a.dataset or ["synthetic"]
-    for ds in sets:
-        if ds not in cfg["datasets"]:
-            ap.error(f"dataset {ds!r} is not in the config")
-        if not (a.results / ds / "prepared").is_dir():
-            print(f"{a.results / ds / 'prepared'}: not found (run the pipeline first)",
-                  file=sys.stderr)
-            return 2
+    if not check_run_datasets(ap, cfg, a.results, sets, "prepared"):
+        return 2
     if not claim_variant_folder(base, {"dense": params}):
         return 2
     for ds in sets:

@@ -280,9 +280,5 @@ def rp_precisions(det_rps: Sequence[Sequence[Sequence[float]]],
     >>> rp_precisions([[(1, 1, 8, 8), (50, 50, 5, 5)], [(50, 50, 5, 5)]], gt).tolist()
     [0.5, 0.0]
     """
-    out = np.zeros(len(det_rps))
-    for i, rp in enumerate(det_rps):
-        if len(rp) and len(gt_rps):
-            out[i] = max(len(match_boxes(np.asarray(rp, float), np.asarray(gt, float), h))
-                         for gt in gt_rps) / len(rp)
-    return out
+    return np.array([score_image([rp], gt_rps, h).instance_precision if len(rp) else 0.0
+                     for rp in det_rps], float).reshape(-1)
