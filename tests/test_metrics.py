@@ -33,6 +33,19 @@ def test_perfect_prediction_scores_one() -> None:
         assert getattr(s, m) == 1.0
     assert s.rp_assignment == [0, 1]
     assert (s.n_det_instances, s.n_gt_instances, s.n_det_rps, s.n_gt_rps) == (8, 8, 2, 2)
+    assert (s.n_matched, s.n_matched_any) == (8, 8)
+
+
+def test_matched_counts_are_the_numerators() -> None:
+    # one RP on both GT RPs' objects: assigned to the larger, the other's objects only
+    # count across RPs; a third box duplicates a credited one
+    gt = [row(3), row(2, y0=100)]
+    det = [row(3) + row(2, y0=100) + [row(1)[0]]]
+    s = score_image(det, gt)
+    assert (s.n_det_instances, s.n_matched, s.n_matched_any) == (6, 3, 5)
+    assert s.instance_precision == s.n_matched / s.n_det_instances
+    assert s.instance_recall == s.n_matched / s.n_gt_instances
+    assert s.instance_precision_any == s.n_matched_any / s.n_det_instances
 
 
 def test_no_detection_recall_zero_precision_undefined() -> None:

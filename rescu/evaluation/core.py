@@ -255,7 +255,9 @@ def evaluate_rp_dataset(dataset_dir: str | Path, pred_dirs: Mapping[str, str | P
     DataFrame
         Columns ``dataset, image, method, subset, hard, prediction_missing``, the
         metrics of :data:`rescu.evaluation.metrics.METRICS` (NaN where undefined),
-        ``n_det_instances, n_gt_instances, n_det_rps, n_gt_rps, gt_categories``.
+        ``n_det_instances, n_gt_instances, n_det_rps, n_gt_rps``, ``n_matched`` and
+        ``n_matched_any`` (the instance figures' numerators: credited instances, and
+        instances matched across RPs), ``gt_categories``.
 
     Examples
     --------

@@ -128,8 +128,7 @@ def _pooled_instance_pr(sf: pd.DataFrame) -> dict[str, dict[str, float]]:
     """Pooled (micro) instance precision / recall per method of a per-image frame."""
     out = {}
     for method, g in sf.groupby("method", sort=False):
-        # matched instances of an image = recall * GT instances (0 without GT)
-        matched = float((g["instance_recall"].fillna(0.0) * g["n_gt_instances"]).round().sum())
+        matched = float(g["n_matched"].sum())
         nd, ng = int(g["n_det_instances"].sum()), int(g["n_gt_instances"].sum())
         out[str(method)] = {"instance_precision_pooled": matched / nd if nd else float("nan"),
                             "instance_recall_pooled": matched / ng if ng else float("nan")}

@@ -149,8 +149,7 @@ def detection_breakdown(det_rps: Sequence[Sequence[Sequence[float]]],
     gt_all = np.asarray([b for rp in gt_rps for b in rp], float).reshape(-1, 4)
     n = len(det_all)
     sc = score_image(det_rps, gt_rps, h, min_rp_precision)
-    assigned = int(round(sc.instance_precision * n)) if n else 0
-    n_any = int(round(sc.instance_precision_any * n)) if n else 0
+    assigned, n_any = sc.n_matched, sc.n_matched_any
     on_gt = (iod_matrix(det_all, gt_all) > h).any(axis=1) if len(gt_all) and n \
         else np.zeros(n, bool)
     background = int(n - on_gt.sum())

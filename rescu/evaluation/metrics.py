@@ -157,6 +157,8 @@ class ImageScores:
     n_gt_instances: int
     n_det_rps: int
     n_gt_rps: int
+    n_matched: int      # detected instances the paper's metric credits (its P and R numerator)
+    n_matched_any: int  # ... when matching runs across all RPs (the *any RP* numerator)
     rp_assignment: list[int | None]  # per detected RP: assigned GT RP index or None
 
     def as_dict(self) -> dict[str, float | int]:
@@ -226,7 +228,8 @@ def score_image(det_rps: Sequence[Sequence[BBox]], gt_rps: Sequence[Sequence[BBo
         instance_precision_any=_ratio(n_any, len(det_all)),
         instance_recall_any=_ratio(n_any, len(gt_all)),
         n_det_instances=len(det_all), n_gt_instances=len(gt_all),
-        n_det_rps=len(det_rps), n_gt_rps=len(gt_rps), rp_assignment=assignment)
+        n_det_rps=len(det_rps), n_gt_rps=len(gt_rps), n_matched=n_assigned,
+        n_matched_any=n_any, rp_assignment=assignment)
 
 
 METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
