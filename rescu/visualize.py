@@ -4,6 +4,8 @@ point with its supporting lines, the image's vanishing points (the joint estimat
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 from .types import ImageResult
@@ -79,8 +81,7 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
                 far, tx, ty = True, hx, hy
             for cx, cy in centres:
                 if far:  # direction only: a short arrow towards the VP
-                    d = np.array([tx - cx, ty - cy]) if abs(hw) > 1e-12 else np.array([hx, hy])
-                    d = d / (np.linalg.norm(d) + 1e-12) * 0.08 * max(h, w)
+                    d = _towards((hx, hy, hw), s, (cx, cy)) * 0.08 * max(h, w)
                     cv2.arrowedLine(img, (round(cx), round(cy)),
                                     (round(cx + d[0]), round(cy + d[1])), col, thick,
                                     tipLength=0.3)
@@ -118,6 +119,17 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     return np.vstack([img, band])
 
 
+def _towards(vp: tuple[float, float, float], s: float, origin: Sequence[float]) -> np.ndarray:
+    """Unit direction (2,) in the picture from ``origin`` (picture pixels) towards the
+    homogeneous VP ``vp`` (original pixels; the picture is original * ``s``); a VP at
+    infinity (``w`` = 0) gives its own direction. Both the RPs' arrows and the image's VP
+    arrows point along it."""
+    hx, hy, hw = vp
+    d = (np.array([hx / hw * s - origin[0], hy / hw * s - origin[1]]) if abs(hw) > 1e-12
+         else np.array([hx, hy]))
+    return d / (np.linalg.norm(d) + 1e-12)
+
+
 def _draw_image_vps(img: np.ndarray, result: ImageResult, s: float, thick: int) -> None:
     """Draw the image's VPs (``result.extra["vanishing_points"]``, original pixels) on
     ``img`` (original * ``s``) in place: a white ring with a black edge and the label
@@ -141,9 +153,7 @@ def _draw_image_vps(img: np.ndarray, result: ImageResult, s: float, thick: int) 
             cv2.circle(img, p, r, (255, 255, 255), thick + 1, cv2.LINE_AA)
             tip = (p[0] + r + 2, p[1] - r)
         else:
-            d = (np.array([hx / hw * s, hy / hw * s]) - centre if abs(hw) > 1e-12
-                 else np.array([hx, hy]))
-            d = d / (np.linalg.norm(d) + 1e-12) * 0.3 * min(h, w)
+            d = _towards((hx, hy, hw), s, centre) * 0.3 * min(h, w)
             a, b = tuple(round(c) for c in centre), tuple(round(c) for c in centre + d)
             cv2.arrowedLine(img, a, b, (0, 0, 0), thick + 3, cv2.LINE_AA, tipLength=0.15)
             cv2.arrowedLine(img, a, b, (255, 255, 255), thick + 1, cv2.LINE_AA,
