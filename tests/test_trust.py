@@ -152,7 +152,7 @@ def test_snakefile_checks_the_config_before_any_job(tmp_path):
 
 
 def test_shipped_defaults_equal_the_pipeline_config():
-    for name in ("config.yaml", "config.schema.yaml"):
+    for name in ("config.yaml", "config.schema.yaml", "objects.yaml"):
         assert (REPO / "config" / name).read_bytes() == \
             (REPO / "rescu" / "defaults" / name).read_bytes(), (
             f"config/{name} and rescu/defaults/{name} differ: edit config/{name}, then "
