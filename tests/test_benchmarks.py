@@ -230,3 +230,34 @@ def test_compare_folders_refusals_and_a_comparison(tmp_path, capsys):
            or r.startswith("| b ")}
     assert "1.000" in row["a"][3] and "0.500" in row["b"][3]     # instance precision
     assert "p_value" in out
+
+
+def test_stage2_gates_funnel_and_refusals(tmp_path, capsys):
+    import numpy as np
+
+    from rescu.extension.params import Stage2Params
+
+    sg = load("stage2_gates")
+    assert sg.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    params = Stage2Params.from_dict({"predict": {"score_threshold": 0.9,
+                                                 "lattice_score_threshold": 0.8,
+                                                 "max_distance_ratio": 1.0,
+                                                 "lattice_distance_ratio": 1.0}})
+    own = np.array([[0, 0, 10, 10], [20, 0, 10, 10]], float)
+    missing = np.array([[40, 0, 10, 10], [60, 0, 10, 10], [80, 0, 10, 10]], float)
+    # proposals: on GT 0 a lattice window that passes everything; on GT 1 a plain window
+    # whose class is another RP's; on GT 2 a plain window 1.4 x too large (IOD 0.51), which
+    # passes all but the size gate (tolerance 1.35)
+    boxes = np.array([[40, 0, 10, 10], [60, 0, 10, 10], [78, 0, 14, 14]], float)
+    lattice = np.array([True, False, False])
+    prob = np.array([[0.05, 0.95, 0.0], [0.0, 0.1, 0.9], [0.0, 0.95, 0.05]])
+    dist = np.array([0.5, 0.5, 0.5])
+    f = sg.gate_funnel(missing, 0, own, boxes, lattice, prob, dist, 1.0, params, True)
+    assert f == {"missing": 3, "covered": 3, "allowed": 1, "argmax": 1, "score": 1,
+                 "distance": 1, "size": 1}
+    f = sg.gate_funnel(missing, 0, own, boxes, lattice, prob, dist, 1.0, params, False)
+    assert [f[s] for s in sg.STAGES] == [3, 3, 3, 2, 2, 2, 1]
+    # the feature-distance gate: every proposal too far from the RP's centres
+    f = sg.gate_funnel(missing, 0, own, boxes, lattice, prob, dist * 4, 1.0, params, False)
+    assert (f["score"], f["distance"], f["size"]) == (2, 0, 0)
