@@ -146,7 +146,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
     from .pipeline import setup_logging
 
     sets = (["dense.enabled=true"] if args.dense else []) + list(args.set)
-    cfg = load_config(args.config, _parse_set(sets), stage2=args.method == "rescu-ii")
+    cfg = load_config(args.config, _parse_set(sets), stage2=args.method == "rescu-ii",
+                      profile="objects" if args.objects else None)
     photos = _collect_photos(args.photos)
     names = result_names(photos)
     out = Path(args.out)
@@ -288,6 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--dense", action="store_true",
                    help="also find RPs in the CNN feature map (small or smooth objects: cars "
                         "from above, chess pieces); same as --set dense.enabled=true")
+    d.add_argument("--objects", action="store_true",
+                   help="photos of small or smooth objects (cars from above, chess pieces, "
+                        "products): RPs from the CNN feature map only, extended by stage II "
+                        "from any proposal (the profile config/objects.yaml; --config and "
+                        "--set still apply over it)")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

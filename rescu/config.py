@@ -9,7 +9,6 @@ checks they are equal: edit ``config/`` and copy both into ``rescu/defaults/``).
 
 from __future__ import annotations
 
-import copy
 import importlib.resources
 from pathlib import Path
 from typing import Any, Mapping
@@ -23,6 +22,9 @@ DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
 ``config/config.yaml``)."""
 SCHEMA = DEFAULTS_DIR / "config.schema.yaml"
 """Its JSON Schema (equal to ``config/config.schema.yaml``)."""
+PROFILES = {"objects": DEFAULTS_DIR / "objects.yaml"}
+"""Named override files shipped in the package (equal to the checkout's ``config/<name>.yaml``):
+``objects`` for photos of small or smooth objects (``rescu discover --objects``)."""
 
 
 def _read_yaml(path: Any) -> Any:
@@ -286,8 +288,10 @@ def validate_config(config: dict[str, Any], source: str = "config",
 
 
 def load_config(path: str | Path | None = None,
-                overrides: dict[str, Any] | None = None, stage2: bool = True) -> dict[str, Any]:
-    """The default configuration, updated with the YAML file ``path`` and ``overrides``.
+                overrides: dict[str, Any] | None = None, stage2: bool = True,
+                profile: str | None = None) -> dict[str, Any]:
+    """The default configuration, updated with the profile ``profile`` (a name of
+    :data:`PROFILES`), the YAML file ``path`` and ``overrides``, in that order.
 
     Everything is checked here, once (:func:`validate_config`): raises
     :class:`InputError` naming where the bad value came from (the file, or ``--set``
@@ -305,6 +309,12 @@ def load_config(path: str | Path | None = None,
     cfg = _read_yaml(DEFAULT_CONFIG)
     source = str(DEFAULT_CONFIG)
     layers: list[tuple[str, Any]] = []
+    if profile is not None:
+        if profile not in PROFILES:
+            raise InputError(f"profile {profile!r}: unknown (known: {', '.join(PROFILES)})")
+        prof = _read_yaml(PROFILES[profile]) or {}
+        cfg = deep_merge(cfg, prof)
+        layers.append((f"profile {profile} ({PROFILES[profile]})", prof))
     if path is not None:
         user = _read_yaml(Path(path))
         if user is None:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 from PIL import Image
 
 from rescu.io import load_coco_rps, write_json
@@ -38,7 +39,8 @@ def test_help_explains_every_option():
         out = rescu(*args)
         assert out.returncode == 0 and "usage: rescu" in out.stdout
     text = rescu("discover", "--help").stdout
-    for opt in ("--out", "--method", "--config", "--set", "--dense", "--keep-work", "--quiet"):
+    for opt in ("--out", "--method", "--config", "--set", "--dense", "--objects", "--keep-work",
+                "--quiet"):
         assert opt in text
 
 
@@ -67,6 +69,34 @@ def test_discover_dense_adds_the_dense_source(tmp_path):
     assert n_dense >= 1 and d["n_dense_patterns"] == n_dense
     # stage I's RP (the five objects) is still there, beside the dense ones
     assert max(p["count"] for p in d["patterns"] if p.get("source") != "dense") == 5
+
+
+def test_discover_objects_profile(tmp_path):
+    # --objects: only the dense source's RPs (stage I's five-object RP is not used)
+    photo = shelf_photo(tmp_path / "shelf.png")
+    out = rescu("discover", str(photo), "--out", str(tmp_path / "out"), "--method", "rescu-i",
+                "--objects", "--quiet")
+    assert out.returncode == 0, out.stderr
+    d = json.loads((tmp_path / "out" / "shelf.json").read_text())
+    assert d["patterns"] and all(p.get("source") == "dense" for p in d["patterns"])
+    # --set still applies over the profile: both sources again
+    out = rescu("discover", str(photo), "--out", str(tmp_path / "both"), "--method", "rescu-i",
+                "--objects", "--set", "dense.mode=both", "--quiet")
+    assert out.returncode == 0, out.stderr
+    d = json.loads((tmp_path / "both" / "shelf.json").read_text())
+    assert max(p["count"] for p in d["patterns"] if p.get("source") != "dense") == 5
+
+
+def test_objects_profile_loads_and_unknown_profile_is_refused():
+    from rescu.config import load_config
+    from rescu.io import InputError
+
+    cfg = load_config(profile="objects", stage2=False)
+    assert cfg["dense"]["enabled"] and cfg["dense"]["mode"] == "dense"
+    assert cfg["stage2"]["predict"]["lattice_only"] is False
+    assert cfg["stage1"] == load_config(stage2=False)["stage1"]   # the rest is the default
+    with pytest.raises(InputError, match="unknown"):
+        load_config(profile="facades", stage2=False)
 
 
 def test_discover_usage_errors_exit_2(tmp_path):
