@@ -82,15 +82,14 @@ def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
     """
     from rescu.evaluation.metrics import iod_matrix
     from rescu.extension.boxes import size_gate
+    from rescu.extension.predict import proposal_gates
 
     out = dict.fromkeys(STAGES, 0)
     out["missing"] = len(missing)
     if not len(missing) or not len(boxes):
         return out
-    pr = params.predict
     cover = iod_matrix(boxes, missing) > h                       # (P, M)
-    thr = np.where(lattice, pr.lattice_score_threshold, pr.score_threshold)
-    ratio = np.where(lattice, pr.lattice_distance_ratio, pr.max_distance_ratio)
+    thr, ratio = proposal_gates(lattice, params)
     gates = [np.ones(len(boxes), bool),
              lattice if lattice_only else np.ones(len(boxes), bool),
              prob.argmax(1) == k + 1,

@@ -144,6 +144,17 @@ def visible_half_features(feats: dict[str, np.ndarray], ckpt: dict[str, Any],
     return pf, replaced
 
 
+def proposal_gates(lattice: np.ndarray, params: Stage2Params = Stage2Params()
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Each proposal's probability gate and feature-distance ratio: the lattice gates
+    (``lattice_score_threshold``, ``lattice_distance_ratio``) for lattice windows
+    (``lattice`` (P,) bool), ``score_threshold`` and ``max_distance_ratio`` for the
+    others; two (P,) float arrays."""
+    pr = params.predict
+    return (np.where(lattice, pr.lattice_score_threshold, pr.score_threshold),
+            np.where(lattice, pr.lattice_distance_ratio, pr.max_distance_ratio))
+
+
 def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: ImageResult,
                    params: Stage2Params = Stage2Params()) -> ImageResult:
     """RESCU-II instances: stage-I instances + the classifier's new positive proposals.
@@ -206,8 +217,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     lat = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes), np.int8))).reshape(-1) > 0
     if len(lat) != len(boxes):
         lat = np.zeros(len(boxes), bool)
-    thr = np.where(lat, params.predict.lattice_score_threshold, params.predict.score_threshold)
-    ratio = np.where(lat, params.predict.lattice_distance_ratio, params.predict.max_distance_ratio)
+    thr, ratio = proposal_gates(lat, params)
     total = by_half = 0
     for k, pi in enumerate(rp_index):
         pat = out.patterns[pi]
