@@ -55,6 +55,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
                 str(Path(__file__).resolve().parents[1])]
 
 STAGES = ("missing", "covered", "allowed", "argmax", "score", "distance", "size")
+COUNTS = STAGES + ("not extended", "added")   # what image_funnels and the totals count
 
 
 def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
@@ -112,8 +113,7 @@ def image_funnels(stage1: Any, stage2: Any, feats: dict[str, Any], ckpt: dict[st
     from rescu.extension.examples import select_examples
     from rescu.extension.predict import score_proposals
 
-    keys = STAGES + ("not extended", "added")
-    conf, anyp = dict.fromkeys(keys, 0), dict.fromkeys(keys, 0)
+    conf, anyp = dict.fromkeys(COUNTS, 0), dict.fromkeys(COUNTS, 0)
     det = [[i.bbox for i in p.instances] for p in stage1.patterns]
     if not det or not gt_rps:
         return conf, anyp
@@ -173,8 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
             return 2
     params = Stage2Params.from_dict(cfg["stage2"])
-    keys = STAGES + ("not extended", "added")
-    tot_c, tot_a = dict.fromkeys(keys, 0), dict.fromkeys(keys, 0)
+    tot_c, tot_a = dict.fromkeys(COUNTS, 0), dict.fromkeys(COUNTS, 0)
     n = 0
     for f, gts in load_coco_rps(data / "annotations.json").items():
         stem = Path(f).stem
@@ -189,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         c, an = image_funnels(io.read_result(paths[0]), io.read_result(paths[1]), feats,
                               ckpt, [g.boxes for g in gts], params, a.iod)
         for d, s in ((tot_c, c), (tot_a, an)):
-            for key in keys:
+            for key in COUNTS:
                 d[key] += s[key]
         n += 1
     lo = params.predict.lattice_only
