@@ -261,3 +261,36 @@ def test_stage2_gates_funnel_and_refusals(tmp_path, capsys):
     # the feature-distance gate: every proposal too far from the RP's centres
     f = sg.gate_funnel(missing, 0, own, boxes, lattice, prob, dist * 4, 1.0, params, False)
     assert (f["score"], f["distance"], f["size"]) == (2, 0, 0)
+
+
+def test_feature_probe_split_probe_and_refusal(tmp_path, capsys):
+    import numpy as np
+
+    fp = load("feature_probe")
+    assert fp.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    assert fp.recall_at_precision(np.array([1, 1, 0, 1]), np.array([4., 3., 2., 1.]), 0.7) == 1.0
+    assert fp.recall_at_precision(np.array([1, 0, 0, 1]), np.array([4., 3., 2., 1.]), 0.7) == 0.5
+    # 8 GT boxes in a row; proposals: each GT box exactly, and 40 background boxes below
+    gt = np.array([[20 * i, 0, 10, 10] for i in range(8)], float)
+    bg = np.array([[7 * i, 100 + 3 * (i % 5), 10, 10] for i in range(40)], float)
+    props = np.concatenate([gt, bg])
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(len(props), 6)).astype(np.float32)
+    x[:8, 0] += 6.0                       # the objects differ in one direction
+    split = fp.probe_split(props, gt, None, np.random.default_rng(1))
+    pos, neg, test, y, cover = split
+    assert cover.shape == (len(test), 4) and (cover.any(1) == (y == 1)).all()
+    assert set(pos) | set(test[y == 1]) == set(range(8)) and not set(pos) & set(test)
+    assert len(pos) == 4 and y.sum() == 4 and set(neg) <= set(range(8, 48))
+    assert not set(neg) & set(test)
+    assert fp.probe(x, split, 0.7) == (1.0, 1.0, 1.0)
+    # trained on two of the boxes (stage I's RP): the rest of the GT is the test set
+    split = fp.probe_split(props, gt, gt[:2], np.random.default_rng(1))
+    assert split is not None and set(split[0]) <= {0, 1} and not set(split[0]) & set(split[2])
+    res = fp.image_probes({"f": x}, props, [gt.tolist()], [gt[:3].tolist()], (0, 0))
+    assert len(res["f"]) == 1 and len(res["f stage I"]) == 1
+    assert res["f"][0] == (1.0, 1.0, 1.0)
+    # no GT RP large enough: nothing probed
+    assert fp.image_probes({"f": x}, props, [gt[:3].tolist()], [], (0, 0)) == {
+        "f": [], "f stage I": []}
