@@ -236,7 +236,10 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     share (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense_json`` (the
     :func:`dense` step's result) RESCU-I's RPs are combined with the dense ones
     (:func:`rescu.discovery.sources.combine_sources`, section ``dense``); a failed dense
-    step leaves stage I's RPs alone and is recorded as ``extra["dense_failure"]``.
+    step leaves stage I's RPs alone and is recorded as ``extra["dense_failure"]``. With
+    ``dense.mode: dense`` and a dense result that did not fail, the stage-I search is
+    not run at all (its RPs would be dropped): the RP matrices file holds no RP, and
+    ``extra["chosen_by"]`` is ``"skipped"``.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
@@ -245,22 +248,26 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
 
     def run() -> None:
         feats = F.load_features(features_h5)
+        found = _dense_result(dense_json) if method != "grasp" else None
         if method == "grasp":
             from .discovery import grasp as G
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
             p = S1.Stage1Params.from_dict(params)
-            out = S1.discover(feats, p)
+            if found is not None and not found.extra.get("failure") and _dense_only(dense_params):
+                out = S1.Stage1Output(rps=[], chosen={}, objective=0.0, chosen_by="skipped")
+            else:
+                out = S1.discover(feats, p)
         S1.save_rps(out_h5, out)
         res = empty_result(meta, method, None)
         if method == "grasp":
             res.patterns = S1.rps_to_patterns(feats, out.rps)
         else:
-            gray = _prepared_gray(png if p.refine_boxes else None, meta_path)
+            gray = _prepared_gray(png if p.refine_boxes and out.rps else None, meta_path)
             res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
-            if dense_json is not None:
-                _add_dense(res, dense_json, dense_params)
+            if found is not None:
+                _add_dense(res, found, dense_params)
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -289,11 +296,22 @@ def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
     return pats
 
 
-def _add_dense(res: ImageResult, dense_json: str, params: dict[str, Any] | None) -> None:
-    """``res.patterns`` combined with the dense step's RPs in ``dense_json`` (in place)."""
+def _dense_only(params: dict[str, Any] | None) -> bool:
+    """Whether the ``dense`` section keeps the dense RPs alone (``mode: dense``)."""
+    from .discovery.sources import DenseParams
+
+    return params is not None and DenseParams.from_dict(params).mode == "dense"
+
+
+def _dense_result(dense_json: str | None) -> ImageResult | None:
+    """The dense step's result in ``dense_json``; None without one."""
+    return None if dense_json is None else ImageResult.from_json(io.read_json(dense_json))
+
+
+def _add_dense(res: ImageResult, found: ImageResult, params: dict[str, Any] | None) -> None:
+    """``res.patterns`` combined with the dense step's RPs ``found`` (in place)."""
     from .discovery import sources as D
 
-    found = ImageResult.from_json(io.read_json(dense_json))
     failure = found.extra.get("failure")
     if failure:
         res.extra["dense_failure"] = failure

@@ -197,6 +197,21 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
     res2 = ImageResult.from_json(io.read_json(w("s2.json")))
     assert "dense_failure" in res2.extra and "failure" not in res2.extra
     assert all(p.extra.get("source") != "dense" for p in res2.patterns)
+    # mode dense: the stage-I search is not run (its RPs would be dropped); with a failed
+    # dense step it is, and its RPs stay
+    only = dict(cfg["dense"], mode="dense")
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s3.json"), w("s3.h5"), cfg["stage1"],
+                    png=w("p.png"), dense_json=w("d.json"), dense_params=only)
+    res3 = ImageResult.from_json(io.read_json(w("s3.json")))
+    assert res3.extra["chosen_by"] == "skipped" and io.read_h5(w("s3.h5"))[1]["n_rps"] == 0
+    assert [len(p.instances) for p in res3.patterns] == \
+        [len(p.instances) for p in found.patterns]
+    assert all(p.extra.get("source") == "dense" for p in res3.patterns)
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s4.json"), w("s4.h5"), cfg["stage1"],
+                    png=w("p.png"), dense_json=w("d2.json"), dense_params=only)
+    res4 = ImageResult.from_json(io.read_json(w("s4.json")))
+    assert res4.extra["chosen_by"] != "skipped" and "dense_failure" in res4.extra
+    assert [p.to_json() for p in res4.patterns] == [p.to_json() for p in res2.patterns]
     # the stage-I ablation's source rows: stage I alone, the dense RPs alone, both; with a
     # failed dense step the dense-only row is empty and the both row is stage I's
     rows = {n: w(f"a_{i}.json") for i, n in enumerate(["all", *SOURCE_ROWS])}

@@ -240,7 +240,8 @@ class Stage1Output:
         "grid" when the adaptive grid chose ``chosen``; "grid-retry" when it did so only
         in the retry probe (``grid_retry_initials``); "fixed" when the fixed parameters
         were used (no adaptive names, no valid RP at any grid point, or fewer than 4
-        features).
+        features); "skipped" when the search did not run
+        (:func:`rescu.pipeline.stage1` with ``dense.mode: dense``).
     """
 
     rps: list[RPMatrix]
