@@ -243,19 +243,21 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
+    from .discovery.sources import add_dense, skips_stage1
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         feats = F.load_features(features_h5)
-        found = _dense_result(dense_json) if method != "grasp" else None
+        found = None if dense_json is None or method == "grasp" else \
+            ImageResult.from_json(io.read_json(dense_json))
         if method == "grasp":
             from .discovery import grasp as G
 
             out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
         else:
             p = S1.Stage1Params.from_dict(params)
-            if found is not None and not found.extra.get("failure") and _dense_only(dense_params):
+            if skips_stage1(found, dense_params):
                 out = S1.Stage1Output(rps=[], chosen={}, objective=0.0, chosen_by="skipped")
             else:
                 out = S1.discover(feats, p)
@@ -267,7 +269,7 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
             gray = _prepared_gray(png if p.refine_boxes and out.rps else None, meta_path)
             res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
             if found is not None:
-                _add_dense(res, found, dense_params)
+                add_dense(res, found, dense_params)
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -294,30 +296,6 @@ def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
         refine_pattern_boxes(gray, scale_factor, pats, p.refine_shifts,
                              p.refine_scales)
     return pats
-
-
-def _dense_only(params: dict[str, Any] | None) -> bool:
-    """Whether the ``dense`` section keeps the dense RPs alone (``mode: dense``)."""
-    from .discovery.sources import DenseParams
-
-    return params is not None and DenseParams.from_dict(params).mode == "dense"
-
-
-def _dense_result(dense_json: str | None) -> ImageResult | None:
-    """The dense step's result in ``dense_json``; None without one."""
-    return None if dense_json is None else ImageResult.from_json(io.read_json(dense_json))
-
-
-def _add_dense(res: ImageResult, found: ImageResult, params: dict[str, Any] | None) -> None:
-    """``res.patterns`` combined with the dense step's RPs ``found`` (in place)."""
-    from .discovery import sources as D
-
-    failure = found.extra.get("failure")
-    if failure:
-        res.extra["dense_failure"] = failure
-        return
-    res.patterns = D.combine_sources(res.patterns, found.patterns, D.DenseParams.from_dict(params))
-    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
 
 
 def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..evaluation.metrics import cover_matrix
 from ..params import checked_mapping, config_section
-from ..types import Pattern
+from ..types import ImageResult, Pattern
 
 #: The modes of :func:`combine_sources`.
 MODES = ("both", "dense")
@@ -137,3 +137,26 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     for k, p in enumerate(out):
         p.id = k
     return out
+
+
+def skips_stage1(found: ImageResult | None, params: Mapping[str, Any] | None) -> bool:
+    """Whether RESCU-I need not run the stage-I search: the ``dense`` section ``params``
+    keeps the dense RPs alone (``mode: dense``) and the dense step's result ``found``
+    did not fail (a failed one leaves stage I's RPs in place, so the search runs)."""
+    return (found is not None and not found.extra.get("failure") and params is not None
+            and DenseParams.from_dict(params).mode == "dense")
+
+
+def add_dense(res: ImageResult, found: ImageResult, params: Mapping[str, Any] | None
+              ) -> None:
+    """``res.patterns`` (stage I's) combined in place with the dense step's result
+    ``found`` (:func:`combine_sources` with the ``dense`` section ``params``), and
+    ``res.extra["n_dense_patterns"]``; a failed dense step (``found.extra["failure"]``)
+    leaves the patterns alone and is recorded as ``res.extra["dense_failure"]``."""
+    failure = found.extra.get("failure")
+    if failure:
+        res.extra["dense_failure"] = failure
+        return
+    res.patterns = combine_sources(res.patterns, found.patterns,
+                                   DenseParams.from_dict(params))
+    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
