@@ -128,6 +128,8 @@ def test_precision_breakdown_without_a_run_and_on_an_empty_one(tmp_path, capsys)
         '{"images": [], "annotations": [], "categories": []}')
     assert pb.main([str(tmp_path)]) == 0
     assert "0 images, 0 detected instances" in capsys.readouterr().out
+    assert pb.main([str(tmp_path), "--by-category"]) == 0
+    assert "category" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         pb.main([str(tmp_path), "--dataset", "no_such_set"])
 

@@ -329,6 +329,27 @@ def test_detection_breakdown_puts_every_instance_in_one_class() -> None:
     assert ED.detection_breakdown(det, [])["background"] == 6
 
 
+def test_duplicate_categories_agree_with_the_breakdown() -> None:
+    from rescu.io import GroundTruthRP
+
+    a = [(0.0, 0, 10, 10), (20.0, 0, 10, 10), (40.0, 0, 10, 10)]
+    b = [(0.0, 50, 10, 10), (20.0, 50, 10, 10)]
+    det = [[(1.0, 1, 8, 8), (21.0, 1, 8, 8), (22.0, 2, 6, 6), (1.0, 51, 8, 8)],
+           [(100.0, 100, 5, 5), (120.0, 100, 5, 5)]]
+    gts = [GroundTruthRP("window", a, {}), GroundTruthRP("door", b, {})]
+    out = ED.duplicate_categories(det, gts)
+    assert out == {"window": {"gt": 3, "on": 3, "duplicate": 1},
+                   "door": {"gt": 2, "on": 1, "duplicate": 0}}
+    assert sum(v["duplicate"] for v in out.values()) == \
+        ED.detection_breakdown(det, [a, b])["duplicate"]
+    # a box inside two nested GT boxes lies on the smaller one
+    nested = [GroundTruthRP("balcony", [(0.0, 0, 100, 20), (0.0, 30, 100, 20)], {}),
+              GroundTruthRP("window", [(10.0, 2, 10, 10), (40.0, 2, 10, 10)], {})]
+    got = ED.duplicate_categories([[(11.0, 3, 8, 8), (12.0, 4, 6, 6)]], nested)
+    assert got["window"] == {"gt": 2, "on": 2, "duplicate": 0} and got["balcony"]["on"] == 0
+    assert ED.duplicate_categories([], nested)["window"] == {"gt": 2, "on": 0, "duplicate": 0}
+
+
 def test_precision_breakdown_of_the_truth_is_all_credited(tiny) -> None:
     ds, preds, tmp = tiny
     df = ED.precision_breakdown(ds, preds["gt"])

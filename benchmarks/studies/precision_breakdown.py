@@ -5,8 +5,10 @@ For each image of the dataset, each detected instance is credited by the paper's
 already matched GT box (``duplicate``) or on no GT box at all (``background``); and the
 detected RPs whose every instance is background are counted
 (:func:`rescu.evaluation.diagnostics.detection_breakdown`). Prints the totals over the
-images and each share of the detected instances; with ``--images`` also one row per image.
-Asserts nothing.
+images and each share of the detected instances; with ``--images`` also one row per image,
+and with ``--by-category`` one row per GT category: its GT boxes, the detections lying
+on them (each on the smallest GT box it covers) and how many of those are duplicates
+(:func:`rescu.evaluation.diagnostics.category_breakdown`). Asserts nothing.
 
 Usage (after a run, from the repository root)::
 
@@ -30,11 +32,14 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     from _cli import print_rows, run_dataset, run_parser
 
-    from rescu.evaluation.diagnostics import BREAKDOWN_COLUMNS, precision_breakdown
+    from rescu.evaluation.diagnostics import (BREAKDOWN_COLUMNS, category_breakdown,
+                                              precision_breakdown)
 
     ap = run_parser(__doc__)
     ap.add_argument("--method", default="rescu-ii", help="per-image JSON folder to break down")
     ap.add_argument("--images", action="store_true", help="also one row per image")
+    ap.add_argument("--by-category", action="store_true",
+                    help="also the detections and duplicates on each GT category")
     a = ap.parse_args(argv)
     _, data = run_dataset(ap, a)
     pred = a.results / a.dataset / a.method
@@ -54,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
           f"({tot['background_rp_instances'] / n:.3f})")
     if a.images:
         print_rows(df)
+    if a.by_category:
+        print()
+        print_rows(category_breakdown(data, pred))
     return 0
 
 

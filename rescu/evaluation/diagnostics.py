@@ -187,6 +187,69 @@ def precision_breakdown(dataset_dir: str | Path, pred_dir: str | Path, h: float 
     return pd.DataFrame(rows, columns=["image", *BREAKDOWN_COLUMNS])
 
 
+def duplicate_categories(det_rps: Sequence[Sequence[Sequence[float]]],
+                         gt_rps: Sequence[GroundTruthRP], h: float = IOD_H
+                         ) -> dict[str, dict[str, int]]:
+    """On which GT categories one image's detections lie, and where its duplicates are.
+
+    A detection lies on the smallest GT box it covers (IOD > ``h``). It is a
+    *duplicate* when it lies on a GT box but the one-to-one matching over all RPs (the
+    *any RP* figure, :func:`rescu.evaluation.metrics.match_boxes`) left it unmatched:
+    the ``duplicate`` class of :func:`detection_breakdown`.
+
+    Returns
+    -------
+    ``{category: {"gt": GT boxes, "on": detections lying on them, "duplicate": those of
+    them that are duplicates}}``, one entry per category of ``gt_rps``; GT RPs without a
+    category count as ``""``.
+
+    >>> from rescu.io import GroundTruthRP
+    >>> gt = [GroundTruthRP("window", [(0, 0, 10, 10), (20, 0, 10, 10)], {})]
+    >>> duplicate_categories([[(1, 1, 4, 8), (5, 1, 4, 8), (21, 1, 8, 8)]], gt)
+    {'window': {'gt': 2, 'on': 3, 'duplicate': 1}}
+    """
+    cats = [str(g.category or "") for g in gt_rps for _ in g.boxes]
+    out = {c: {"gt": 0, "on": 0, "duplicate": 0} for c in dict.fromkeys(
+        str(g.category or "") for g in gt_rps)}
+    for c in cats:
+        out[c]["gt"] += 1
+    det = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
+    gt = np.asarray([b for g in gt_rps for b in g.boxes], float).reshape(-1, 4)
+    if not len(det) or not len(gt):
+        return out
+    on = iod_matrix(det, gt) > h
+    matched = {i for i, _ in match_boxes(det, gt, h)}
+    area = gt[:, 2] * gt[:, 3]
+    for i in np.nonzero(on.any(1))[0]:
+        j = np.nonzero(on[i])[0]
+        c = cats[int(j[np.argmin(area[j])])]
+        out[c]["on"] += 1
+        out[c]["duplicate"] += int(i not in matched)
+    return out
+
+
+def category_breakdown(dataset_dir: str | Path, pred_dir: str | Path, h: float = IOD_H
+                       ) -> pd.DataFrame:
+    """:func:`duplicate_categories` summed over every image of a dataset with a
+    prediction: one row per GT category (``category``, ``gt``, ``on``, ``duplicate``),
+    most duplicates first."""
+    ds = _load(dataset_dir, {"pred": pred_dir}, None)
+    tot: dict[str, dict[str, int]] = {}
+    for f, gts in ds.gt.items():
+        res = ds.preds["pred"][f]
+        if res is None:
+            continue
+        det = [[ins.bbox for ins in p.instances] for p in res.patterns]
+        for c, v in duplicate_categories(det, gts, h).items():
+            t = tot.setdefault(c, dict.fromkeys(v, 0))
+            for k in v:
+                t[k] += v[k]
+    df = pd.DataFrame([{"category": c, **v} for c, v in tot.items()],
+                      columns=["category", "gt", "on", "duplicate"])
+    return df.sort_values(["duplicate", "category"], ascending=[False, True],
+                          kind="stable").reset_index(drop=True)
+
+
 def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np.ndarray,
                     inst_rp: np.ndarray, gt_rps: Sequence[GroundTruthRP],
                     params: MergeParams | None = None, h: float = IOD_H,
