@@ -271,6 +271,11 @@ def test_feature_probe_split_probe_and_refusal(tmp_path, capsys):
     fp = load("feature_probe")
     assert fp.main([str(tmp_path)]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
+    for bad in (["--min-instances", "1"], ["--precision", "0"], ["--precision", "1.5"],
+                ["--iod", "1"]):
+        with pytest.raises(SystemExit):
+            fp.main([str(tmp_path), *bad])
+        assert "must be" in capsys.readouterr().err
     assert fp.recall_at_precision(np.array([1, 1, 0, 1]), np.array([4., 3., 2., 1.]), 0.7) == 1.0
     assert fp.recall_at_precision(np.array([1, 0, 0, 1]), np.array([4., 3., 2., 1.]), 0.7) == 0.5
     # 8 GT boxes in a row; proposals: each GT box exactly, and 40 background boxes below

@@ -20,7 +20,8 @@ half's GT boxes that some proposal ranked above that point covers (several propo
 may cover one box; this is the instance-level figure). The script prints their means
 over GT RPs, and the same means for the probe *trained on stage I's RP* instead: the
 proposals that fit the instances of the RESCU-I RP that the tables' RP-level matching
-assigns to that GT RP (GT RPs with no such RP are left out of that row). The first row
+assigns to that GT RP (the first in RESCU-I's order when several are; GT RPs with none
+are left out of that row). The first row
 is a bound on the features with ideal labels. The second is the features with the
 labels stage II has.
 
@@ -226,6 +227,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iod", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
+    if a.min_instances < 2:
+        ap.error(f"--min-instances must be >= 2 (two halves), got {a.min_instances}")
+    if not 0 < a.precision <= 1:
+        ap.error(f"--precision must be in (0, 1], got {a.precision}")
+    if not 0 <= a.iod < 1:
+        ap.error(f"--iod must be in [0, 1), got {a.iod}")
     _, data = run_dataset(ap, a)
     run = a.results / a.dataset
     for path, what in ((data / "annotations.json", "ground truth"),

@@ -175,16 +175,19 @@ def precision_breakdown(dataset_dir: str | Path, pred_dir: str | Path, h: float 
     DataFrame
         ``image`` and the :data:`BREAKDOWN_COLUMNS`, one row per image.
     """
-    ds = _load(dataset_dir, {"pred": pred_dir}, None)
-    rows = []
-    for f, gts in ds.gt.items():
-        res = ds.preds["pred"][f]
-        if res is None:
-            continue
-        det = [[ins.bbox for ins in p.instances] for p in res.patterns]
-        rows.append({"image": f, **detection_breakdown(det, [g.boxes for g in gts], h,
-                                                         min_rp_precision)})
+    rows = [{"image": f, **detection_breakdown(det, [g.boxes for g in gts], h,
+                                               min_rp_precision)}
+            for f, gts, det in _image_detections(dataset_dir, pred_dir)]
     return pd.DataFrame(rows, columns=["image", *BREAKDOWN_COLUMNS])
+
+
+def _image_detections(dataset_dir: str | Path, pred_dir: str | Path
+                      ) -> list[tuple[str, list[GroundTruthRP], list[list[Any]]]]:
+    """``(image, GT RPs, detected RPs' instance boxes)`` of every image of a dataset that
+    has a prediction in ``pred_dir``."""
+    ds = _load(dataset_dir, {"pred": pred_dir}, None)
+    return [(f, gts, [[ins.bbox for ins in p.instances] for p in res.patterns])
+            for f, gts in ds.gt.items() if (res := ds.preds["pred"][f]) is not None]
 
 
 def duplicate_categories(det_rps: Sequence[Sequence[Sequence[float]]],
@@ -208,11 +211,8 @@ def duplicate_categories(det_rps: Sequence[Sequence[Sequence[float]]],
     >>> duplicate_categories([[(1, 1, 4, 8), (5, 1, 4, 8), (21, 1, 8, 8)]], gt)
     {'window': {'gt': 2, 'on': 3, 'duplicate': 1}}
     """
-    cats = [str(g.category or "") for g in gt_rps for _ in g.boxes]
-    out = {c: {"gt": 0, "on": 0, "duplicate": 0} for c in dict.fromkeys(
-        str(g.category or "") for g in gt_rps)}
-    for c in cats:
-        out[c]["gt"] += 1
+    cats = [str(g.category or "") for g in gt_rps for _ in g.boxes]    # per GT box
+    out = {c: {"gt": cats.count(c), "on": 0, "duplicate": 0} for c in cats}
     det = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
     gt = np.asarray([b for g in gt_rps for b in g.boxes], float).reshape(-1, 4)
     if not len(det) or not len(gt):
@@ -233,13 +233,8 @@ def category_breakdown(dataset_dir: str | Path, pred_dir: str | Path, h: float =
     """:func:`duplicate_categories` summed over every image of a dataset with a
     prediction: one row per GT category (``category``, ``gt``, ``on``, ``duplicate``),
     most duplicates first."""
-    ds = _load(dataset_dir, {"pred": pred_dir}, None)
     tot: dict[str, dict[str, int]] = {}
-    for f, gts in ds.gt.items():
-        res = ds.preds["pred"][f]
-        if res is None:
-            continue
-        det = [[ins.bbox for ins in p.instances] for p in res.patterns]
+    for _, gts, det in _image_detections(dataset_dir, pred_dir):
         for c, v in duplicate_categories(det, gts, h).items():
             t = tot.setdefault(c, dict.fromkeys(v, 0))
             for k in v:
