@@ -49,8 +49,8 @@ from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
-           "blob_boxes", "integral_map", "box_contrast", "touching_sides", "dense_candidates",
-           "dense_patterns", "dense_map", "find_dense"]
+           "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
+           "dense_candidates", "dense_patterns", "dense_map", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -251,6 +251,32 @@ class DenseCandidate:
     touching: float
 
 
+def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The blobs the dense RPs are grouped from: :func:`feature_blobs`, strongest first,
+    less each blob that overlaps a stronger one (cover > 0.5, any size: the same thing).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32 (:func:`hypercolumn`)
+    cell_px : backbone-input pixels per cell (8)
+    params : DenseParams (``sizes``, ``surround``, ``max_blobs``)
+
+    Returns
+    -------
+    boxes : (n, 4) float, ``[x, y, w, h]`` in backbone-input pixels
+    emb : (n, C) float32, each blob's unit mean feature
+    """
+    cells, _, emb = feature_blobs(f, params.sizes, params.surround, params.max_blobs)
+    boxes = blob_boxes(cells, params.sizes, cell_px)
+    keep = np.ones(len(boxes), bool)
+    ov = cover_matrix(boxes, boxes) if len(boxes) else np.zeros((0, 0))
+    for i in range(len(boxes)):
+        if keep[i]:
+            keep[i + 1:] &= ov[i, i + 1:] <= 0.5
+    return boxes[keep], emb[keep]
+
+
 def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
                      ) -> list[DenseCandidate]:
     """Every group of ``params.min_instances`` or more recurring blobs of one feature map
@@ -269,15 +295,7 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
     """
     from sklearn.cluster import AgglomerativeClustering
 
-    cells, _, emb = feature_blobs(f, params.sizes, params.surround, params.max_blobs)
-    boxes = blob_boxes(cells, params.sizes, cell_px)
-    # a blob overlapping a stronger one (any size) is the same thing
-    keep = np.ones(len(boxes), bool)
-    ov = cover_matrix(boxes, boxes) if len(boxes) else np.zeros((0, 0))
-    for i in range(len(boxes)):
-        if keep[i]:
-            keep[i + 1:] &= ov[i, i + 1:] <= 0.5
-    boxes, emb = boxes[keep], emb[keep]
+    boxes, emb = distinct_blobs(f, cell_px, params)
     if len(boxes) < params.min_instances:
         return []
     labels = AgglomerativeClustering(n_clusters=None, metric="cosine", linkage="average",
