@@ -34,6 +34,14 @@ prepared image at the run's backbone scale, from the EfficientNet-Lite0 maps:
 * ``hypercolumn``: the stride-8 and stride-16 maps, each 2 x 2 and L2-normalised,
   concatenated.
 
+and two descriptors with no network, from the box's crop of the prepared image at full
+resolution:
+
+* ``hog``: the grey crop resized to 48 x 48 pixels, a histogram of oriented gradients
+  (8-pixel cells, 16-pixel blocks, 9 bins; 900 values);
+* ``pixels``: the crop resized to 12 x 12 pixels in CIE Lab, each channel centred
+  (432 values).
+
 Reads ``<results>/<dataset>/stage2``, ``rescu-i`` and (for a variant) ``prepared``.
 Asserts nothing.
 
@@ -55,7 +63,7 @@ import numpy as np
 sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
                 str(Path(__file__).resolve().parents[1])]
 
-VARIANTS = ("s16", "s32", "hypercolumn")
+VARIANTS = ("s16", "s32", "hypercolumn", "hog", "pixels")
 MAX_NEGATIVES = 3000
 
 
@@ -158,6 +166,8 @@ def fresh_features(variant: str, rgb: np.ndarray, boxes: np.ndarray, scale: floa
 
     from rescu.extension.backbone import pool_boxes
 
+    if variant in ("hog", "pixels"):
+        return _crop_features(variant, rgb, boxes)
     h, w = rgb.shape[:2]
     nw, nh = max(16, round(w * scale)), max(16, round(h * scale))
     img = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA if scale < 1
@@ -173,6 +183,30 @@ def fresh_features(variant: str, rgb: np.ndarray, boxes: np.ndarray, scale: floa
     else:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     x = np.concatenate(parts, 1)
+    return (x / (np.linalg.norm(x, axis=1, keepdims=True) + 1e-12)).astype(np.float32)
+
+
+def _crop_features(variant: str, rgb: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """``hog`` or ``pixels`` features (module docstring) of ``boxes`` (N, 4) ``[x, y, w,
+    h]`` in pixels of ``rgb`` (H, W, 3) uint8: (N, D) float32, rows L2-normalised."""
+    import cv2
+
+    h, w = rgb.shape[:2]
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
+    hog = cv2.HOGDescriptor((48, 48), (16, 16), (8, 8), (8, 8), 9)
+    rows = []
+    for x, y, bw, bh in np.asarray(boxes, float).reshape(-1, 4):
+        x0, y0 = int(np.clip(np.floor(x), 0, w - 1)), int(np.clip(np.floor(y), 0, h - 1))
+        x1 = int(np.clip(np.ceil(x + bw), x0 + 1, w))
+        y1 = int(np.clip(np.ceil(y + bh), y0 + 1, h))
+        if variant == "hog":
+            crop = cv2.resize(grey[y0:y1, x0:x1], (48, 48), interpolation=cv2.INTER_AREA)
+            rows.append(hog.compute(crop).ravel())
+        else:
+            crop = cv2.resize(lab[y0:y1, x0:x1], (12, 12), interpolation=cv2.INTER_AREA)
+            rows.append((crop - crop.reshape(-1, 3).mean(0)).ravel())
+    x = np.asarray(rows, np.float32).reshape(len(rows), -1)
     return (x / (np.linalg.norm(x, axis=1, keepdims=True) + 1e-12)).astype(np.float32)
 
 
@@ -242,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
             return 2
     nets: dict[int, Any] = {}
-    if a.variant:
+    if set(a.variant) - {"hog", "pixels"}:
         from rescu.extension.backbone import FrozenBackbone
 
         nets = {16: FrozenBackbone(feature_stride=16), 32: FrozenBackbone(feature_stride=32)}
