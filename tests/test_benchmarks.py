@@ -196,6 +196,20 @@ def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
     # the oracle's best group finds the discs: its row has precision 1
     best = next(r for r in out.splitlines() if r.startswith("| oracle, best one |"))
     assert float(best.split("|")[2]) == 1.0
+    every = next(r for r in out.splitlines() if r.startswith("| every candidate |"))
+    assert float(every.split("|")[3]) == 1.0
+    # with a method's RPs: one on the discs, the other image has no result (said, counted
+    # as none)
+    (tmp_path / "synthetic" / "mine").mkdir()
+    from rescu import io
+    from rescu.types import ImageResult, Instance, Pattern
+    io.write_json(tmp_path / "synthetic" / "mine" / "floor.json", ImageResult(
+        image="images/floor.png", width=480, height=360, method="mine", patterns=[Pattern(
+            id=0, score=1.0, instances=[Instance(bbox=tuple(b)) for b in boxes])]).to_json())
+    assert do.main([str(tmp_path), "--with", "mine"]) == 0
+    out = capsys.readouterr().out
+    row = next(r for r in out.splitlines() if r.startswith("| every candidate + mine |"))
+    assert float(row.split("|")[3]) == 1.0
 
 
 def test_compare_folders_refusals_and_a_comparison(tmp_path, capsys):
@@ -301,3 +315,62 @@ def test_feature_probe_split_probe_and_refusal(tmp_path, capsys):
     # no GT RP large enough: nothing probed
     assert fp.image_probes({"f": x}, props, [gt[:3].tolist()], [], (0, 0)) == {
         "f": [], "f stage I": []}
+
+
+def test_feature_probe_crop_descriptors():
+    import numpy as np
+
+    fp = load("feature_probe")
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)
+    # boxes inside, across the border and thinner than a pixel all give finite unit rows
+    boxes = np.array([[5, 5, 20, 30], [70, 50, 30, 30], [10.2, 10.2, 0.3, 0.3]], float)
+    for variant, dim in (("hog", 900), ("pixels", 432)):
+        x = fp.fresh_features(variant, rgb, boxes, 1.0, {})
+        assert x.shape == (3, dim) and x.dtype == np.float32 and np.isfinite(x).all()
+        assert np.allclose(np.linalg.norm(x, axis=1)[:2], 1.0, atol=1e-5)
+    # the same crop gives the same row, wherever the box lies
+    rgb[:] = 0
+    rgb[10:20, 10:20] = 255
+    rgb[30:40, 50:60] = 255
+    x = fp.fresh_features("hog", rgb, np.array([[5, 5, 20, 20], [45, 25, 20, 20]], float), 1.0, {})
+    assert np.allclose(x[0], x[1], atol=1e-6)
+
+
+def test_blob_probe_split_extension_and_refusal(tmp_path, capsys):
+    import numpy as np
+
+    bp = load("blob_probe")
+    with pytest.raises(SystemExit):
+        bp.main([str(tmp_path), "--threshold", "1.5"])
+    assert "must be in [0, 1]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bp.main([str(tmp_path), "--dataset", "nowhere"])
+    assert "not in the config" in capsys.readouterr().err
+    # 8 GT boxes in a row, a blob inside each and 30 background blobs below
+    gt = np.array([[20 * i, 0, 10, 10] for i in range(8)], float)
+    blobs = np.concatenate([gt + [2, 2, -4, -4],
+                            np.array([[7 * i, 100, 6, 6] for i in range(30)], float)])
+    split = bp.blob_split(blobs, gt, None, np.random.default_rng(1))
+    pos, neg, test, y, cover = split
+    assert len(pos) == 4 and y.sum() == 4 and cover.shape == (len(test), 4)
+    assert (cover.any(1) == (y == 1)).all() and not set(pos) & set(test)
+    assert set(neg) <= set(range(8, 38)) and not set(neg) & set(test) and len(neg) == 15
+    # trained on a dense RP of three of the blobs: the rest of the row is tested
+    train = np.zeros(len(blobs), bool)
+    train[:3] = True
+    pos, _, test, y, _ = bp.blob_split(blobs, gt, train, np.random.default_rng(1))
+    assert set(pos) <= {0, 1, 2} and not set(pos) & set(test[y == 1])
+    # no blob on the GT: nothing to probe
+    assert bp.blob_split(blobs[8:], gt, None, np.random.default_rng(1)) is None
+    # the extension: separable blobs join their group, a claimed blob stays put
+    rng = np.random.default_rng(0)
+    emb = rng.normal(size=(40, 3))
+    emb[:10, 0] += 8.0
+    emb[10:20, 1] += 8.0
+    out = bp.crossfit_extend(emb, [np.arange(3), np.arange(10, 13)], 0.5)
+    for got, kind in zip(out, (range(10), range(10, 20))):
+        # the unlabelled blobs of the kind are negatives for the other parts' models,
+        # so one may stay out; none of another kind comes in
+        assert set(got[:3]) <= set(kind) and set(got) <= set(kind) and len(got) >= 8
+    assert bp.crossfit_extend(emb, [np.arange(3)], 1.0)[0].tolist() == [0, 1, 2]

@@ -14,6 +14,11 @@ recall (mean over images, undefined values left out, as in the RP table) of
 * ``oracle, best one``: per image the one group of highest precision;
 * ``oracle, good, max_patterns``: the ``max_patterns`` best-scored good groups;
 * ``oracle, every good``: every good group;
+* ``every candidate``: all groups, those that tile the plane too. Its recall is the
+  ceiling of any selection among today's candidates (its precision means nothing);
+* with ``--with METHOD``, ``every candidate + METHOD``: the same plus the run's RPs of
+  that method (``<results>/<dataset>/<METHOD>/<image>.json``, e.g. ``rescu-ii``): the
+  recall that a perfect choice among everything the run and the source found reaches;
 
 the number of candidates and good ones per image, and the ROC AUC of the ranking score
 between good and other groups (those that pass the tiling test). The oracle rows are
@@ -67,7 +72,11 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.io import InputError, load_coco_rps
     from rescu.params import deep_merge
 
+    from rescu import io
+
     ap = variants_parser(__doc__)
+    ap.add_argument("--with", dest="with_method", default=None, metavar="METHOD",
+                    help="also every candidate plus the run's RPs of METHOD (e.g. rescu-ii)")
     a = ap.parse_args(argv)
     cfg = load_config(a.config, stage2=False)
     try:
@@ -86,7 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         gt = load_coco_rps(data / "annotations.json")
         rows, scores = [], {k: [] for k in ("pipeline", "oracle, best one",
                                             "oracle, good, max_patterns",
-                                            "oracle, every good")}
+                                            "oracle, every good", "every candidate")}
+        both = f"every candidate + {a.with_method}"
+        if a.with_method:
+            scores[both] = []
         for f, gts in gt.items():
             stem = Path(f).stem
             png = a.results / ds / "prepared" / f"{stem}.png"
@@ -112,10 +124,19 @@ def main(argv: list[str] | None = None) -> int:
             picks = {"pipeline": flat[:params.max_patterns],
                      "oracle, best one": [int(np.argmax(prec))] if len(cands) else [],
                      "oracle, good, max_patterns": good[:params.max_patterns],
-                     "oracle, every good": good}
+                     "oracle, every good": good, "every candidate": list(range(len(cands)))}
             for name, ks in picks.items():
                 sc = score_image([boxes[k] for k in ks], truth)
                 scores[name].append((sc.instance_precision, sc.instance_recall))
+            if a.with_method:
+                res = a.results / ds / a.with_method / f"{stem}.json"
+                own = ([[ins.bbox for ins in p.instances] for p in io.read_result(res).patterns]
+                       if res.is_file() else None)
+                if own is None:
+                    print(f"{ds}/{stem}: no {a.with_method} result, counted as none",
+                          file=sys.stderr)
+                sc = score_image(boxes + (own or []), truth)
+                scores[both].append((sc.instance_precision, sc.instance_recall))
             rows += [{"image": f, "rank": k, "n": len(c.boxes), "score": c.score,
                       "touching": c.touching, "precision": prec[k],
                       "selected": k in picks["pipeline"]} for k, c in enumerate(cands)]
