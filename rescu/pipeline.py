@@ -236,21 +236,21 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     share (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense_json`` (the
     :func:`dense` step's result) RESCU-I's RPs are combined with the dense ones
     (:func:`rescu.discovery.sources.combine_sources`, section ``dense``); a failed dense
-    step leaves stage I's RPs alone and is recorded as ``extra["dense_failure"]``. With
+    step, or a dense result that cannot be read, leaves stage I's RPs alone and is
+    recorded as ``extra["dense_failure"]``. With
     ``dense.mode: dense`` and a dense result that did not fail, the stage-I search is
     not run at all (its RPs would be dropped): the RP matrices file holds no RP, and
     ``extra["chosen_by"]`` is ``"skipped"``.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
-    from .discovery.sources import add_dense, skips_stage1
+    from .discovery.sources import add_dense, read_dense, skips_stage1
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         feats = F.load_features(features_h5)
-        found = None if dense_json is None or method == "grasp" else \
-            ImageResult.from_json(io.read_json(dense_json))
+        found = None if dense_json is None or method == "grasp" else read_dense(dense_json)
         if method == "grasp":
             from .discovery import grasp as G
 
@@ -385,11 +385,8 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
     if sparse is None:
         sparse = _rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
                                    float(meta["scale_factor"]))
-    try:        # an unreadable dense result costs the dense rows, not the variants
-        found = ImageResult.from_json(io.read_json(dense_json))
-        dense, failure = found.patterns, found.extra.get("failure")
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        dense, failure = [], failure_record("dense", e)
+    found = D.read_dense(dense_json)  # unreadable: costs the dense rows, not the variants
+    dense, failure = found.patterns, found.extra.get("failure")
     rows = A.source_rows(sparse, dense, D.DenseParams.from_dict(dense_params), failure)
     for name, (pats, extra) in rows.items():
         res = empty_result(meta, f"rescu-i[{name}]", None)

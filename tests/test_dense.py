@@ -241,3 +241,11 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
     got = {n: ImageResult.from_json(io.read_json(p)) for n, p in rows.items()}
     assert "failure" not in got["all"].extra and got["all"].patterns
     assert got["dense-only"].extra["dense_failure"]["stage"] == "dense"
+    # ... and RESCU-I falls back to stage I, as for a failed dense step, naming the file
+    for mode in ("both", "dense"):
+        assert pipeline.stage1(w("f.h5"), w("m.json"), w("s5.json"), w("s5.h5"),
+                               cfg["stage1"], png=w("p.png"), dense_json=w("d3.json"),
+                               dense_params=dict(cfg["dense"], mode=mode)) is None
+        res5 = ImageResult.from_json(io.read_json(w("s5.json")))
+        assert "failure" not in res5.extra and "d3.json" in res5.extra["dense_failure"]["message"]
+        assert [p.to_json() for p in res5.patterns] == [p.to_json() for p in res2.patterns]

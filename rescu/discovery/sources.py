@@ -139,6 +139,20 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     return out
 
 
+def read_dense(path: str) -> ImageResult:
+    """The dense step's result at ``path``. An unreadable one (missing, malformed, not a
+    per-image result) reads as a failed dense step: no pattern, and ``extra["failure"]``
+    naming the file and what is wrong, so RESCU-I keeps stage I's RPs as it does for any
+    failed dense step."""
+    from ..io import read_result
+
+    try:
+        return read_result(path)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        return ImageResult(image="", width=0, height=0, method="dense", extra={
+            "failure": {"stage": "dense", "type": type(e).__name__, "message": str(e)}})
+
+
 def skips_stage1(found: ImageResult | None, params: Mapping[str, Any] | None) -> bool:
     """Whether RESCU-I need not run the stage-I search: the ``dense`` section ``params``
     keeps the dense RPs alone (``mode: dense``) and the dense step's result ``found``
