@@ -210,6 +210,10 @@ def test_dense_oracle_refusals_and_a_small_run(tmp_path, capsys):
     out = capsys.readouterr().out
     row = next(r for r in out.splitlines() if r.startswith("| every candidate + mine |"))
     assert float(row.split("|")[3]) == 1.0
+    row = next(r for r in out.splitlines() if r.startswith("| every good + good of mine |"))
+    # every disc found; the good groups' other blobs and the discs found twice cost
+    # precision (whole RPs are kept, no instance removed)
+    assert float(row.split("|")[3]) == 1.0 and 0 < float(row.split("|")[2]) < 1.0
 
 
 def test_compare_folders_refusals_and_a_comparison(tmp_path, capsys):

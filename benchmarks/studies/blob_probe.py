@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.discovery.sources import DenseParams
     from rescu.evaluation.metrics import iod_matrix, iou_matrix, score_image
     from rescu.extension.backbone import FrozenBackbone
-    from rescu.extension.dense import dense_map, dense_patterns, distinct_blobs
+    from rescu.extension.dense import dense_map, dense_patterns, distinct_blobs, objectness_for
     from rescu.io import load_coco_rps
 
     ap = run_parser(__doc__)
@@ -193,10 +193,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{f}: no prepared image or dense result, skipped", file=sys.stderr)
             continue
         meta = json.loads((run / "prepared" / f"{stem}.meta.json").read_text())
-        fmap, s = dense_map(np.ascontiguousarray(cv2.imread(str(png))[:, :, ::-1]), params, net)
+        rgb = np.ascontiguousarray(cv2.imread(str(png))[:, :, ::-1])
+        fmap, s = dense_map(rgb, params, net)
         boxes, emb = distinct_blobs(fmap, 8.0, params)
         groups = [np.flatnonzero((iou_matrix(boxes, b) > 0.999).any(1)) if len(boxes) else
-                  np.zeros(0, int) for _, b in dense_patterns(fmap, 8.0, params)]
+                  np.zeros(0, int) for _, b in dense_patterns(
+                      fmap, 8.0, params, objectness_for(rgb, s, params, net))]
         boxes = boxes / (s * float(meta["scale_factor"]))      # original pixels
         gt_rps = [g.boxes for g in gts]
         dense = [[ins.bbox for ins in p.instances] for p in io.read_result(dj).patterns]

@@ -10,7 +10,8 @@ paper's RP metric accepts). Then prints, per dataset, the paper's instance preci
 recall (mean over images, undefined values left out, as in the RP table) of
 
 * ``pipeline``: the dense source as the step selects (the ``max_patterns`` best-scored
-  groups that do not tile the plane), which is the RP table's *Dense source* row;
+  groups that do not tile the plane; the score includes the objectness when
+  ``objectness_crops`` > 0), which is the RP table's *Dense source* row;
 * ``oracle, best one``: per image the one group of highest precision;
 * ``oracle, good, max_patterns``: the ``max_patterns`` best-scored good groups;
 * ``oracle, every good``: every good group;
@@ -19,6 +20,8 @@ recall (mean over images, undefined values left out, as in the RP table) of
 * with ``--with METHOD``, ``every candidate + METHOD``: the same plus the run's RPs of
   that method (``<results>/<dataset>/<METHOD>/<image>.json``, e.g. ``rescu-ii``): the
   recall that a perfect choice among everything the run and the source found reaches;
+  and ``every good + good of METHOD``: every good group and every good RP of the
+  method (a perfect choice of whole RPs from both, no instance removed);
 
 the number of candidates and good ones per image, and the ROC AUC of the ranking score
 between good and other groups (those that pass the tiling test). The oracle rows are
@@ -68,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.evaluation.diagnostics import rp_precisions
     from rescu.evaluation.metrics import score_image
     from rescu.extension.backbone import FrozenBackbone
-    from rescu.extension.dense import DenseParams, dense_candidates, dense_map
+    from rescu.extension.dense import (DenseParams, dense_candidates, dense_map, objectness_for,
+                                       rank_candidates)
     from rescu.io import InputError, load_coco_rps
     from rescu.params import deep_merge
 
@@ -97,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
                                             "oracle, good, max_patterns",
                                             "oracle, every good", "every candidate")}
         both = f"every candidate + {a.with_method}"
+        good_both = f"every good + good of {a.with_method}"
         if a.with_method:
-            scores[both] = []
+            scores[both], scores[good_both] = [], []
         for f, gts in gt.items():
             stem = Path(f).stem
             png = a.results / ds / "prepared" / f"{stem}.png"
@@ -114,7 +119,12 @@ def main(argv: list[str] | None = None) -> int:
             except (InputError, ValueError) as e:
                 print(f"{ds}/{stem}: skipped ({e})", file=sys.stderr)
                 continue
+            # the step's ranking: groups that tile the plane are never selected, so only
+            # the others get their objectness (dense.objectness_crops)
             cands = dense_candidates(fmap, 8.0, params)
+            cands = rank_candidates([c for c in cands if c.touching <= params.max_touching],
+                                    objectness_for(rgb, s, params, backbone)) + \
+                [c for c in cands if c.touching > params.max_touching]
             to_orig = 1.0 / (s * float(m["scale_factor"]))
             boxes = [(c.boxes * to_orig).tolist() for c in cands]
             truth = [g.boxes for g in gts]
@@ -137,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
                           file=sys.stderr)
                 sc = score_image(boxes + (own or []), truth)
                 scores[both].append((sc.instance_precision, sc.instance_recall))
+                mine = [r for r, q in zip(own or [], rp_precisions(own or [], truth)) if q >= 0.5]
+                sc = score_image([boxes[k] for k in good] + mine, truth)
+                scores[good_both].append((sc.instance_precision, sc.instance_recall))
             rows += [{"image": f, "rank": k, "n": len(c.boxes), "score": c.score,
                       "touching": c.touching, "precision": prec[k],
                       "selected": k in picks["pipeline"]} for k, c in enumerate(cands)]

@@ -51,7 +51,8 @@ class DenseParams:
     min_instances : int
         Smallest RP.
     max_patterns : int
-        Dense RPs kept per image, by contrast x rarity (:func:`dense_patterns`).
+        Dense RPs kept per image, by contrast x rarity x objectness
+        (:func:`dense_patterns`).
     overlap_iod : float
         ``mode="both"``: a dense instance whose IOD with a stage-I instance (either way)
         exceeds this is dropped.
@@ -62,6 +63,15 @@ class DenseParams:
     touch_tolerance : float
         A neighbour abuts a side when its centre lies one median box side away in that
         direction, within this fraction of the side on each axis.
+    objectness_crops : int
+        Each RP's score is also multiplied by its objectness: the mean top-class
+        probability of the backbone's ImageNet classifier on crops around this many of
+        its instances, strongest first (:func:`rescu.extension.dense.objectness`); 0
+        ranks by contrast x rarity alone.
+    objectness_px : int
+        Side of those crops when classified, pixels.
+    objectness_context : float
+        Side of a crop / the longer side of its instance box (>= 1: some context).
     """
 
     enabled: bool
@@ -78,6 +88,9 @@ class DenseParams:
     overlap_iod: float
     max_touching: float
     touch_tolerance: float
+    objectness_crops: int
+    objectness_px: int
+    objectness_context: float
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -98,6 +111,10 @@ class DenseParams:
         if not 0.0 < self.touch_tolerance < 0.5:
             raise ValueError("dense.touch_tolerance must be in (0, 0.5), got "
                              f"{self.touch_tolerance}")
+        if self.objectness_crops < 0 or self.objectness_px < 32 or self.objectness_context < 1:
+            raise ValueError("dense.objectness_crops must be >= 0, objectness_px >= 32 and "
+                             f"objectness_context >= 1, got {self.objectness_crops}, "
+                             f"{self.objectness_px}, {self.objectness_context}")
         if self.max_side < 64:
             raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
         if not 0 < self.min_side <= self.max_side:

@@ -218,6 +218,29 @@ class FrozenBackbone:
                     return f8, x
         raise RuntimeError(f"{self.name}: no stride-16 block found")
 
+    def class_probabilities(self, crops: np.ndarray) -> np.ndarray:
+        """The ImageNet classifier's class probabilities for a batch of crops (the whole
+        network, its own pooling and classification layer, whatever ``feature_stride``).
+
+        Parameters
+        ----------
+        crops : (B, H, W, 3) uint8, one size
+
+        Returns
+        -------
+        (B, 1000) float32, rows summing to 1
+        """
+        torch = _torch()
+        crops = np.asarray(crops)
+        if crops.ndim != 4 or crops.shape[3] != 3 or crops.dtype != np.uint8:
+            raise ValueError(f"crops must be (B, H, W, 3) uint8, got shape {crops.shape} "
+                             f"dtype {crops.dtype}")
+        if not len(crops):
+            return np.zeros((0, 1000), np.float32)
+        x = torch.cat([self.preprocess(c) for c in crops])
+        with torch.no_grad():
+            return torch.softmax(self.model(x), 1).cpu().numpy().astype(np.float32)
+
     def feature_map(self, rgb: np.ndarray):
         """Feature map of one image.
 

@@ -18,7 +18,9 @@ ImageNet backbone of stage II instead, once per image:
    non-overlapping blobs is one RP, its instances the blobs' square boxes. RPs are
    ranked by the mean centre-surround contrast of their boxes (:func:`box_contrast`)
    times their rarity (1 - cosine of their mean feature with the image's mean feature:
-   background is what the image mostly is). A group whose boxes abut one another on
+   background is what the image mostly is) times their objectness (the backbone's
+   ImageNet classifier's mean top-class probability on crops of their instances,
+   :func:`objectness`: objects are what its classes name, stuff is not). A group whose boxes abut one another on
    more than ``max_touching`` sides on average (:func:`touching_sides`) tiles the
    plane (board squares, floor tiles) and is dropped; the first ``max_patterns`` of the
    rest are kept.
@@ -40,7 +42,7 @@ precision.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -50,7 +52,8 @@ from ..types import Instance, Pattern
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
-           "dense_candidates", "dense_patterns", "dense_map", "find_dense"]
+           "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
+           "objectness_for", "dense_map", "find_dense"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -318,7 +321,61 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
     return out
 
 
-def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
+def objectness(backbone: Any, rgb: np.ndarray, boxes: np.ndarray, params: DenseParams
+               ) -> float:
+    """How much the instances of one RP look like objects to the backbone's ImageNet
+    classifier: its mean top-class probability on square crops around the first
+    ``params.objectness_crops`` boxes (side ``params.objectness_context`` x the box's
+    longer side, cut at the image border, resized to ``params.objectness_px``).
+
+    Objects that recur (cars, windows, chess pieces) are what ImageNet's classes name;
+    stuff (wall, asphalt, grass, board squares) spreads the probability over many
+    classes. No training: the classifier is the frozen backbone's own.
+
+    Parameters
+    ----------
+    backbone : rescu.extension.backbone.FrozenBackbone
+    rgb : (H, W, 3) uint8
+    boxes : (n, 4) float, ``[x, y, w, h]`` in pixels of ``rgb``, strongest first
+    params : DenseParams (``objectness_crops``, ``objectness_px``, ``objectness_context``)
+
+    Returns
+    -------
+    float in (0, 1]; 1.0 when ``params.objectness_crops`` is 0 or there is no box
+    """
+    import cv2
+
+    b = np.asarray(boxes, float).reshape(-1, 4)[:params.objectness_crops]
+    if not len(b):
+        return 1.0
+    h, w = rgb.shape[:2]
+    side = params.objectness_px
+    crops = []
+    for x, y, bw, bh in b:
+        cx, cy, r = x + bw / 2, y + bh / 2, max(bw, bh) * params.objectness_context / 2
+        x0, y0 = int(np.clip(cx - r, 0, w - 1)), int(np.clip(cy - r, 0, h - 1))
+        x1 = int(np.clip(np.ceil(cx + r), x0 + 1, w))
+        y1 = int(np.clip(np.ceil(cy + r), y0 + 1, h))
+        crops.append(cv2.resize(rgb[y0:y1, x0:x1], (side, side),
+                                interpolation=cv2.INTER_AREA if y1 - y0 > side
+                                else cv2.INTER_LINEAR))
+    return float(backbone.class_probabilities(np.stack(crops)).max(1).mean())
+
+
+def rank_candidates(cands: Sequence[DenseCandidate],
+                    objectness_of: Callable[[np.ndarray], float] | None
+                    ) -> list[DenseCandidate]:
+    """``cands`` with each score multiplied by ``objectness_of(boxes)`` (None: as they
+    are), best score first (ties: top-left first)."""
+    out = [c if objectness_of is None else
+           DenseCandidate(boxes=c.boxes, score=c.score * objectness_of(c.boxes),
+                          touching=c.touching) for c in cands]
+    out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
+    return out
+
+
+def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams,
+                   objectness_of: Callable[[np.ndarray], float] | None = None
                    ) -> list[tuple[float, np.ndarray]]:
     """RPs of recurring blobs in one feature map (steps 2-3 of the module docstring).
 
@@ -327,17 +384,29 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams
     f : (C, h, w) float32 (:func:`hypercolumn`)
     cell_px : backbone-input pixels per cell (8)
     params : DenseParams
+    objectness_of : callable or None
+        Boxes (n, 4) in backbone-input pixels -> the RP's objectness (:func:`objectness`),
+        a factor of its score; None: contrast x rarity alone.
 
     Returns
     -------
-    list of ``(score, boxes)``, best first (score = mean box contrast x rarity), at most
-    ``params.max_patterns``, none that tiles the plane (mean :func:`touching_sides`
-    above ``params.max_touching``): boxes (n, 4) ``[x, y, w, h]`` in backbone-input
-    pixels, n >= ``params.min_instances``.
+    list of ``(score, boxes)``, best first (score = mean box contrast x rarity [x
+    objectness]), at most ``params.max_patterns``, none that tiles the plane (mean
+    :func:`touching_sides` above ``params.max_touching``): boxes (n, 4) ``[x, y, w, h]``
+    in backbone-input pixels, n >= ``params.min_instances``.
     """
-    kept = [c for c in dense_candidates(f, cell_px, params)
-            if c.touching <= params.max_touching]
+    kept = rank_candidates([c for c in dense_candidates(f, cell_px, params)
+                            if c.touching <= params.max_touching], objectness_of)
     return [(c.score, c.boxes) for c in kept[:params.max_patterns]]
+
+
+def objectness_for(rgb: np.ndarray, s: float, params: DenseParams, backbone: Any
+                   ) -> Callable[[np.ndarray], float] | None:
+    """The ``objectness_of`` of :func:`dense_patterns` for the map :func:`dense_map` made
+    of ``rgb`` at scale ``s`` (None when ``params.objectness_crops`` is 0)."""
+    if not params.objectness_crops:
+        return None
+    return lambda boxes: objectness(backbone, rgb, np.asarray(boxes, float) / s, params)
 
 
 def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
@@ -388,16 +457,21 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     Returns
     -------
     list of Pattern (ids 0..; instances in **original** pixels, ``source="stage1"``;
-    ``score`` = contrast x rarity; ``extra={"source": "dense"}``)
+    ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``)
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
     []
     """
+    from .backbone import FrozenBackbone
+
+    if backbone is None:
+        backbone = FrozenBackbone(params.backbone, feature_stride=16)
     f, s = dense_map(rgb, params, backbone)
     to_orig = 1.0 / (s * float(scale_factor))
     pats = []
-    for k, (score, boxes) in enumerate(dense_patterns(f, 8.0, params)):
+    found = dense_patterns(f, 8.0, params, objectness_for(np.asarray(rgb), s, params, backbone))
+    for k, (score, boxes) in enumerate(found):
         b = boxes * to_orig
         pats.append(Pattern(id=k, score=score, instances=[
             Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
