@@ -351,6 +351,9 @@ def test_blob_probe_split_extension_and_refusal(tmp_path, capsys):
     with pytest.raises(SystemExit):
         bp.main([str(tmp_path), "--dataset", "nowhere"])
     assert "not in the config" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bp.main([str(tmp_path), "--set", "objectness_crops=-1"])
+    assert "objectness_crops" in capsys.readouterr().err
     # 8 GT boxes in a row, a blob inside each and 30 background blobs below
     gt = np.array([[20 * i, 0, 10, 10] for i in range(8)], float)
     blobs = np.concatenate([gt + [2, 2, -4, -4],

@@ -27,7 +27,9 @@ of one dataset of a finished run:
    precision only; :func:`rescu.evaluation.metrics.score_image`), beside the RPs as
    selected.
 
-Reads ``<results>/<dataset>/prepared`` and ``dense`` (a run with ``dense.enabled``).
+``--set KEY=VALUE`` changes a ``dense`` setting (e.g. ``objectness_crops=0``: the
+ranking before objectness). Reads ``<results>/<dataset>/prepared`` and ``dense`` (a run
+with ``dense.enabled``).
 Asserts nothing. About a second per image.
 
 Usage (after a run with the dense source, from the repository root)::
@@ -145,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import cv2
 
-    from _cli import run_dataset, run_parser
+    from _cli import parse_sets, run_dataset, run_parser
     from feature_probe import probe
 
     from rescu import io
@@ -154,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.extension.backbone import FrozenBackbone
     from rescu.extension.dense import dense_map, dense_patterns, distinct_blobs, objectness_for
     from rescu.io import load_coco_rps
+    from rescu.params import deep_merge
 
     ap = run_parser(__doc__)
     ap.add_argument("--threshold", type=float, action="append", default=[],
@@ -163,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--precision", type=float, default=0.7)
     ap.add_argument("--iod", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="a dense setting other than the config's (repeatable)")
     a = ap.parse_args(argv)
     thresholds = a.threshold or [0.5, 0.7, 0.9]
     if a.min_instances < 2:
@@ -172,6 +177,11 @@ def main(argv: list[str] | None = None) -> int:
     if not all(0 <= t <= 1 for t in thresholds):
         ap.error(f"--threshold must be in [0, 1], got {thresholds}")
     cfg, data = run_dataset(ap, a)
+    try:
+        params = DenseParams.from_dict(deep_merge(dict(cfg["dense"], enabled=True),
+                                                  parse_sets(a.sets)))
+    except (ValueError, TypeError) as e:
+        ap.error(str(e))
     run = a.results / a.dataset
     for path, what in ((data / "annotations.json", "ground truth"),
                        (run / "prepared", "prepared images"),
@@ -179,7 +189,6 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
             return 2
-    params = DenseParams.from_dict(dict(cfg["dense"], enabled=True))
     net = FrozenBackbone(params.backbone, feature_stride=16)
     cover: list[float] = []
     probes: dict[str, list[tuple[float, float, float]]] = {"half the GT": [], "dense RP": []}
