@@ -39,6 +39,16 @@ def test_identical_crops_pool_nearly_equal(lite0):
     assert same > other
 
 
+def test_class_probabilities(lite0):
+    crops = np.random.default_rng(2).integers(0, 255, (3, 96, 96, 3), dtype=np.uint8)
+    p = lite0.class_probabilities(crops)
+    assert p.shape == (3, 1000) and p.dtype == np.float32
+    assert np.allclose(p.sum(1), 1.0, atol=1e-4) and (p >= 0).all()
+    assert lite0.class_probabilities(np.zeros((0, 96, 96, 3), np.uint8)).shape == (0, 1000)
+    with pytest.raises(ValueError, match="uint8"):
+        lite0.class_probabilities(crops.astype(float))
+
+
 def test_pool_empty(lite0):
     f = lite0.feature_map(np.zeros((64, 64, 3), np.uint8))
     assert pool_boxes(f, np.zeros((0, 4)), (64, 64)).shape == (0, 448)

@@ -105,7 +105,8 @@ def test_box_contrast_is_high_on_objects_and_low_on_background():
 def test_params_are_checked():
     for bad in ({"mode": "sparse"}, {"surround": 4}, {"sizes": []}, {"min_similarity": 1.0},
                 {"min_instances": 1}, {"overlap_iod": 1.5}, {"max_side": 10},
-                {"max_touching": 5}, {"touch_tolerance": 0.5}, {"min_side": 2000}):
+                {"max_touching": 5}, {"touch_tolerance": 0.5}, {"min_side": 2000},
+                {"objectness_crops": -1}, {"objectness_px": 16}, {"objectness_context": 0.5}):
         with pytest.raises(ValueError):
             _params(**bad)
     with pytest.raises(ValueError, match="unknown"):
@@ -249,3 +250,53 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
         res5 = ImageResult.from_json(io.read_json(w("s5.json")))
         assert "failure" not in res5.extra and "d3.json" in res5.extra["dense_failure"]["message"]
         assert [p.to_json() for p in res5.patterns] == [p.to_json() for p in res2.patterns]
+
+
+class _Classifier:
+    """A stand-in backbone with two classes: the top-class probability of a crop is
+    0.5 + 0.5 x its mean brightness / 255, and every batch it is given is kept."""
+
+    def __init__(self):
+        self.batches = []
+
+    def class_probabilities(self, crops):
+        self.batches.append(np.asarray(crops))
+        top = 0.5 + 0.5 * np.asarray(crops, float).mean((1, 2, 3)) / 255.0
+        return np.stack([top, 1.0 - top], 1)
+
+
+def test_objectness_crops_the_first_instances_with_context():
+    from rescu.extension.dense import objectness
+
+    img = np.zeros((100, 200, 3), np.uint8)
+    img[20:40, 20:40] = 255                       # a bright object, a dark one beside it
+    net = _Classifier()
+    p = _params(objectness_crops=2, objectness_px=32, objectness_context=1.0)
+    boxes = np.array([[20, 20, 20, 20], [120, 20, 20, 20], [20, 20, 20, 20]], float)
+    assert objectness(net, img, boxes, p) == pytest.approx(0.75)  # (1 + 0.5) / 2: 2 crops
+    assert net.batches[-1].shape == (2, 32, 32, 3)
+    # with context 2 the bright crop is a quarter object; a box at the border is cut
+    assert objectness(net, img, boxes[:1], _params(objectness_context=2.0, objectness_px=32)) \
+        == pytest.approx(0.625, abs=0.01)
+    assert 0 <= objectness(net, img, np.array([[190, 90, 30, 30]], float), p) <= 1
+    assert objectness(net, img, boxes, _params(objectness_crops=0)) == 1.0
+    assert objectness(net, img, np.zeros((0, 4)), p) == 1.0
+
+
+def test_rank_candidates_multiplies_the_score_by_objectness():
+    from rescu.extension.dense import DenseCandidate, rank_candidates
+
+    a = DenseCandidate(boxes=np.array([[0, 0, 8, 8.]]), score=0.4, touching=0.0)
+    b = DenseCandidate(boxes=np.array([[50, 0, 8, 8.]]), score=0.3, touching=0.0)
+    assert [c.score for c in rank_candidates([b, a], None)] == [0.4, 0.3]
+    got = rank_candidates([a, b], lambda boxes: 0.5 if boxes[0, 0] == 0 else 1.0)
+    assert [c.score for c in got] == [0.3, 0.2] and got[0].boxes[0, 0] == 50
+
+
+def test_find_dense_with_and_without_objectness():
+    img, truth = _photo(np.random.default_rng(3))
+    on, off = find_dense(img, _params(max_patterns=4)), \
+        find_dense(img, _params(max_patterns=4, objectness_crops=0))
+    assert on and off and all(0 < q.score for q in on)
+    # objectness is a probability: it can only lower a group's score
+    assert max(q.score for q in on) <= max(q.score for q in off) + 1e-12

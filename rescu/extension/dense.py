@@ -20,13 +20,13 @@ ImageNet backbone of stage II instead, once per image:
    times their rarity (1 - cosine of their mean feature with the image's mean feature:
    background is what the image mostly is) times their objectness (the backbone's
    ImageNet classifier's mean top-class probability on crops of their instances,
-   :func:`objectness`: objects are what its classes name, stuff is not). A group whose boxes abut one another on
-   more than ``max_touching`` sides on average (:func:`touching_sides`) tiles the
-   plane (board squares, floor tiles) and is dropped; the first ``max_patterns`` of the
-   rest are kept.
-4. **With stage I** (:func:`rescu.discovery.sources.combine_sources`): ``mode="both"`` keeps stage I's RPs and
-   adds the dense RPs' instances that do not overlap them; ``"dense"`` keeps the dense
-   RPs only.
+   :func:`objectness`: objects are what its classes name, stuff is not). A group
+   whose boxes abut one another on more than ``max_touching`` sides on average
+   (:func:`touching_sides`) tiles the plane (board squares, floor tiles) and is
+   dropped; the first ``max_patterns`` of the rest are kept.
+4. **With stage I** (:func:`rescu.discovery.sources.combine_sources`): ``mode="both"``
+   keeps stage I's RPs and adds the dense RPs' instances that do not overlap them;
+   ``"dense"`` keeps the dense RPs only.
 
 Dense RPs have no feature correspondences (``feature_points`` is None): stage II,
 counting and captions use them as they are; the vanishing point and translation
