@@ -106,6 +106,16 @@ def run_jobs(fn: Callable[[Any], Any], jobs: list[Any], workers: int) -> list[An
     return [fn(j) for j in jobs]
 
 
+def inputs_present(*needed: tuple[Path, str]) -> bool:
+    """Whether every ``(path, what)`` of ``needed`` exists; for the first that does not,
+    says ``<path>: no <what> (run the pipeline first)`` on stderr and returns False."""
+    for path, what in needed:
+        if not path.exists():
+            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
+            return False
+    return True
+
+
 def check_run_datasets(ap: argparse.ArgumentParser, cfg: dict[str, Any], results: Path,
                        sets: list[str], folder: str) -> bool:
     """Each of ``sets`` is a dataset of the config (else a usage error) with

@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import cv2
 
-    from _cli import parse_sets, run_dataset, run_parser
+    from _cli import inputs_present, parse_sets, run_dataset, run_parser
     from feature_probe import probe
 
     from rescu import io
@@ -183,12 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TypeError) as e:
         ap.error(str(e))
     run = a.results / a.dataset
-    for path, what in ((data / "annotations.json", "ground truth"),
-                       (run / "prepared", "prepared images"),
-                       (run / "dense", "dense RPs (a run with dense.enabled)")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"),
+                          (run / "prepared", "prepared images"),
+                          (run / "dense", "dense RPs (a run with dense.enabled)")):
+        return 2
     net = FrozenBackbone(params.backbone, feature_stride=16)
     cover: list[float] = []
     probes: dict[str, list[tuple[float, float, float]]] = {"half the GT": [], "dense RP": []}

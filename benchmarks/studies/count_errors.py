@@ -28,7 +28,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _cli import print_rows, run_dataset, run_parser
+    from _cli import inputs_present, print_rows, run_dataset, run_parser
 
     from rescu.evaluation.diagnostics import count_errors
     from rescu.evaluation.counting import counting_table
@@ -39,10 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     _, data = run_dataset(ap, a)
     pred = a.results / a.dataset / a.method
-    for path, what in ((data / "annotations.json", "ground truth"), (pred, "predictions")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"), (pred, "predictions")):
+        return 2
     t = counting_table(data, {a.method: pred}).iloc[0]
     print(f"{a.dataset} / {a.method}: {int(t['n_matched'])} matched GT RPs, exact-count "
           f"rate {t['exact_rate']:.3f}, count MAE {t['count_mae']:.3f}")

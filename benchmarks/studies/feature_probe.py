@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import cv2
 
-    from _cli import run_dataset, run_parser
+    from _cli import inputs_present, run_dataset, run_parser
 
     from rescu import io
     from rescu.io import load_coco_rps
@@ -269,12 +269,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--iod must be in [0, 1), got {a.iod}")
     _, data = run_dataset(ap, a)
     run = a.results / a.dataset
-    for path, what in ((data / "annotations.json", "ground truth"),
-                       (run / "stage2", "stage-II features"),
-                       (run / "rescu-i", "RESCU-I results")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"),
+                          (run / "stage2", "stage-II features"),
+                          (run / "rescu-i", "RESCU-I results")):
+        return 2
     nets: dict[int, Any] = {}
     if set(a.variant) - {"hog", "pixels"}:
         from rescu.extension.backbone import FrozenBackbone

@@ -40,7 +40,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
-    from _cli import run_dataset, run_parser
+    from _cli import inputs_present, run_dataset, run_parser
 
     from rescu.evaluation.diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
@@ -55,10 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     params = Stage2Params.from_dict(cfg["stage2"]).predict.merge.merge_params()
     ann = data / "annotations.json"
     s2 = a.results / a.dataset / "stage2"
-    for path, what in ((ann, "ground truth"), (s2, "stage-II features")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((ann, "ground truth"), (s2, "stage-II features")):
+        return 2
     truth = {Path(k).stem: v for k, v in load_coco_rps(ann).items()}
     rows = []
     for fh in sorted(s2.glob("*.feats.h5")):

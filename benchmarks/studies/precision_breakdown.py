@@ -30,7 +30,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _cli import print_rows, run_dataset, run_parser
+    from _cli import inputs_present, print_rows, run_dataset, run_parser
 
     from rescu.evaluation.diagnostics import (BREAKDOWN_COLUMNS, category_breakdown,
                                               precision_breakdown)
@@ -43,10 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     _, data = run_dataset(ap, a)
     pred = a.results / a.dataset / a.method
-    for path, what in ((data / "annotations.json", "ground truth"), (pred, "predictions")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"), (pred, "predictions")):
+        return 2
     df = precision_breakdown(data, pred)
     tot = df[list(BREAKDOWN_COLUMNS)].sum()
     n = max(int(tot["n_det"]), 1)

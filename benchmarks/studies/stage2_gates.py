@@ -154,7 +154,7 @@ def image_funnels(stage1: Any, stage2: Any, feats: dict[str, Any], ckpt: dict[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _cli import run_dataset, run_parser
+    from _cli import inputs_present, run_dataset, run_parser
 
     from rescu import io
     from rescu.extension.params import Stage2Params
@@ -166,12 +166,10 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     cfg, data = run_dataset(ap, a)
     run = a.results / a.dataset
-    for path, what in ((data / "annotations.json", "ground truth"),
-                       (run / "rescu-i", "RESCU-I results"),
-                       (run / "rescu-ii", "RESCU-II results")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"),
+                          (run / "rescu-i", "RESCU-I results"),
+                          (run / "rescu-ii", "RESCU-II results")):
+        return 2
     params = Stage2Params.from_dict(cfg["stage2"])
     tot_c, tot_a = dict.fromkeys(COUNTS, 0), dict.fromkeys(COUNTS, 0)
     n = 0

@@ -123,18 +123,16 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
 def main(argv: list[str] | None = None) -> int:
     import pandas as pd
 
-    from _cli import print_rows, run_dataset, run_parser
+    from _cli import inputs_present, print_rows, run_dataset, run_parser
 
     ap = run_parser(__doc__)
     ap.add_argument("--iod", type=float, default=0.5, help="IOD for 'found' (default 0.5)")
     ap.add_argument("--list", action="store_true", help="one row per missed instance")
     a = ap.parse_args(argv)
     cfg, data = run_dataset(ap, a)
-    for path, what in ((data / "annotations.json", "ground truth"),
-                       (a.results / a.dataset / "rescu-ii", "RESCU-II results")):
-        if not path.exists():
-            print(f"{path}: no {what} (run the pipeline first)", file=sys.stderr)
-            return 2
+    if not inputs_present((data / "annotations.json", "ground truth"),
+                          (a.results / a.dataset / "rescu-ii", "RESCU-II results")):
+        return 2
     df = classify_misses(data, a.results, a.dataset, cfg["stage2"], a.iod)
     print(f"{a.dataset}: {len(df)} GT instances missed by RESCU-II (IOD {a.iod}; "
           f"lattice gate {df.attrs['gate']})")
