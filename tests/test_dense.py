@@ -291,6 +291,24 @@ def test_rank_candidates_multiplies_the_score_by_objectness():
     assert [c.score for c in rank_candidates([b, a], None)] == [0.4, 0.3]
     got = rank_candidates([a, b], lambda boxes: 0.5 if boxes[0, 0] == 0 else 1.0)
     assert [c.score for c in got] == [0.3, 0.2] and got[0].boxes[0, 0] == 50
+    # with top: the same first ones, and no classification of a candidate that cannot enter
+    rng = np.random.default_rng(0)
+    many = [DenseCandidate(boxes=np.array([[float(i), 0, 8, 8]]), score=float(v), touching=0.0)
+            for i, v in enumerate(rng.random(30))]
+    obj = dict(enumerate(rng.random(30)))
+    seen = []
+
+    def of(boxes):
+        seen.append(int(boxes[0, 0]))
+        return obj[int(boxes[0, 0])]
+
+    full = rank_candidates(many, lambda boxes: obj[int(boxes[0, 0])])
+    for top in (1, 3, 30):
+        seen.clear()
+        cut = rank_candidates(many, of, top)
+        assert [(c.score, c.boxes[0, 0]) for c in cut] == \
+            [(c.score, c.boxes[0, 0]) for c in full[:top]]
+        assert top == 30 or len(seen) < 30
 
 
 def test_find_dense_with_and_without_objectness():

@@ -363,15 +363,24 @@ def objectness(backbone: Any, rgb: np.ndarray, boxes: np.ndarray, params: DenseP
 
 
 def rank_candidates(cands: Sequence[DenseCandidate],
-                    objectness_of: Callable[[np.ndarray], float] | None
-                    ) -> list[DenseCandidate]:
+                    objectness_of: Callable[[np.ndarray], float] | None,
+                    top: int | None = None) -> list[DenseCandidate]:
     """``cands`` with each score multiplied by ``objectness_of(boxes)`` (None: as they
-    are), best score first (ties: top-left first)."""
-    out = [c if objectness_of is None else
-           DenseCandidate(boxes=c.boxes, score=c.score * objectness_of(c.boxes),
-                          touching=c.touching) for c in cands]
-    out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
-    return out
+    are), best score first (ties: top-left first); with ``top``, only the first ``top``.
+
+    Objectness is at most 1, so with ``top`` a candidate whose score is already below the
+    ``top``-th rescored one cannot enter: the others are not classified (the result is the
+    same as ranking all and cutting)."""
+    key = (lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
+    out: list[DenseCandidate] = []
+    for c in sorted(cands, key=key):
+        if top is not None and len(out) >= top and \
+                c.score < sorted(x.score for x in out)[-top]:
+            break
+        out.append(c if objectness_of is None else DenseCandidate(
+            boxes=c.boxes, score=c.score * objectness_of(c.boxes), touching=c.touching))
+    out.sort(key=key)
+    return out if top is None else out[:top]
 
 
 def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams,
@@ -396,8 +405,9 @@ def dense_patterns(f: np.ndarray, cell_px: float, params: DenseParams,
     in backbone-input pixels, n >= ``params.min_instances``.
     """
     kept = rank_candidates([c for c in dense_candidates(f, cell_px, params)
-                            if c.touching <= params.max_touching], objectness_of)
-    return [(c.score, c.boxes) for c in kept[:params.max_patterns]]
+                            if c.touching <= params.max_touching], objectness_of,
+                           params.max_patterns)
+    return [(c.score, c.boxes) for c in kept]
 
 
 def objectness_for(rgb: np.ndarray, s: float, params: DenseParams, backbone: Any
