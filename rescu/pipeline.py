@@ -50,18 +50,12 @@ from typing import Any, Callable
 import numpy as np
 
 from . import io
-from .types import Features, ImageResult, Pattern, RPMatrix
+from .types import Failure, Features, ImageResult, Pattern, RPMatrix, failure_record
 
 log = logging.getLogger("rescu")
 
-Failure = dict[str, Any]
-
 
 # --------------------------------------------------------------------------- failures
-def failure_record(stage: str, exc: BaseException) -> Failure:
-    """A failure record for ``exc`` raised in ``stage``."""
-    return {"stage": stage, "type": type(exc).__name__, "message": str(exc)}
-
 
 def _json_failure(path: str | os.PathLike[str]) -> Failure | None:
     d = io.read_json(path)

@@ -28,6 +28,20 @@ import numpy as np
 BBox = tuple[float, float, float, float]
 """``(x, y, width, height)`` in pixels."""
 
+Failure = dict[str, Any]
+"""The record of a step that failed on one image: ``stage``, ``type`` (the exception's
+class name), ``message``, and for a degraded result ``degraded_to`` (see
+:mod:`rescu.pipeline`)."""
+
+
+def failure_record(stage: str, exc: BaseException) -> Failure:
+    """A failure record for ``exc`` raised in ``stage``.
+
+    >>> failure_record("dense", ValueError("bad file"))
+    {'stage': 'dense', 'type': 'ValueError', 'message': 'bad file'}
+    """
+    return {"stage": stage, "type": type(exc).__name__, "message": str(exc)}
+
 
 @dataclass
 class Features:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..evaluation.metrics import cover_matrix
 from ..params import checked_mapping, config_section
-from ..types import ImageResult, Pattern
+from ..types import ImageResult, Pattern, failure_record
 
 #: The modes of :func:`combine_sources`.
 MODES = ("both", "dense")
@@ -166,8 +166,8 @@ def read_dense(path: str) -> ImageResult:
     try:
         return read_result(path)
     except (OSError, ValueError, KeyError, TypeError) as e:
-        return ImageResult(image="", width=0, height=0, method="dense", extra={
-            "failure": {"stage": "dense", "type": type(e).__name__, "message": str(e)}})
+        return ImageResult(image="", width=0, height=0, method="dense",
+                           extra={"failure": failure_record("dense", e)})
 
 
 def skips_stage1(found: ImageResult | None, params: Mapping[str, Any] | None) -> bool:
