@@ -122,6 +122,26 @@ BREAKDOWN_COLUMNS = ("n_det", "assigned", "other_rp", "duplicate", "background",
 """The counts of :func:`detection_breakdown`, in order."""
 
 
+def _gt_cover(det_rps: Sequence[Sequence[Sequence[float]]],
+              gt_boxes: Sequence[Sequence[float]] | np.ndarray, h: float
+              ) -> tuple[np.ndarray, set[int]]:
+    """Which GT boxes one image's detections lie on, and which detections the one-to-one
+    matching over all RPs takes.
+
+    Returns ``(on, matched)``: ``on`` is (N, M) bool, detection ``i`` (all RPs' instances
+    in order) covers GT box ``j`` with IOD > ``h``; ``matched`` the indices ``i`` that
+    :func:`rescu.evaluation.metrics.match_boxes` pairs (the *any RP* numerator, so
+    ``len(matched)`` is
+    :attr:`rescu.evaluation.metrics.ImageScores.n_matched_any`). A detection lying on a GT box
+    but not matched is a *duplicate*.
+    """
+    det = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
+    gt = np.asarray(gt_boxes, float).reshape(-1, 4)
+    if not len(det) or not len(gt):
+        return np.zeros((len(det), len(gt)), bool), set()
+    return iod_matrix(det, gt) > h, {i for i, _ in match_boxes(det, gt, h)}
+
+
 def detection_breakdown(det_rps: Sequence[Sequence[Sequence[float]]],
                         gt_rps: Sequence[Sequence[Sequence[float]]], h: float = IOD_H,
                         min_rp_precision: float = MIN_RP_PRECISION) -> dict[str, int]:
@@ -145,13 +165,10 @@ def detection_breakdown(det_rps: Sequence[Sequence[Sequence[float]]],
     ...                      [(50, 50, 5, 5), (60, 50, 5, 5)]], gt)["background"]
     2
     """
-    det_all = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
-    gt_all = np.asarray([b for rp in gt_rps for b in rp], float).reshape(-1, 4)
-    n = len(det_all)
-    sc = score_image(det_rps, gt_rps, h, min_rp_precision)
-    assigned, n_any = sc.n_matched, sc.n_matched_any
-    on_gt = (iod_matrix(det_all, gt_all) > h).any(axis=1) if len(gt_all) and n \
-        else np.zeros(n, bool)
+    on, matched = _gt_cover(det_rps, [b for rp in gt_rps for b in rp], h)
+    n = len(on)
+    assigned = score_image(det_rps, gt_rps, h, min_rp_precision).n_matched
+    on_gt = on.any(axis=1)
     background = int(n - on_gt.sum())
     bg_rps = bg_inst = 0
     start = 0
@@ -160,8 +177,8 @@ def detection_breakdown(det_rps: Sequence[Sequence[Sequence[float]]],
         if k and not on_gt[start:start + k].any():
             bg_rps, bg_inst = bg_rps + 1, bg_inst + k
         start += k
-    return {"n_det": n, "assigned": assigned, "other_rp": n_any - assigned,
-            "duplicate": n - n_any - background, "background": background,
+    return {"n_det": n, "assigned": assigned, "other_rp": len(matched) - assigned,
+            "duplicate": int(on_gt.sum()) - len(matched), "background": background,
             "n_rps": len(det_rps), "background_rps": bg_rps,
             "background_rp_instances": bg_inst}
 
@@ -213,12 +230,8 @@ def duplicate_categories(det_rps: Sequence[Sequence[Sequence[float]]],
     """
     cats = [str(g.category or "") for g in gt_rps for _ in g.boxes]    # per GT box
     out = {c: {"gt": cats.count(c), "on": 0, "duplicate": 0} for c in cats}
-    det = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
     gt = np.asarray([b for g in gt_rps for b in g.boxes], float).reshape(-1, 4)
-    if not len(det) or not len(gt):
-        return out
-    on = iod_matrix(det, gt) > h
-    matched = {i for i, _ in match_boxes(det, gt, h)}
+    on, matched = _gt_cover(det_rps, gt, h)
     area = gt[:, 2] * gt[:, 3]
     for i in np.nonzero(on.any(1))[0]:
         j = np.nonzero(on[i])[0]
