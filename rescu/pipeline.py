@@ -56,7 +56,6 @@ log = logging.getLogger("rescu")
 
 
 # --------------------------------------------------------------------------- failures
-
 def _json_failure(path: str | os.PathLike[str]) -> Failure | None:
     d = io.read_json(path)
     return d.get("failure") if isinstance(d, dict) else None

@@ -130,10 +130,9 @@ def _gt_cover(det_rps: Sequence[Sequence[Sequence[float]]],
 
     Returns ``(on, matched)``: ``on`` is (N, M) bool, detection ``i`` (all RPs' instances
     in order) covers GT box ``j`` with IOD > ``h``; ``matched`` the indices ``i`` that
-    :func:`rescu.evaluation.metrics.match_boxes` pairs (the *any RP* numerator, so
-    ``len(matched)`` is
-    :attr:`rescu.evaluation.metrics.ImageScores.n_matched_any`). A detection lying on a GT box
-    but not matched is a *duplicate*.
+    :func:`rescu.evaluation.metrics.match_boxes` pairs (the *any RP* numerator: its size
+    is :attr:`rescu.evaluation.metrics.ImageScores.n_matched_any`). A detection lying on
+    a GT box but not matched is a *duplicate*.
     """
     det = np.asarray([b for rp in det_rps for b in rp], float).reshape(-1, 4)
     gt = np.asarray(gt_boxes, float).reshape(-1, 4)
