@@ -19,7 +19,7 @@ import numpy as np
 
 from .types import BBox, ImageResult
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".gif")
 
 
 _UMASK = os.umask(0)
@@ -169,38 +169,93 @@ class LoadedImage:
     notes: list[str]
 
 
+def check_photo_file(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a :class:`~pathlib.Path` when it is a regular file (or a link to one).
+
+    Raises :class:`InputError` naming the file and what it is instead: missing, a broken
+    symbolic link, a folder, a FIFO, a device or a socket (reading those would block or
+    give no image).
+    """
+    import stat
+
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise InputError(f"{path}: broken symbolic link (points to "
+                             f"{os.readlink(path)}, which does not exist)") from None
+        raise InputError(f"{path}: file not found") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot be read ({e.strerror or e})") from None
+    if stat.S_ISREG(mode):
+        return path
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    raise InputError(f"{path}: is {kind}, not an image file")
+
+
+def display_name(name: str) -> str:
+    """``name`` as text that any JSON reader accepts: bytes of a file name that are not
+    UTF-8 (kept by Python as lone surrogates) become U+FFFD."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+def _orientation(im: Any) -> int:
+    """The EXIF orientation tag of an open Pillow image (1 = as stored)."""
+    try:
+        return int(im.getexif().get(0x0112, 1) or 1)
+    except Exception:  # noqa: BLE001  (a broken EXIF block: keep the stored orientation)
+        return 1
+
+
+def _too_large(path: Path, size: str, pixels: int, max_pixels: int) -> str:
+    return (f"{path}: image too large ({size}{pixels / 1e6:.1f} megapixels; the limit is "
+            f"image.max_pixels = {max_pixels}); downscale it first or raise the limit")
+
+
 def load_image(path: str | os.PathLike[str], max_side: int | None = None,
-               min_side: int | None = None) -> LoadedImage:
+               min_side: int | None = None, max_pixels: int | None = None) -> LoadedImage:
     """Load a photo in displayed orientation as 8-bit RGB, downscaled to ``max_side``.
 
     Handles grayscale, RGBA (composited on white), 16-bit, palette and EXIF-rotated
     images. Raises :class:`InputError` naming the file for empty, truncated, unreadable
-    or non-image files and images smaller than ``min_side`` pixels on a side.
-    ``max_side`` / ``min_side`` default to the configuration's ``image`` section.
+    or non-image files, images smaller than ``min_side`` pixels on a side, and images of
+    more than ``max_pixels`` pixels (width x height, read from the file's header before
+    anything is decoded, so a huge image costs no memory). ``max_side`` / ``min_side`` /
+    ``max_pixels`` default to the configuration's ``image`` section. Pillow's own guard
+    (``PIL.Image.MAX_IMAGE_PIXELS``) is left as the caller set it.
     """
+    import warnings
+
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     from .params import config_defaults
 
-    if max_side is None or min_side is None:
+    if max_side is None or min_side is None or max_pixels is None:
         d = config_defaults("image")
         max_side = d["max_side"] if max_side is None else max_side
         min_side = d["min_side"] if min_side is None else min_side
+        max_pixels = d["max_pixels"] if max_pixels is None else max_pixels
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
+    path = check_photo_file(path)
     if path.stat().st_size == 0:
         raise InputError(f"{path}: empty file (0 bytes)")
-    Image.MAX_IMAGE_PIXELS = None  # huge photos are downscaled below, not refused
     notes: list[str] = []
     try:
-        with Image.open(path) as im:
+        with warnings.catch_warnings():
+            # our own limit (max_pixels) is checked below; Pillow's warning adds nothing
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im_file = Image.open(path)
+        with im_file as im:
+            w0, h0 = im.size  # from the header: nothing decoded yet
+            if w0 * h0 > max_pixels:
+                raise InputError(_too_large(path, f"{w0}x{h0} = ", w0 * h0, max_pixels))
             im.load()
-            transposed = ImageOps.exif_transpose(im)
-            if transposed is not im:
+            if _orientation(im) != 1:  # exif_transpose copies: only when there is a rotation
+                im = ImageOps.exif_transpose(im)
                 notes.append("exif-rotated")
-            im = transposed
             mode = im.mode
             if mode in ("I;16", "I;16B", "I;16L", "I"):
                 arr = np.asarray(im, dtype=np.float64)
@@ -216,11 +271,27 @@ def load_image(path: str | os.PathLike[str], max_side: int | None = None,
             if im.mode != "RGB":
                 notes.append(f"{im.mode}->RGB")
                 im = im.convert("RGB")
-            rgb = np.asarray(im, dtype=np.uint8).copy()
+            rgb = np.array(im, dtype=np.uint8)
+            del im
     except UnidentifiedImageError:
         raise InputError(f"{path}: not an image file (format not recognised)") from None
+    except Image.DecompressionBombError as e:  # Pillow's guard refused it at open
+        import re
+
+        m = re.search(r"\((\d+) pixels\)", str(e))
+        n = int(m.group(1)) if m else 0
+        if n > max_pixels:
+            raise InputError(_too_large(path, "", n, max_pixels)) from None
+        raise InputError(f"{path}: image too large for Pillow's guard, "
+                         f"PIL.Image.MAX_IMAGE_PIXELS ({e}); raise that in Python to go "
+                         f"up to image.max_pixels = {max_pixels}") from None
+    except InputError:
+        raise
     except (OSError, SyntaxError, ValueError) as e:
         raise InputError(f"{path}: unreadable or truncated image ({e})") from None
+    except MemoryError:
+        raise InputError(f"{path}: not enough memory to decode this image; lower "
+                         f"image.max_pixels or downscale it first") from None
     h, w = rgb.shape[:2]
     if min(h, w) < min_side:
         raise InputError(f"{path}: image too small ({w}x{h} pixels; at least {min_side} "
@@ -245,6 +316,20 @@ def list_images(folder: str | os.PathLike[str]) -> list[Path]:
     return sorted(p for p in folder.iterdir()
                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
                   and not p.name.startswith("."))
+
+
+def skipped_images(folder: str | os.PathLike[str]) -> list[str]:
+    """Entries of ``folder`` named like images that :func:`list_images` leaves out, each
+    as ``"<name> (<why>)"``: broken symbolic links, folders, FIFOs, devices."""
+    out = []
+    for p in sorted(Path(folder).iterdir()):
+        if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") \
+                and not p.is_file():
+            try:
+                check_photo_file(p)
+            except InputError as e:
+                out.append(f"{p.name} ({str(e).split(': ', 1)[1]})")
+    return out
 
 
 # ----------------------------------------------------------------------------- datasets

@@ -156,17 +156,21 @@ def empty_result(meta: dict[str, Any], method: str, failure: Failure | None) -> 
 
 # --------------------------------------------------------------------------- prepare
 def prepare(image_path: str, out_png: str, out_meta: str, *, image_name: str,
-            max_side: int, min_side: int) -> Failure | None:
+            max_side: int, min_side: int, max_pixels: int | None = None) -> Failure | None:
     """Load a photo (orientation, mode, downscale) and write the processed PNG + meta.
 
     ``out_meta`` JSON: ``{"image": image_name, "source": image_path, "original_size":
     [w, h], "processed_size": [w, h], "scale_factor": s, "notes": [...], "failure"?}``.
-    A bad image gets a 1x1 placeholder PNG and a meta with ``failure`` set.
+    A bad image (or one above ``max_pixels``, None: the configuration's) gets a 1x1
+    placeholder PNG and a meta with ``failure`` set. Names that are not UTF-8 are written
+    with U+FFFD in place of their undecodable bytes (:func:`rescu.io.display_name`).
     """
-    meta: dict[str, Any] = {"image": image_name, "source": str(image_path)}
+    meta: dict[str, Any] = {"image": io.display_name(image_name),
+                            "source": io.display_name(str(image_path))}
 
     def run() -> None:
-        im = io.load_image(image_path, max_side=max_side, min_side=min_side)
+        im = io.load_image(image_path, max_side=max_side, min_side=min_side,
+                           max_pixels=max_pixels)
         meta.update(original_size=list(im.original_size),
                     processed_size=[int(im.rgb.shape[1]), int(im.rgb.shape[0])],
                     scale_factor=float(im.scale_factor), notes=im.notes)

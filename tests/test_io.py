@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+import warnings
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -89,7 +92,10 @@ def test_tiny_image_rejected(tmp_path):
 def test_huge_image_downscaled_with_scale_factor(tmp_path):
     p = tmp_path / "huge.png"
     Image.new("RGB", (12000, 9000), (120, 130, 140)).save(p)
-    out = io.load_image(p, max_side=1600)
+    # 108 MP: above the default image.max_pixels (100 MP) and Pillow's warning (89 MP)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no DecompressionBombWarning
+        out = io.load_image(p, max_side=1600, max_pixels=120_000_000)
     assert max(out.rgb.shape[:2]) == 1600
     assert out.original_size == (12000, 9000)
     assert out.scale_factor == pytest.approx(1600 / 12000)
@@ -250,3 +256,104 @@ def test_rectified_photos_get_derived_vp_truth(tmp_path):
     (root / "annotations.json").write_text(json.dumps({"images": [{"id": 1}]}))
     with pytest.raises(InputError, match=r"annotations.json: .*images\[0\] needs file_name"):
         pipeline.vp_truth(str(root / "annotations.json"), str(tmp_path / "x.json"))
+
+
+# ----------------------------------------------------------------------- issue 42
+def _huge_png(path, side: int) -> None:
+    """A ``side`` x ``side`` grey PNG written row by row (small file, little memory)."""
+    import struct
+    import zlib
+
+    comp = zlib.compressobj(9)
+    row = b"\x00" + b"\x80" * side
+    body = b"".join(comp.compress(row) for _ in range(side)) + comp.flush()
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0))
+                     + chunk(b"IDAT", body) + chunk(b"IEND", b""))
+
+
+def test_image_above_the_pixel_limit_is_refused_from_its_header(tmp_path):
+    """A 20000x20000 PNG (0.4 MB) is refused before decoding (it took 5.6 GB to decode),
+    and Pillow's process-wide guard is left as it was."""
+    from PIL import Image
+
+    before = Image.MAX_IMAGE_PIXELS
+    p = tmp_path / "huge.png"
+    _huge_png(p, 20000)
+    with pytest.raises(io.InputError, match=r"huge.png: image too large \((20000x20000 = )?"
+                                            r"400.0 megapixels; the limit is image.max_pixels"):
+        io.load_image(p)
+    assert Image.MAX_IMAGE_PIXELS == before and before is not None
+    io.load_image(_small(tmp_path), max_pixels=160 * 120)
+    with pytest.raises(io.InputError, match="image.max_pixels = 100"):
+        io.load_image(_small(tmp_path), max_pixels=100)
+
+
+def _small(tmp_path):
+    p = tmp_path / "small.png"
+    Image.fromarray(_photo()).save(p)
+    return p
+
+
+def test_pixel_limit_is_a_per_photo_failure_record(tmp_path):
+    from rescu import pipeline
+
+    p = tmp_path / "huge.png"
+    _huge_png(p, 20000)
+    f = pipeline.prepare(str(p), str(tmp_path / "o.png"), str(tmp_path / "o.json"),
+                         image_name="huge.png", max_side=1600, min_side=16, max_pixels=10**8)
+    assert f["stage"] == "prepare" and "image too large" in f["message"]
+    assert json.loads((tmp_path / "o.json").read_text())["failure"] == f
+
+
+def test_no_exif_no_copy_and_no_rotation_note(tmp_path, monkeypatch):
+    """exif_transpose (a full copy) runs only for an EXIF rotation; the meta no longer
+    says 'exif-rotated' for every image."""
+    from PIL import ImageOps
+
+    calls = []
+    real = ImageOps.exif_transpose
+    monkeypatch.setattr(ImageOps, "exif_transpose", lambda im, **k: calls.append(1) or real(im, **k))
+    out = io.load_image(_small(tmp_path))
+    assert "exif-rotated" not in out.notes and not calls
+
+
+@pytest.mark.parametrize("kind", ["broken link", "fifo", "device", "folder"])
+def test_not_a_regular_file_is_named_as_such(tmp_path, kind):
+    import os
+
+    p = tmp_path / "x.png"
+    if kind == "broken link":
+        p.symlink_to(tmp_path / "gone.png")
+        want = "broken symbolic link"
+    elif kind == "fifo":
+        os.mkfifo(p)
+        want = "a FIFO"
+    elif kind == "device":
+        p = Path("/dev/null")
+        want = "a device"
+    else:
+        p.mkdir()
+        want = "a folder"
+    with pytest.raises(io.InputError, match=want):
+        io.load_image(p)
+    if kind != "device":  # in folder mode: named on stderr, not skipped silently
+        skipped = io.skipped_images(tmp_path)
+        assert len(skipped) == 1 and skipped[0].startswith("x.png (") and want in skipped[0]
+
+
+def test_gif_is_an_image_and_non_utf8_names_are_valid_json(tmp_path):
+    from rescu import pipeline
+
+    Image.fromarray(_photo()).save(tmp_path / "a.gif")
+    assert [p.name for p in io.list_images(tmp_path)] == ["a.gif"]
+    name = b"caf\xe9.png".decode("utf-8", "surrogateescape")  # a Latin-1 file name
+    pipeline.prepare(str(tmp_path / "a.gif"), str(tmp_path / "o.png"), str(tmp_path / "o.json"),
+                     image_name=name, max_side=1600, min_side=16)
+    image = json.loads((tmp_path / "o.json").read_text())["image"]
+    assert image == "caf\ufffd.png"
+    image.encode("utf-8")  # strict: no lone surrogate (was '\udce9')

@@ -66,6 +66,7 @@ rule prepare:
         image_name=lambda w: DATASETS[w.dataset]["names"][w.image],
         max_side=config["image"]["max_side"],
         min_side=config["image"]["min_side"],
+        max_pixels=config["image"]["max_pixels"],
     log:
         LOGS + "/{dataset}/prepare/{image}.log",
     benchmark:
