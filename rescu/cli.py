@@ -52,19 +52,24 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _collect_photos(paths: Sequence[str]) -> list[Path]:
-    from .io import IMAGE_EXTENSIONS, InputError, list_images
+    """The photos named on the command line (folders expanded); a note on stderr for
+    entries of a folder that look like images but cannot be read (broken links, ...)."""
+    from .io import IMAGE_EXTENSIONS, InputError, check_photo_file, list_images, skipped_images
 
     photos: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            found = list_images(p / "images" if (p / "images").is_dir() else p)
+            folder = p / "images" if (p / "images").is_dir() else p
+            found = list_images(folder)
+            skipped = skipped_images(folder)
+            if skipped:
+                print(f"rescu: note: skipped in {folder}: {', '.join(skipped)}",
+                      file=sys.stderr)
             if not found:
                 raise InputError(f"{p}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in folder")
             photos += found
-        elif p.exists():
-            photos.append(p)
         else:
-            raise InputError(f"{p}: file not found")
+            photos.append(check_photo_file(p))
     unique: dict[Path, Path] = {}
     for p in photos:  # one photo named twice (a file and its folder) runs once
         unique.setdefault(p.resolve(), p)
@@ -137,12 +142,20 @@ def _summary_line(name: str, res: Any) -> str:
     return line + (f' — "{cap}"' if cap else "") + note
 
 
+def _terminate(signum: int, frame: Any) -> None:
+    """SIGTERM: leave like Ctrl-C (the staging folder is removed, results stay whole)."""
+    raise KeyboardInterrupt
+
+
 def cmd_discover(args: argparse.Namespace) -> int:
+    import signal
+
     from tqdm import tqdm
 
     from .api import discover
     from .config import load_config
-    from .io import InputError
+    from .io import DiskFullError, InputError
+    from .outputs import check_targets
     from .pipeline import setup_logging
 
     sets = (["dense.enabled=true"] if args.dense else []) + list(args.set)
@@ -152,6 +165,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
     names = result_names(photos)
     out = Path(args.out)
     _check_out_dir(out, photos)
+    check_targets(out, names, force=args.force)
+    signal.signal(signal.SIGTERM, _terminate)  # a kill runs the cleanup of `finally` blocks
     try:
         setup_logging(str(out / "rescu.log"), logging.DEBUG if args.verbose else logging.INFO)
     except OSError as e:
@@ -160,10 +175,18 @@ def cmd_discover(args: argparse.Namespace) -> int:
     failed = degraded = 0
     bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
                disable=args.quiet or None, file=sys.stderr)
-    for photo, name in bar:
+    for done, (photo, name) in enumerate(bar):
         bar.set_postfix_str(photo.name)
-        res = discover(photo, out_dir=out, method=args.method, config=cfg,
-                       keep_work=args.keep_work, name=name, validated=True)
+        try:
+            res = discover(photo, out_dir=out, method=args.method, config=cfg,
+                           keep_work=args.keep_work, name=name, validated=True,
+                           force=args.force)
+        except DiskFullError as e:
+            bar.close()
+            print(f"rescu: error: {e}; stopped at {photo} ({done} of {len(photos)} photo(s) "
+                  f"done, their results in {out}/ intact); free some space and run again",
+                  file=sys.stderr)
+            return EXIT_IMAGE_FAILED
         f = res.extra.get("failure")
         failed += bool(f) and not f.get("degraded_to")
         degraded += bool(f) and bool(f.get("degraded_to"))
@@ -213,6 +236,11 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None 
         example = sorted(images)[0]
         raise InputError(f"{pred_dir}: none of its {len(stems)} JSON file(s) is named after an "
                          f"image of {dataset_dir} (expected e.g. {example}.json)")
+    missing = sorted(images - stems)
+    if missing:
+        print(f"rescu: note: {len(missing)} of {len(images)} image(s) of {dataset_dir} have no "
+              f"prediction in {pred_dir} (e.g. {missing[0]}.json); they count as no detection",
+              file=sys.stderr)
     method = pred_dir.name or "predictions"
     if has_rp:
         scores = evaluate_rp_dataset(dataset_dir, {method: pred_dir}, h)
@@ -273,8 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "caption) and <stem>_rectified/rp<k>.png (rectified views), and prints a "
                     "one-line summary per photo. Photos that share a stem (x.jpg, x.png) keep "
                     "their extension in these names (x.jpg.json). The output folder must not "
-                    "hold any of the photos. The whole configuration is checked before the "
-                    "first photo.")
+                    "hold any of the photos; a file there that rescu did not write is never "
+                    "replaced (without --force); a rerun replaces a photo's whole result set. "
+                    "The whole configuration is checked before the first photo.")
     d.add_argument("photos", nargs="+", metavar="PHOTO",
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")
@@ -294,6 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "products): RPs from the CNN feature map only, extended by stage II "
                         "from any proposal (the profile config/objects.yaml; --config and "
                         "--set still apply over it)")
+    d.add_argument("--force", action="store_true",
+                   help="replace files in DIR named like results (<stem>.json, <stem>.png, "
+                        "<stem>_rectified/) that rescu did not write; without it such files "
+                        "stop the run before any work (exit 2)")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

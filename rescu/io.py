@@ -8,6 +8,7 @@ later step would read as valid.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -30,12 +31,26 @@ class InputError(ValueError):
     """Bad input: the message names the file and what is wrong with it."""
 
 
+class DiskFullError(OSError):
+    """No space left (or the disk quota reached) while writing ``filename``: no later
+    write can succeed, so a run stops here; files written before are intact (every write
+    is atomic)."""
+
+    def __str__(self) -> str:
+        return f"{self.filename}: cannot be written: {self.strerror}"
+
+
+NO_SPACE = {errno.ENOSPC, errno.EDQUOT}
+"""``errno`` values of a full disk (:class:`DiskFullError`)."""
+
+
 # ----------------------------------------------------------------------------- atomic
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
 
-    On an exception the temporary file is removed and ``path`` is left untouched.
+    On an exception the temporary file is removed and ``path`` is left untouched; a full
+    disk raises :class:`DiskFullError` naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -47,6 +62,10 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as e:
+        if e.errno in NO_SPACE and not isinstance(e, DiskFullError):
+            raise DiskFullError(e.errno, os.strerror(e.errno), str(path)) from None
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

@@ -124,7 +124,7 @@ def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
     try:
         run()
         return None
-    except (MemoryError, KeyboardInterrupt):
+    except (MemoryError, KeyboardInterrupt, io.DiskFullError):  # not the image's fault
         raise
     except Exception as e:  # noqa: BLE001 - isolation is the point
         log.error("%s failed: %s\n%s", stage, e, traceback.format_exc())
