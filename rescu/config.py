@@ -149,6 +149,11 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     build("features", lambda: FeatureParams.from_dict(config["features"]))
     s1 = config["stage1"]
     build("stage1", lambda: Stage1Params.from_dict(s1))
+    for least, most, what in (("min_instances", "max_cols", "instances"),
+                              ("min_words", "max_rows", "words")):
+        if s1[least] > s1[most]:
+            raise InputError(f"stage1.{least} = {s1[least]} is more than "
+                             f"stage1.{most} = {s1[most]}: no RP could have enough {what}")
     build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
     build("dense", lambda: DenseParams.from_dict(config["dense"]))
     ablation = config.get("ablation") or {}
@@ -182,6 +187,46 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     build("evaluation", lambda: EvaluationParams.from_dict(config["evaluation"]))
     if stage2:
         check_backbone_weights(s2)
+        check_device(s2)
+        for name, over in [("stage2", {})] + [(f"stage2_ablation.variants.{n}", o) for n, o
+                                              in ((ab2.get("variants") or {}).items())]:
+            check_edge_model(name, deep_merge(s2, over or {}))
+
+
+def check_device(stage2: dict[str, Any]) -> str:
+    """The torch device of stage II (``stage2.backbone.device``) when this machine has
+    it; :class:`InputError` otherwise (``cuda`` without a GPU, ``mps`` without Metal)."""
+    device = str((stage2.get("backbone") or {}).get("device", "cpu"))
+    if device == "cpu":
+        return device
+    import torch
+
+    if device.startswith("cuda"):
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = int(device.split(":")[1]) if ":" in device else 0
+        if index >= n:
+            raise InputError(f"stage2.backbone.device = {device!r}: "
+                             + ("no CUDA GPU on this machine" if n == 0 else
+                                f"this machine has {n} CUDA GPU(s) (cuda:0..cuda:{n - 1})")
+                             + "; use device cpu")
+    elif device == "mps" and not torch.backends.mps.is_available():
+        raise InputError(f"stage2.backbone.device = 'mps': not available on this "
+                         f"machine; use device cpu")
+    return device
+
+
+def check_edge_model(section: str, stage2: dict[str, Any]) -> None:
+    """:class:`InputError` when the proposals use EdgeBoxes with a structured-edge model
+    file (``stage2.proposals.edge_model_path``) that is not a readable file."""
+    prop = stage2.get("proposals") or {}
+    path = prop.get("edge_model_path")
+    if not path or prop.get("method") == "instance_scale":
+        return
+    if not Path(path).is_file():
+        where = "" if section == "stage2" else f"{section}: "
+        raise InputError(f"{where}stage2.proposals.edge_model_path = {str(path)!r}: "
+                         f"file not found (a structured-edge model, e.g. OpenCV's "
+                         f"model.yml.gz; null = computed gradient edges)")
 
 
 def check_backbone_weights(stage2: dict[str, Any]) -> str:

@@ -91,6 +91,10 @@ def test_two_folders_with_one_file_name_are_refused_before_work(tmp_path):
     ("stage2.visible_half=true", ["unknown key 'stage2.visible_half'"]),
     ("stage1.max_patterns=[1", ["--set", "stage1.max_patterns=[1", "not valid YAML"]),
     ("stage1", ["--set expects KEY=VALUE"]),
+    ("stage2.backbone.device=potato", ["--set", "stage2.backbone.device = 'potato'",
+                                       "does not match"]),
+    ("stage1.min_instances=300", ["--set", "stage1.min_instances = 300 is more than "
+                                  "stage1.max_cols = 200"]),
 ])
 def test_bad_parameter_is_named_before_any_image(photos, tmp_path, setting, needles):
     out = tmp_path / "out"
@@ -108,6 +112,32 @@ def test_bad_key_in_config_file_names_the_file(photos, tmp_path):
     cfg.write_text("stage1: [1\n")
     assert_one_line_error(rescu("discover", str(photos / "x.png"), "--out", str(tmp_path / "o"),
                                 "--config", str(cfg)), str(cfg), "malformed YAML")
+
+
+def test_edge_model_file_is_checked_before_any_image(photos, tmp_path):
+    """EdgeBoxes with a missing structured-edge model: every photo ran stage I, then raw
+    OpenCV messages and exit 1."""
+    out = tmp_path / "out"
+    proc = rescu("discover", str(photos / "x.png"), "--out", str(out),
+                 "--set", "stage2.proposals.method=edgeboxes",
+                 "--set", "stage2.proposals.edge_model_path=/missing/model.yml.gz")
+    assert_one_line_error(proc, "--set", "stage2.proposals.edge_model_path = "
+                          "'/missing/model.yml.gz': file not found")
+    assert not out.exists()
+
+
+def test_cuda_without_a_gpu_is_refused_before_any_image(monkeypatch):
+    import torch
+
+    from rescu.config import load_config
+    from rescu.io import InputError
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for device in ("cuda", "cuda:1"):
+        with pytest.raises(InputError, match=f"--set: stage2.backbone.device = "
+                                             f"'{device}': no CUDA GPU on this machine"):
+            load_config(overrides={"stage2": {"backbone": {"device": device}}})
+    load_config(overrides={"stage2": {"backbone": {"device": "cuda"}}}, stage2=False)
 
 
 def test_densenet_weights_not_needed_for_stage_one(photos, tmp_path):
