@@ -442,3 +442,29 @@ def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
     with pytest.raises(AssertionError,
                        match=r"predict_variants\.x: \['examples'\] are not the predict section"):
         snakemake(tmp_path, cfg, "-n")
+
+
+def test_photo_only_dataset_runs_to_the_report(tmp_path):
+    """A dataset of photos without annotations (the README's "or just photos") runs to the
+    report: the tables that need ground truth say so instead of failing (before: the
+    `ts_tables` job declared `figures/ts_sweep.png` and wrote none, MissingOutputException)."""
+    from test_cli import shelf_photo
+
+    photos = tmp_path / "mine"
+    photos.mkdir()
+    shelf_photo(photos / "a.png")
+    shelf_photo(photos / "b.png")
+    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "datasets": {**{n: {"enabled": False} for n in default["datasets"]},
+                     "mine": {"path": str(photos)}},
+        "run_datasets": ["mine"], "results_dir": str(tmp_path / "res"),
+        "stage2": {"head": {"max_epochs": 2}, "proposals": {"max_proposals": 100}},
+    }))
+    snakemake(tmp_path, cfg)
+    res = tmp_path / "res"
+    assert len(list((res / "mine" / "final").glob("*.json"))) == 2
+    assert (res / "report" / "index.html").is_file()
+    for table in ("rp_discovery", "counting", "ts", "vpd"):
+        assert "no ground truth" in (res / "tables" / f"{table}.md").read_text(), table

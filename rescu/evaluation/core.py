@@ -482,13 +482,19 @@ def frame_markdown(df: pd.DataFrame, decimals: int = 2) -> str:
 
 # ----------------------------------------------------------------------------- writers
 def write_tsv(df: pd.DataFrame, path: str | Path) -> None:
-    """Write a table as TSV (full float precision, ``NaN`` for undefined), atomically."""
+    """Write a table as TSV (full float precision, ``NaN`` for undefined), atomically.
+    A table without columns (no ground truth for it) is an empty file."""
     with atomic_path(path) as tmp:
-        df.to_csv(tmp, sep="\t", index=False, na_rep="NaN", float_format="%.10g")
+        if len(df.columns):
+            df.to_csv(tmp, sep="\t", index=False, na_rep="NaN", float_format="%.10g")
+        else:
+            tmp.write_bytes(b"")
 
 
 def read_tsv(path: str | Path) -> pd.DataFrame:
-    """Read a table written by :func:`write_tsv`."""
+    """Read a table written by :func:`write_tsv` (an empty file: an empty table)."""
+    if Path(path).stat().st_size == 0:
+        return pd.DataFrame()
     return pd.read_csv(path, sep="\t", na_values=["NaN"], keep_default_na=False)
 
 

@@ -24,6 +24,10 @@ from ..io import atomic_path, read_result
 from .metrics import TABLE_METRICS
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
+NO_RP_TRUTH = ("_no ground truth: no dataset of this run has recurring-pattern annotations "
+               "(annotations.json)_\n")
+NO_VP_TRUTH = ("_no ground truth: no dataset of this run has vanishing-point annotations "
+               "(vanishing_points.json, or vp_truth)_\n")
 RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
 VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines": "vp-lsd",
               "RESCU joint": "scene-joint", "RESCU joint (true focal)": "scene-joint-f",
@@ -86,7 +90,7 @@ def rp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
                              decimals=params.decimals,
                              title=f"RP discovery (IOD h = {params.iod_h})",
                              note=E.RP_TABLE_NOTE)
-          if len(summary) else "_no dataset with recurring-pattern ground truth_\n")
+          if len(summary) else NO_RP_TRUTH)
     _write(summary, md, out_tsv, out_md)
 
 
@@ -156,7 +160,7 @@ def counting_tables(datasets: Mapping[str, DatasetRef], results: str | Path,
     df = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     md = ("## Counting\n\n" + COUNTING_NOTE + E.frame_markdown(df, params.decimals)) \
         if len(df) else \
-        "_no dataset with recurring-pattern ground truth_\n"
+        NO_RP_TRUTH
     _write(df, md, out_tsv, out_md)
 
 
@@ -202,7 +206,7 @@ def vp_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
                 E.frame_markdown(tests, 4)
     else:
         success, tests = pd.DataFrame(), pd.DataFrame()
-        md = "_no dataset with vanishing-point ground truth_\n"
+        md = NO_VP_TRUTH
     E.write_tsv(tests, out_tests)
     _write(success, md, out_tsv, out_md)
 
@@ -242,8 +246,14 @@ def ts_tables(datasets: Mapping[str, DatasetRef], results: str | Path, params: E
         plt.close(fig)
         md = "## Translation symmetry (SR_ts vs t)\n\n" + E.frame_markdown(
             df[df["sweep"] == "fine"], params.decimals)
-    else:
-        md = "_no dataset with recurring-pattern ground truth_\n"
+    else:  # photos only: the declared figure says so (a job must write its outputs)
+        fig = plt.figure(figsize=(5, 1))
+        fig.text(0.5, 0.5, "no ground truth: no translation-symmetry sweep", ha="center",
+                 va="center")
+        with atomic_path(Path(figures_dir) / "ts_sweep.png") as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+        plt.close(fig)
+        md = NO_RP_TRUTH
     _write(df, md, out_tsv, out_md)
 
 
