@@ -218,3 +218,30 @@ def test_evaluate_says_how_many_predictions_are_missing(tmp_path, capsys):
     assert cli.evaluate_predictions_cli(ds, preds) == 0
     err = capsys.readouterr().err
     assert "1 of 2 image(s)" in err and "b.json" in err and "count as no detection" in err
+
+
+# ----------------------------------------------------------------------- item 3: memory
+def test_discover_on_a_20000_pixel_png_stays_small_and_goes_on(tmp_path):
+    """A 0.4 MB 20000x20000 PNG took 5.6 GB; now it is refused from its header (a failure
+    record) and the next photo is done, the whole command under 300 MB."""
+    from test_io import _huge_png
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    _huge_png(folder / "a_huge.png", 20000)
+    shelf_photo(folder / "b.png")
+    out = tmp_path / "out"
+    code = ("import resource, subprocess, sys; p = subprocess.run(sys.argv[1:]); "
+            "print(p.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    proc = subprocess.run([sys.executable, "-c", code, str(RESCU), "discover",
+                           str(folder / "a_huge.png"), "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+    returncode, max_rss_kb = map(int, proc.stdout.split()[-2:])
+    assert returncode == cli.EXIT_IMAGE_FAILED, proc.stdout
+    assert "a_huge.png: FAILED in prepare" in proc.stdout and "image too large" in proc.stdout
+    assert max_rss_kb < 300 * 1024, f"peak {max_rss_kb / 1024:.0f} MB"
+    proc = subprocess.run([str(RESCU), "discover", str(folder), "--out", str(out), "--method",
+                           "rescu-i", "--quiet"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == cli.EXIT_IMAGE_FAILED and "Traceback" not in proc.stderr
+    assert "1 of 2 image(s) done" in proc.stdout and (out / "b.json").is_file()
+    assert json.loads((out / "a_huge.json").read_text())["failure"]["stage"] == "prepare"
