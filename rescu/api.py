@@ -160,7 +160,7 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         pipeline.image_vp(w("image.png"), w("meta.json"), w("scene.json"), w("joint.json"),
                           cfg["scene"])
         pipeline.caption(w("image.png"), w("meta.json"), w("joint.json"), w("final.json"),
-                         cfg["caption"])
+                         cfg["caption"], claims=cfg["scene"].get("claims"))
         result = io.read_result(w("final.json"))
         if out_dir is not None:
             out = Path(out_dir)

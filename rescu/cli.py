@@ -117,6 +117,10 @@ def _check_out_dir(out: Path, photos: Sequence[Path]) -> None:
 
 
 def _summary_line(name: str, res: Any) -> str:
+    """``<name>: <what was found> — "<caption>"`` (:func:`rescu.captions.caption.
+    summary_line`: the caption's facts, counts and confidences), or the failure."""
+    from .captions.caption import NO_PATTERN, summary_line
+
     f = res.extra.get("failure")
     note = ""
     if f and f.get("degraded_to"):  # a step failed; the previous step's patterns kept
@@ -124,17 +128,11 @@ def _summary_line(name: str, res: Any) -> str:
                 f"{f.get('degraded_to')}'s result kept]")
     elif f:
         return f"{name}: FAILED in {f.get('stage')}: {f.get('message')}"
-    if not res.patterns:
-        return f"{name}: no recurring pattern{note}"
-    parts = [f"{len(res.patterns)} RP(s), counts " + ",".join(str(p.count) for p in res.patterns)]
-    if res.vanishing_point is not None:
-        parts.append("VP " + ("inside" if res.vanishing_point.inside_image else "outside")
-                     + " the image")
-    if any(p.translation_symmetry and p.translation_symmetry.detected for p in res.patterns):
-        parts.append("translation symmetry")
+    line = summary_line(res)
     cap = (res.caption or {}).get("enhanced")
-    line = f"{name}: " + "; ".join(parts)
-    return line + (f' — "{cap}"' if cap else "") + note
+    if line == NO_PATTERN or not cap:
+        return f"{name}: {line}{note}"
+    return f'{name}: {line} — "{cap}"{note}'
 
 
 def cmd_discover(args: argparse.Namespace) -> int:

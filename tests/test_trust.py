@@ -266,7 +266,7 @@ def test_summary_line_of_a_degraded_result_shows_patterns_and_the_failure():
                       extra={"failure": {"stage": "stage2-predict", "message": "boom",
                                          "type": "ValueError", "degraded_to": "rescu-i"}})
     line = _summary_line("x.jpg", res)
-    assert line.startswith("x.jpg: 1 RP(s), counts 2")
+    assert line.startswith("x.jpg: 1 RP: 2 (score 1.00)")
     assert "FAILED in stage2-predict: boom; rescu-i's result kept" in line
     res.extra["failure"].pop("degraded_to")
     assert _summary_line("x.jpg", res) == "x.jpg: FAILED in stage2-predict: boom"

@@ -438,6 +438,7 @@ def build_run_report(out_html: str | Path, results: str | Path,
     ``iod_h``, ``decimals``) for the notes and number formats; ``tables`` the table
     files the run made (default: all in ``<results>/tables``).
     """
+    from ..captions.caption import summary_line
     from ..io import read_result
 
     results = Path(results)
@@ -449,9 +450,7 @@ def build_run_report(out_html: str | Path, results: str | Path,
             rect_dir = results / ds / "rectified" / stem
             rect = sorted(rect_dir.glob("*.png")) if rect_dir.is_dir() else []
             f = res.extra.get("failure")
-            counts = [p.count for p in res.patterns]
-            summary = (f"{len(counts)} pattern{'s' if len(counts) != 1 else ''}"
-                       + (f", counts {', '.join(str(c) for c in counts)}" if counts else ""))
+            summary = summary_line(res)
             if f and f.get("degraded_to"):  # a step failed; the previous step's result kept
                 summary += f" ({f.get('stage')} failed; {f.get('degraded_to')}'s result)"
             elif f:

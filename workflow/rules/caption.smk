@@ -10,6 +10,7 @@ rule caption:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
     params:
         caption=config["caption"],
+        claims=config["scene"]["claims"],
     log:
         LOGS + "/{dataset}/caption/{image}.log",
     benchmark:
