@@ -39,7 +39,8 @@ def _dense_step(cfg: dict[str, Any], w: Any) -> None:
 
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
              config: dict[str, Any] | None = None, keep_work: bool = False,
-             name: str | None = None, validated: bool = False) -> ImageResult:
+             name: str | None = None, validated: bool = False,
+             overlay: str | None = None) -> ImageResult:
     """Discover the recurring patterns of one photo and describe the scene.
 
     Parameters
@@ -62,6 +63,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     validated : bool
         ``config`` was already checked by :func:`rescu.config.validate_config` (the CLI
         checks it once for all photos); otherwise it is checked here.
+    overlay : {"full", "boxes", "none"}, optional
+        What ``<stem>.png`` shows (:data:`rescu.visualize.OVERLAY_MODES`; ``"none"``:
+        no picture); None: the config's ``report.overlay``.
 
     Returns
     -------
@@ -98,6 +102,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
 
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
+    if overlay is not None and overlay not in ("full", "boxes", "none"):
+        raise InputError(f"overlay must be 'full', 'boxes' or 'none', got {overlay!r}")
     image = Path(image)
     if not image.is_file():
         raise FileNotFoundError(f"{image}: " + ("is a folder, not an image file"
@@ -165,8 +171,10 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         if out_dir is not None:
             out = Path(out_dir)
             io.write_json(out / f"{stem}.json", result)
-            pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
-                             str(out / f"{stem}.png"))
+            mode = overlay or cfg["report"]["overlay"]
+            if mode != "none":
+                pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
+                                 str(out / f"{stem}.png"), mode=mode)
             if rect.is_dir() and not any(rect.iterdir()):
                 rect.rmdir()
         return result

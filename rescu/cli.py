@@ -161,7 +161,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
     for photo, name in bar:
         bar.set_postfix_str(photo.name)
         res = discover(photo, out_dir=out, method=args.method, config=cfg,
-                       keep_work=args.keep_work, name=name, validated=True)
+                       keep_work=args.keep_work, name=name, validated=True,
+                       overlay=args.overlay)
         f = res.extra.get("failure")
         failed += bool(f) and not f.get("degraded_to")
         degraded += bool(f) and bool(f.get("degraded_to"))
@@ -292,6 +293,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "products): RPs from the CNN feature map only, extended by stage II "
                         "from any proposal (the profile config/objects.yaml; --config and "
                         "--set still apply over it)")
+    d.add_argument("--overlay", default=None, choices=["boxes", "full", "none"],
+                   help="what <stem>.png shows: boxes (instances, labels, legend, caption), "
+                        "full (also the vanishing points as thin lines) or none (no picture); "
+                        "default: the config's report.overlay (full)")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

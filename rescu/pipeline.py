@@ -717,13 +717,14 @@ def caption(png: str, meta_path: str, in_json: str, out_json: str,
 
 
 def overlay(png: str, meta_path: str, result_json: str, out_png: str,
-            rectified_dir: str | None = None) -> None:
-    """Picture of what was found (:func:`rescu.visualize.overlay`)."""
+            rectified_dir: str | None = None, mode: str = "full") -> None:
+    """Picture of what was found (:func:`rescu.visualize.overlay`; ``mode`` ``full`` or
+    ``boxes``: the config's ``report.overlay``)."""
     from . import visualize
 
     rgb, meta = read_prepared(png, meta_path)
     res = io.read_result(result_json)
-    img = visualize.overlay(rgb, float(meta.get("scale_factor", 1.0)), res)
+    img = visualize.overlay(rgb, float(meta.get("scale_factor", 1.0)), res, mode=mode)
     io.write_image(out_png, img)
 
 

@@ -26,6 +26,8 @@ rule overlay:
         code=step_code("overlay"),
     output:
         png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
+    params:
+        mode=config["report"]["overlay"],
     log:
         LOGS + "/{dataset}/overlay/{image}.log",
     script:
