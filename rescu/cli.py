@@ -169,8 +169,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
         tqdm.write(_summary_line(photo.name, res), file=sys.stdout)
     kept = (f" ({degraded} with a failed step, the previous step's result kept)"
             if degraded else "")
+    from .gallery import write_gallery
+
+    page = write_gallery(out, names)
     print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
           f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
+    print(f"Gallery: {page}")
     return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
@@ -268,10 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
         "discover", help="find recurring patterns in photos",
         description="Run RESCU on photos (files or folders). Writes, per photo, <stem>.json "
                     "(the per-image result format of the benchmark), <stem>.png (overlay: each "
-                    "pattern's instances in its own colour, lines to its vanishing point, the "
-                    "caption) and <stem>_rectified/rp<k>.png (rectified views), and prints a "
-                    "one-line summary per photo. Photos that share a stem (x.jpg, x.png) keep "
-                    "their extension in these names (x.jpg.json). The output folder must not "
+                    "pattern's instances in its own colour with a label, a legend with counts "
+                    "and confidence, thin lines to the vanishing points, the caption; "
+                    "--overlay) and <stem>_rectified/rp<k>.png (rectified views), prints a "
+                    "one-line summary per photo and writes DIR/index.html, a page with every "
+                    "photo's overlay, summary and caption. Photos that share a stem (x.jpg, "
+                    "x.png) keep their extension in these names (x.jpg.json). The output folder must not "
                     "hold any of the photos. The whole configuration is checked before the "
                     "first photo.")
     d.add_argument("photos", nargs="+", metavar="PHOTO",

@@ -250,16 +250,16 @@ def _band(result: ImageResult, w: int) -> np.ndarray:
     lh = 18 if w >= 360 else 15
     chars = max(20, int(w / (18.5 * fs)))
     legend = legend_entries(result)
-    lines = [(col, ln) for col, t in legend for ln in _wrap(t, chars - 3)[:1]]
+    lines = [(col if k == 0 else (), ln) for col, t in legend
+             for k, ln in enumerate(_wrap(t, chars - 3))]
     cap = [(None, ln) for ln in _wrap(text, chars)] or [(None, "")]
     band = np.full((lh * (len(lines) + len(cap)) + 12, w, 3), 255, np.uint8)
     y = 4
     for col, ln in lines + cap:
-        x = 6
-        if col is not None:
+        x = 6 + lh if col is not None else 6  # (): a legend entry's next line
+        if col:
             cv2.rectangle(band, (6, y + 3), (6 + lh - 6, y + lh - 3), col, -1)
             cv2.rectangle(band, (6, y + 3), (6 + lh - 6, y + lh - 3), (0, 0, 0), 1)
-            x = 6 + lh
         cv2.putText(band, ln, (x, y + lh - 5), cv2.FONT_HERSHEY_SIMPLEX, fs, (0, 0, 0), 1,
                     cv2.LINE_AA)
         y += lh

@@ -6,23 +6,25 @@ of coins does not have. :func:`supported_claims` (the caption step, before the c
 is written) keeps a claim only when its evidence passes a test, and otherwise says in
 the JSON which test failed:
 
-* **An RP's vanishing point** needs lines through at least ``min_row_instances``
-  instances of a row (the feature tracks of one visual word along the row, and the line
-  through the row's instance centres), at least ``min_lines`` of them from at least
-  ``min_rows`` rows, that are *not parallel within noise*: their directions differ by
-  more than a chi-square test at level ``parallel_alpha`` allows for points of noise
+* **An RP's vanishing point** needs at least ``min_rows`` rows of at least
+  ``min_row_instances`` instances, each one line (through its instance centres, along
+  the mean direction of that centre line and of the feature tracks of each visual word
+  along the row), that are *not parallel within noise*: their directions differ by more
+  than a chi-square test at level ``parallel_alpha`` allows for points of noise
   ``point_noise`` x the median instance side, and by at least ``min_convergence_deg``;
-  and the VP must lie on them (median angle between a line and the ray from its middle
-  to the VP below ``max_residual_deg``). Pattern keys: ``vp_status`` (``"supported"``,
-  ``"frontal"``: lines parallel, ``"too_few_rows"``, ``"inconsistent"``: the lines do
-  not meet at the VP, ``"none"``: no VP was estimated) and ``vp_evidence`` (the
-  measured numbers).
+  and the rows must meet at the VP (no row further than ``max_residual_deg`` from the
+  ray from its middle to the VP). Pattern keys: ``vp_status`` (``"supported"``,
+  ``"frontal"``: rows parallel or the VP at infinity, ``"too_few_rows"``,
+  ``"inconsistent"``: the rows do not meet at the VP, ``"none"``: no VP was estimated)
+  and ``vp_evidence`` (the measured numbers).
 * **The image's vanishing points** (``vanishing_points`` of the joint estimator) each
-  need ``min_image_support`` inlier lines and a finite point at which the image
-  diagonal subtends at least ``min_image_convergence_deg`` (lines across the image that
-  converge less than that are parallel in the picture: a frontal view). Those that fail
-  move to ``rejected_vanishing_points`` with a ``status`` (``"at_infinity"``,
-  ``"weak"``); ``vanishing_point`` is the first supported one (dominant first), or null
+  need ``min_image_support`` inlier lines holding at least ``min_image_share`` of the
+  weight of all lines the estimator was given (``vp_lines``: a VP that gathers a few of
+  many lines in every direction, fur or letters, is chance), and a finite point at
+  which the image diagonal subtends at least ``min_image_convergence_deg`` (lines across
+  the image that converge less than that are parallel in the picture: a frontal view).
+  Those that fail move to ``rejected_vanishing_points`` with a ``status``
+  (``"at_infinity"``, ``"weak"``); ``vanishing_point`` is the first supported one (dominant first), or null
   with the image's ``vp_status``: ``"frontal"`` (every VP found lies at infinity),
   ``"weak"`` (too few lines), ``"none"`` (no VP from any cue). Without the joint list
   (fewer than three lines) the RP-only VP is kept when an RP's VP is supported.
@@ -56,9 +58,7 @@ class ClaimParams:
     min_row_instances : int
         A line counts when it passes through at least this many instances of one row.
     min_rows : int
-        Fewest rows that give lines for an RP's VP.
-    min_lines : int
-        Fewest lines for an RP's VP.
+        Fewest rows (one line each) for an RP's VP.
     point_noise : float
         Noise floor of a line point, as a fraction of the median instance side.
     parallel_alpha : float
@@ -66,29 +66,36 @@ class ClaimParams:
     min_convergence_deg : float
         Smallest spread of the line directions for a VP, degrees.
     max_residual_deg : float
-        Largest median angle between a line and the ray from its middle to the VP, degrees.
+        Largest angle between a row and the ray from its middle to the VP, degrees.
     min_image_support : int
         Fewest inlier lines of one of the image's VPs.
+    min_image_share : float
+        Smallest share of the weight of all lines (``vp_lines.weight``) in the inlier
+        weight of one of the image's VPs, [0, 1].
     min_image_convergence_deg : float
         Smallest angle the image diagonal subtends at one of the image's VPs, degrees.
     """
 
     min_row_instances: int
     min_rows: int
-    min_lines: int
     point_noise: float
     parallel_alpha: float
     min_convergence_deg: float
     max_residual_deg: float
     min_image_support: int
+    min_image_share: float
     min_image_convergence_deg: float
 
     def __post_init__(self) -> None:
         if int(self.min_row_instances) < 3:
             raise ValueError("ClaimParams.min_row_instances must be >= 3 (a line through "
                              "two points has no residual)")
-        if int(self.min_rows) < 1 or int(self.min_lines) < 2:
-            raise ValueError("ClaimParams.min_rows must be >= 1 and min_lines >= 2")
+        if int(self.min_rows) < 2:
+            raise ValueError("ClaimParams.min_rows must be >= 2 (one row meets a VP "
+                             "anywhere along it)")
+        if not 0.0 <= float(self.min_image_share) <= 1.0:
+            raise ValueError(f"ClaimParams.min_image_share must be in [0, 1], got "
+                             f"{self.min_image_share}")
         if not 0.0 < float(self.parallel_alpha) < 1.0:
             raise ValueError(f"ClaimParams.parallel_alpha must be in (0, 1), got "
                              f"{self.parallel_alpha}")
@@ -139,64 +146,86 @@ def pattern_lines(pattern: Pattern, min_row_instances: int = 3) -> list[np.ndarr
     return out
 
 
-def _rows_with(pattern: Pattern, k: int) -> int:
-    n = len(pattern.instances)
-    return sum(1 for r in (pattern.extra.get("rows") or [])
-               if sum(1 for i in r if 0 <= int(i) < n) >= k)
+def _row_fits(pattern: Pattern, min_row_instances: int, floor: float
+              ) -> list[tuple[np.ndarray, float, float]]:
+    """Per row of at least ``min_row_instances`` instances: its middle (2,) (mean of the
+    instance centres, pixels), its direction angle (radians, the line-weighted mean of
+    its lines' angles) and that angle's standard error (radians: the median of its
+    lines', each from its points' residual, at least ``floor`` pixels)."""
+    rows = [[int(i) for i in r if 0 <= int(i) < len(pattern.instances)]
+            for r in (pattern.extra.get("rows") or [])]
+    out = []
+    for r in rows:
+        if len(r) < min_row_instances:
+            continue
+        one = Pattern(pattern.id, pattern.score, pattern.instances,
+                      pattern.feature_points, extra={"rows": [r]})
+        fits = [_fit_line(p) for p in pattern_lines(one, min_row_instances)]
+        ref = fits[0][1]  # the instance-centre line
+        ang, sig = [], []
+        for _, d, resid, spread in fits:
+            d = d if d @ ref >= 0 else -d
+            ang.append(np.arctan2(d[1], d[0]))
+            sig.append(max(resid, floor) / max(spread, 1e-9))
+        ang_a, sig_a = np.unwrap(np.array(ang)), np.array(sig)
+        wgt = 1.0 / sig_a ** 2
+        out.append((fits[0][0], float((wgt * ang_a).sum() / wgt.sum()), float(np.median(sig_a))))
+    return out
+
+
+def _fold(a: np.ndarray) -> np.ndarray:
+    """Angles (radians) folded into [-pi/2, pi/2) (a line has no sign)."""
+    return (a + np.pi / 2) % np.pi - np.pi / 2
 
 
 def pattern_vp_evidence(pattern: Pattern, params: ClaimParams = ClaimParams()
                         ) -> tuple[str, dict[str, Any]]:
     """Whether an RP's vanishing point is supported by its rows (module docstring).
 
+    Each row of at least ``min_row_instances`` instances gives one line: through its
+    instance centres, along the mean direction of its centre line and feature tracks.
+
     Returns
     -------
     status : str
-        ``"supported"``, ``"frontal"``, ``"too_few_rows"``, ``"inconsistent"`` or
-        ``"none"`` (``pattern.vanishing_point`` is None).
+        ``"supported"``, ``"frontal"`` (rows parallel within noise, or the VP at
+        infinity), ``"too_few_rows"``, ``"inconsistent"`` (the rows do not meet at the VP)
+        or ``"none"`` (``pattern.vanishing_point`` is None).
     evidence : dict
-        ``rows`` and ``lines`` used, ``spread_deg`` (range of the line directions),
-        ``p_parallel`` (chi-square p-value of "parallel"), ``residual_deg`` (median angle
-        between a line and the ray to the VP); only what was measured.
+        ``rows`` used, ``spread_deg`` (range of the row directions), ``p_parallel``
+        (chi-square p-value of "the rows are parallel"), ``residual_deg`` (largest angle
+        between a row and the ray from its middle to the VP); only what was measured.
     """
     vp = pattern.vanishing_point
-    n_rows = _rows_with(pattern, params.min_row_instances)
-    ev: dict[str, Any] = {"rows": n_rows}
+    boxes = np.array([i.bbox for i in pattern.instances], float).reshape(-1, 4)
+    side = float(np.median(np.minimum(boxes[:, 2], boxes[:, 3]))) if len(boxes) else 0.0
+    fits = _row_fits(pattern, params.min_row_instances, params.point_noise * max(side, 1e-6))
+    ev: dict[str, Any] = {"rows": len(fits)}
     if vp is None:
         return "none", ev
-    sets = pattern_lines(pattern, params.min_row_instances)
-    ev["lines"] = len(sets)
-    if n_rows < params.min_rows or len(sets) < params.min_lines:
+    if len(fits) < params.min_rows:
         return "too_few_rows", ev
-    boxes = np.array([i.bbox for i in pattern.instances], float)
-    side = float(np.median(np.minimum(boxes[:, 2], boxes[:, 3])))
-    floor = params.point_noise * max(side, 1e-6)
-    fits = [_fit_line(p) for p in sets]
-    ref = fits[int(np.argmax([f[3] for f in fits]))][1]
-    theta, sigma = [], []
-    for mid, d, resid, spread in fits:
-        if d @ ref < 0:
-            d = -d
-        theta.append(np.arctan2(ref[0] * d[1] - ref[1] * d[0], ref @ d))
-        sigma.append(max(resid, floor) / max(spread, 1e-9))  # slope SE, radians
-    theta_a, sig = np.array(theta), np.array(sigma)
+    ang = np.array([a for _, a, _ in fits])
+    ang = _fold(ang - ang[0]) + ang[0]
+    sig = np.array([s for _, _, s in fits])
     wgt = 1.0 / sig ** 2
-    mean = float((wgt * theta_a).sum() / wgt.sum())
-    chi2 = float((((theta_a - mean) / sig) ** 2).sum())
+    mean = float((wgt * ang).sum() / wgt.sum())
+    chi2 = float((((ang - mean) / sig) ** 2).sum())
     from scipy.stats import chi2 as _chi2
 
-    p_par = float(_chi2.sf(chi2, len(theta_a) - 1))
-    spread_deg = float(np.degrees(np.ptp(theta_a)))
+    p_par = float(_chi2.sf(chi2, len(ang) - 1))
+    spread_deg = float(np.degrees(np.ptp(ang)))
     ev.update(spread_deg=round(spread_deg, 3), p_parallel=round(p_par, 6))
-    if p_par >= params.parallel_alpha or spread_deg < params.min_convergence_deg:
-        return "frontal", ev
     hx, hy, hw = (float(v) for v in vp.homogeneous)
+    if (p_par >= params.parallel_alpha or spread_deg < params.min_convergence_deg
+            or abs(hw) < 1e-12):
+        return "frontal", ev
     res = []
-    for mid, d, _, _ in fits:
-        ray = (np.array([hx / hw, hy / hw]) - mid) if abs(hw) > 1e-12 else np.array([hx, hy])
+    for (mid, a, _) in fits:
+        ray = np.array([hx / hw, hy / hw]) - mid
         ray = ray / (np.linalg.norm(ray) + 1e-12)
-        res.append(np.degrees(np.arcsin(min(1.0, abs(d[0] * ray[1] - d[1] * ray[0])))))
-    ev["residual_deg"] = round(float(np.median(res)), 3)
+        res.append(np.degrees(np.arcsin(min(1.0, abs(np.cos(a) * ray[1] - np.sin(a) * ray[0])))))
+    ev["residual_deg"] = round(float(max(res)), 3)
     if ev["residual_deg"] > params.max_residual_deg:
         return "inconsistent", ev
     return "supported", ev
@@ -216,12 +245,17 @@ def convergence_deg(homogeneous: Any, size: tuple[int, int]) -> float:
 
 
 def image_vp_status(v: dict[str, Any], size: tuple[int, int],
-                    params: ClaimParams = ClaimParams()) -> str:
+                    params: ClaimParams = ClaimParams(),
+                    total_weight: float | None = None) -> str:
     """``"supported"``, ``"at_infinity"`` or ``"weak"`` for one entry of the joint
-    estimator's ``vanishing_points`` (``homogeneous``, ``support``)."""
+    estimator's ``vanishing_points`` (``homogeneous``, ``support``, ``weight``);
+    ``total_weight``: the weight of all lines it was drawn from (``vp_lines.weight``;
+    None: the share is not tested)."""
     if convergence_deg(v.get("homogeneous", [0, 0, 0]), size) < params.min_image_convergence_deg:
         return "at_infinity"
     if int(v.get("support", 0)) < params.min_image_support:
+        return "weak"
+    if total_weight and float(v.get("weight", 0.0)) < params.min_image_share * total_weight:
         return "weak"
     return "supported"
 
@@ -268,7 +302,7 @@ def supported_claims(result: ImageResult, params: ClaimParams = ClaimParams()) -
     if listed:
         kept, rejected = [], []
         for v in listed:
-            st = image_vp_status(v, size, params)
+            st = image_vp_status(v, size, params, (res.extra.get("vp_lines") or {}).get("weight"))
             (kept if st == "supported" else rejected).append(v if st == "supported"
                                                              else {**v, "status": st})
         res.extra["vanishing_points"] = kept
