@@ -115,9 +115,21 @@ def test_image_vps_at_infinity_or_weak_are_rejected() -> None:
     few = dict(good, weight=400.0)
     chance = CL.supported_claims(image_result(vanishing_points=[few], vp_lines=lines))
     assert chance.vanishing_point is None and chance.extra["vp_status"] == "weak"
-    many = CL.supported_claims(image_result(vanishing_points=[dict(good, weight=2000.0)],
-                                            vp_lines=lines))
+    many = CL.supported_claims(image_result(
+        vanishing_points=[dict(good, weight=2000.0, cues={"lines": 150})], vp_lines=lines))
     assert many.extra["vp_status"] == "supported"
+    # a VP drawn mostly from RP rows: evidence only when an RP's own VP passed its test
+    rows_vp = {"homogeneous": [3412.0, 263.0, 1.0], "inside_image": False, "support": 77,
+               "weight": 13144.0, "cues": {"lines": 14, "rp_rows": 63}}
+    joint = {"lines": 135, "rp_rows": 118, "weight": 32131.0}
+    frontal_rows = with_vp(grid_pattern(FRONTAL, noise=0.3), (1e5, 150.0, 1.0))
+    res = CL.supported_claims(image_result(frontal_rows, vanishing_points=[rows_vp],
+                                           vp_lines=joint))
+    assert res.vanishing_point is None and res.extra["vp_status"] == "weak"
+    proj = grid_pattern(PROJECTIVE, noise=0.3)
+    proj = with_vp(proj, tuple(PROJECTIVE @ np.array([1.0, 0, 0])))
+    res = CL.supported_claims(image_result(proj, vanishing_points=[rows_vp], vp_lines=joint))
+    assert res.extra["vp_status"] == "supported"
     assert CL.convergence_deg([1.0, 0.0, 0.0], (640, 480)) == 0.0
     assert CL.convergence_deg([320.0, 240.0, 1.0], (640, 480)) == pytest.approx(180.0)
 

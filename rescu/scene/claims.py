@@ -20,7 +20,10 @@ the JSON which test failed:
 * **The image's vanishing points** (``vanishing_points`` of the joint estimator) each
   need ``min_image_support`` inlier lines holding at least ``min_image_share`` of the
   weight of all lines the estimator was given (``vp_lines``: a VP that gathers a few of
-  many lines in every direction, fur or letters, is chance), and a finite point at
+  many lines in every direction, fur or letters, is chance); where no RP's own VP
+  passed its test, the RP rows are no evidence of convergence (a frontal grid's rows
+  meet anywhere far away) and only the VP's LSD segments count, in number (at least
+  ``min_image_support`` and ``min_image_share`` of all segments); and a finite point at
   which the image diagonal subtends at least ``min_image_convergence_deg`` (lines across
   the image that converge less than that are parallel in the picture: a frontal view).
   Those that fail move to ``rejected_vanishing_points`` with a ``status``
@@ -246,15 +249,27 @@ def convergence_deg(homogeneous: Any, size: tuple[int, int]) -> float:
 
 def image_vp_status(v: dict[str, Any], size: tuple[int, int],
                     params: ClaimParams = ClaimParams(),
-                    total_weight: float | None = None) -> str:
+                    lines: dict[str, Any] | None = None, rows_count: bool = True) -> str:
     """``"supported"``, ``"at_infinity"`` or ``"weak"`` for one entry of the joint
-    estimator's ``vanishing_points`` (``homogeneous``, ``support``, ``weight``);
-    ``total_weight``: the weight of all lines it was drawn from (``vp_lines.weight``;
-    None: the share is not tested)."""
+    estimator's ``vanishing_points`` (``homogeneous``, ``support``, ``weight``,
+    ``cues``).
+
+    ``lines`` is the result's ``vp_lines`` (None: the share is not tested). With
+    ``rows_count`` the VP's inlier weight, RP rows included, must hold
+    ``min_image_share`` of all lines' weight; without (no RP's own VP passed its test:
+    its rows are parallel, or too few) only its LSD segments count, in number: at least
+    ``min_image_support`` of them and ``min_image_share`` of all segments."""
     if convergence_deg(v.get("homogeneous", [0, 0, 0]), size) < params.min_image_convergence_deg:
         return "at_infinity"
+    if not rows_count:
+        n = int((v.get("cues") or {}).get("lines", v.get("support", 0)))
+        total = int((lines or {}).get("lines", 0))
+        if n < params.min_image_support or (total and n < params.min_image_share * total):
+            return "weak"
+        return "supported"
     if int(v.get("support", 0)) < params.min_image_support:
         return "weak"
+    total_weight = (lines or {}).get("weight")
     if total_weight and float(v.get("weight", 0.0)) < params.min_image_share * total_weight:
         return "weak"
     return "supported"
@@ -302,7 +317,8 @@ def supported_claims(result: ImageResult, params: ClaimParams = ClaimParams()) -
     if listed:
         kept, rejected = [], []
         for v in listed:
-            st = image_vp_status(v, size, params, (res.extra.get("vp_lines") or {}).get("weight"))
+            st = image_vp_status(v, size, params, res.extra.get("vp_lines"),
+                                 rows_count=any_supported)
             (kept if st == "supported" else rejected).append(v if st == "supported"
                                                              else {**v, "status": st})
         res.extra["vanishing_points"] = kept
