@@ -184,10 +184,10 @@ class RunMonitor:
 # ----------------------------------------------------------------------------- results
 def results_summary(results: str | Path) -> str:
     """One line of what a run found, from ``<results>/<dataset>/final/*.json``: images,
-    those with recurring patterns, RPs, supported VPs, failures (and the report's path
-    when it exists). Empty when there is no final JSON."""
+    those with recurring patterns, RPs, supported VPs, failures and images with a failed
+    step whose previous result was kept. Empty when there is no final JSON."""
     results = Path(results)
-    n = with_rp = rps = vps = failed = 0
+    n = with_rp = rps = vps = failed = degraded = 0
     for f in sorted(results.glob("*/final/*.json")):
         try:
             d = json.loads(f.read_text())
@@ -198,11 +198,14 @@ def results_summary(results: str | Path) -> str:
         with_rp += bool(pats)
         rps += len(pats)
         vps += d.get("vanishing_point") is not None
-        failed += bool(d.get("failure")) and not (d.get("failure") or {}).get("degraded_to")
+        f_rec = d.get("failure") or {}
+        failed += bool(f_rec) and not f_rec.get("degraded_to")
+        degraded += bool(f_rec.get("degraded_to"))
     if not n:
         return ""
     return (f"{n} images: {with_rp} with recurring patterns ({rps} RP{'s' * (rps != 1)}), "
-            f"{n - with_rp} without; a vanishing point in {vps}; {failed} failed")
+            f"{n - with_rp} without; a vanishing point in {vps}; {failed} failed"
+            + (f", {degraded} with a failed step (the step before it kept)" if degraded else ""))
 
 
 def _results_dir(argv: Sequence[str], default: str) -> str:
