@@ -89,8 +89,16 @@ def test_vp_off_the_lines_is_inconsistent_and_one_short_row_too_few() -> None:
     assert CL.pattern_vp_evidence(p)[0] == "inconsistent"
     short = with_vp(grid_pattern(PROJECTIVE, n_rows=1, n_cols=2), (500.0, 100.0, 1.0))
     assert CL.pattern_vp_evidence(short)[0] == "too_few_rows"
-    one_row = with_vp(grid_pattern(PROJECTIVE, n_rows=1, n_cols=5), (500.0, 100.0, 1.0))
-    assert CL.pattern_vp_evidence(one_row)[0] == "too_few_rows"  # one row meets any VP
+    # one row: its feature tracks (top and bottom corners) must converge at the VP
+    vp = tuple(PROJECTIVE @ np.array([1.0, 0, 0]))
+    one_row = with_vp(grid_pattern(PROJECTIVE, n_rows=1, n_cols=5, noise=0.3), vp)
+    status, ev = CL.pattern_vp_evidence(one_row)
+    assert status == "supported" and ev["tracks"] == 5, ev
+    flat_row = with_vp(grid_pattern(FRONTAL, n_rows=1, n_cols=5, noise=0.3), (1e5, 110, 1))
+    assert CL.pattern_vp_evidence(flat_row)[0] == "frontal"
+    no_tracks = with_vp(grid_pattern(PROJECTIVE, n_rows=1, n_cols=5), vp)
+    no_tracks.feature_points = None
+    assert CL.pattern_vp_evidence(no_tracks)[0] == "too_few_rows"
     at_inf = with_vp(grid_pattern(PROJECTIVE, noise=0.3), (1.0, 0.0, 0.0))
     assert CL.pattern_vp_evidence(at_inf)[0] == "frontal"
 

@@ -16,7 +16,10 @@ the JSON which test failed:
   ray from its middle to the VP). Pattern keys: ``vp_status`` (``"supported"``,
   ``"frontal"``: rows parallel or the VP at infinity, ``"too_few_rows"``,
   ``"inconsistent"``: the rows do not meet at the VP, ``"none"``: no VP was estimated)
-  and ``vp_evidence`` (the measured numbers).
+  and ``vp_evidence`` (the measured numbers). An RP with fewer rows is tested on its
+  longest row's own lines instead (its centre line and feature tracks, at least three):
+  the same tests, each line meeting the VP (a row in perspective: its top and bottom
+  features converge; a frontal one: parallel).
 * **The image's vanishing points** (``vanishing_points`` of the joint estimator) each
   need ``min_image_support`` inlier lines holding at least ``min_image_share`` of the
   weight of all lines the estimator was given (``vp_lines``: a VP that gathers a few of
@@ -207,7 +210,7 @@ def pattern_vp_evidence(pattern: Pattern, params: ClaimParams = ClaimParams()
     if vp is None:
         return "none", ev
     if len(fits) < params.min_rows:
-        return "too_few_rows", ev
+        return _one_row_evidence(pattern, vp, params, side, ev)
     ang = np.array([a for _, a, _ in fits])
     ang = _fold(ang - ang[0]) + ang[0]
     sig = np.array([s for _, _, s in fits])
@@ -232,6 +235,49 @@ def pattern_vp_evidence(pattern: Pattern, params: ClaimParams = ClaimParams()
     if ev["residual_deg"] > params.max_residual_deg:
         return "inconsistent", ev
     return "supported", ev
+
+
+def _one_row_evidence(pattern: Pattern, vp: VanishingPoint, params: ClaimParams,
+                      side: float, ev: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """An RP with fewer than ``min_rows`` rows: its longest row's lines (centre line and
+    at least two feature tracks of ``min_row_instances`` points) must converge beyond
+    noise (the same tests as rows) and every one meet the VP; else ``too_few_rows``."""
+    rows = [[int(i) for i in r if 0 <= int(i) < len(pattern.instances)]
+            for r in (pattern.extra.get("rows") or [])]
+    rows = [r for r in rows if len(r) >= params.min_row_instances]
+    if not rows:
+        return "too_few_rows", ev
+    one = Pattern(pattern.id, pattern.score, pattern.instances, pattern.feature_points,
+                  extra={"rows": [max(rows, key=len)]})
+    fits = [_fit_line(p) for p in pattern_lines(one, params.min_row_instances)]
+    if len(fits) < 3:
+        return "too_few_rows", ev
+    floor = params.point_noise * max(side, 1e-6)
+    ref = fits[0][1]
+    ang, sig = [], []
+    for _, d, resid, spread in fits:
+        d = d if d @ ref >= 0 else -d
+        ang.append(np.arctan2(ref[0] * d[1] - ref[1] * d[0], ref @ d))
+        sig.append(max(resid, floor) / max(spread, 1e-9))
+    ang_a, sig_a = np.array(ang), np.array(sig)
+    wgt = 1.0 / sig_a ** 2
+    mean = float((wgt * ang_a).sum() / wgt.sum())
+    from scipy.stats import chi2 as _chi2
+
+    p_par = float(_chi2.sf(float((((ang_a - mean) / sig_a) ** 2).sum()), len(ang_a) - 1))
+    spread_deg = float(np.degrees(np.ptp(ang_a)))
+    ev.update(tracks=len(fits), spread_deg=round(spread_deg, 3), p_parallel=round(p_par, 6))
+    hx, hy, hw = (float(v) for v in vp.homogeneous)
+    if p_par >= params.parallel_alpha or spread_deg < params.min_convergence_deg or abs(hw) < 1e-12:
+        return "frontal", ev
+    res = []
+    for mid, d, _, _ in fits:
+        ray = np.array([hx / hw, hy / hw]) - mid
+        ray = ray / (np.linalg.norm(ray) + 1e-12)
+        res.append(np.degrees(np.arcsin(min(1.0, abs(d[0] * ray[1] - d[1] * ray[0])))))
+    ev["residual_deg"] = round(float(max(res)), 3)
+    return ("inconsistent" if ev["residual_deg"] > params.max_residual_deg
+            else "supported"), ev
 
 
 # ----------------------------------------------------------------------------- image VPs
