@@ -27,8 +27,13 @@ $(STAMP): requirements.txt pyproject.toml
 	-$(BIN)/python -m pip install --quiet --no-deps lu-vp-detect==1.0.4
 	touch $(STAMP)
 
+# a quiet terminal: a progress line, warnings and failures, the report's path and a
+# one-line summary (rescu/runlog.py; full output in results/logs/run.log); make run V=1:
+# Snakemake's full output
+V ?=
 run: setup
-	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES)
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/python -m rescu.runlog $(if $(V),--verbose) -- \
+	  $(BIN)/snakemake --cores $(CORES)
 
 # every table of the paper: the main methods and the ablations on every image of each
 # dataset (config/paper.yaml) -> results/paper/

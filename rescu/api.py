@@ -39,7 +39,7 @@ def _dense_step(cfg: dict[str, Any], w: Any) -> None:
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
              config: dict[str, Any] | None = None, keep_work: bool = False,
              name: str | None = None, validated: bool = False,
-             force: bool = False) -> ImageResult:
+             force: bool = False, overlay: str | None = None) -> ImageResult:
     """Discover the recurring patterns of one photo and describe the scene.
 
     Parameters
@@ -66,6 +66,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         checks it once for all photos); otherwise it is checked here.
     force : bool
         Replace files in ``out_dir`` that rescu did not write (never ``image`` itself).
+    overlay : {"full", "boxes", "none"}, optional
+        What ``<stem>.png`` shows (:data:`rescu.visualize.OVERLAY_MODES`; ``"none"``:
+        no picture); None: the config's ``report.overlay``.
 
     Returns
     -------
@@ -114,6 +117,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     if not isinstance(image, (str, os.PathLike)):
         raise TypeError(f"image must be a path (str or os.PathLike), got "
                         f"{type(image).__name__} {image!r}")
+    if overlay is not None and overlay not in ("full", "boxes", "none"):
+        raise InputError(f"overlay must be 'full', 'boxes' or 'none', got {overlay!r}")
     image = Path(image)
     try:
         io.check_photo_file(image)
@@ -138,7 +143,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         outputs.sweep_stale_work(out)
     try:
         with outputs.staging(out_dir) as staged:
-            return _run(image, cfg, method, staged, out_dir, stem, keep_work)
+            return _run(image, cfg, method, staged, out_dir, stem, keep_work,
+                        overlay or cfg["report"]["overlay"])
     except io.DiskFullError:
         raise
     except OSError as e:  # a result that cannot be written: this photo fails, not the run
@@ -150,8 +156,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
 
 
 def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path,
-         out_dir: str | Path | None, stem: str, keep_work: bool) -> ImageResult:
-    """:func:`discover`'s steps, the new result set made under ``staged`` and committed."""
+         out_dir: str | Path | None, stem: str, keep_work: bool, overlay: str) -> ImageResult:
+    """:func:`discover`'s steps, the new result set made under ``staged`` and committed
+    (the overlay picture drawn in mode ``overlay``, none for ``"none"``)."""
     if out_dir is not None and keep_work:
         work = Path(out_dir) / ".work" / stem
         work.mkdir(parents=True, exist_ok=True)
@@ -170,8 +177,9 @@ def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path,
         result = _steps(cfg, method, w, staged / f"{stem}_rectified")
     if out_dir is not None:
         io.write_json(staged / f"{stem}.json", result)
-        pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
-                         str(staged / f"{stem}.png"))
+        if overlay != "none":
+            pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
+                             str(staged / f"{stem}.png"), mode=overlay)
         outputs.commit(out_dir, stem, staged, io.display_name(str(image)))
     return result
 
@@ -213,5 +221,5 @@ def _steps(cfg: dict[str, Any], method: str, w: Any, rect: Path) -> ImageResult:
     pipeline.image_vp(w("image.png"), w("meta.json"), w("scene.json"), w("joint.json"),
                       cfg["scene"])
     pipeline.caption(w("image.png"), w("meta.json"), w("joint.json"), w("final.json"),
-                     cfg["caption"])
+                     cfg["caption"], claims=cfg["scene"].get("claims"))
     return io.read_result(w("final.json"))

@@ -122,6 +122,10 @@ def _check_out_dir(out: Path, photos: Sequence[Path]) -> None:
 
 
 def _summary_line(name: str, res: Any) -> str:
+    """``<name>: <what was found> — "<caption>"`` (:func:`rescu.captions.caption.
+    summary_line`: the caption's facts, counts and confidences), or the failure."""
+    from .captions.caption import NO_PATTERN, summary_line
+
     f = res.extra.get("failure")
     note = ""
     if f and f.get("degraded_to"):  # a step failed; the previous step's patterns kept
@@ -129,17 +133,11 @@ def _summary_line(name: str, res: Any) -> str:
                 f"{f.get('degraded_to')}'s result kept]")
     elif f:
         return f"{name}: FAILED in {f.get('stage')}: {f.get('message')}"
-    if not res.patterns:
-        return f"{name}: no recurring pattern{note}"
-    parts = [f"{len(res.patterns)} RP(s), counts " + ",".join(str(p.count) for p in res.patterns)]
-    if res.vanishing_point is not None:
-        parts.append("VP " + ("inside" if res.vanishing_point.inside_image else "outside")
-                     + " the image")
-    if any(p.translation_symmetry and p.translation_symmetry.detected for p in res.patterns):
-        parts.append("translation symmetry")
+    line = summary_line(res)
     cap = (res.caption or {}).get("enhanced")
-    line = f"{name}: " + "; ".join(parts)
-    return line + (f' — "{cap}"' if cap else "") + note
+    if line == NO_PATTERN or not cap:
+        return f"{name}: {line}{note}"
+    return f'{name}: {line} — "{cap}"{note}'
 
 
 def _terminate(signum: int, frame: Any) -> None:
@@ -180,7 +178,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
         try:
             res = discover(photo, out_dir=out, method=args.method, config=cfg,
                            keep_work=args.keep_work, name=name, validated=True,
-                           force=args.force)
+                           force=args.force, overlay=args.overlay)
         except DiskFullError as e:
             bar.close()
             print(f"rescu: error: {e}; stopped at {photo} ({done} of {len(photos)} photo(s) "
@@ -193,8 +191,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
         tqdm.write(_summary_line(photo.name, res), file=sys.stdout)
     kept = (f" ({degraded} with a failed step, the previous step's result kept)"
             if degraded else "")
+    from .gallery import write_gallery
+
+    page = write_gallery(out, names)
     print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
           f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
+    print(f"Gallery: {page}")
     return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
@@ -297,13 +299,16 @@ def build_parser() -> argparse.ArgumentParser:
         "discover", help="find recurring patterns in photos",
         description="Run RESCU on photos (files or folders). Writes, per photo, <stem>.json "
                     "(the per-image result format of the benchmark), <stem>.png (overlay: each "
-                    "pattern's instances in its own colour, lines to its vanishing point, the "
-                    "caption) and <stem>_rectified/rp<k>.png (rectified views), and prints a "
-                    "one-line summary per photo. Photos that share a stem (x.jpg, x.png) keep "
-                    "their extension in these names (x.jpg.json). The output folder must not "
-                    "hold any of the photos; a file there that rescu did not write is never "
-                    "replaced (without --force); a rerun replaces a photo's whole result set. "
-                    "The whole configuration is checked before the first photo.")
+                    "pattern's instances in its own colour with a label, a legend with counts "
+                    "and confidence, thin lines to the vanishing points, the caption; "
+                    "--overlay) and <stem>_rectified/rp<k>.png (rectified views), prints a "
+                    "one-line summary per photo and writes DIR/index.html, a page with every "
+                    "photo's overlay, summary and caption. Photos that share a stem (x.jpg, "
+                    "x.png) keep their extension in these names (x.jpg.json). The output "
+                    "folder must not hold any of the photos; a file there that rescu did not "
+                    "write is never replaced (without --force); a rerun replaces a photo's "
+                    "whole result set. The whole configuration is checked before the first "
+                    "photo.")
     d.add_argument("photos", nargs="+", metavar="PHOTO",
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")
@@ -327,6 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace files in DIR named like results (<stem>.json, <stem>.png, "
                         "<stem>_rectified/) that rescu did not write; without it such files "
                         "stop the run before any work (exit 2)")
+    d.add_argument("--overlay", default=None, choices=["boxes", "full", "none"],
+                   help="what <stem>.png shows: boxes (instances, labels, legend, caption), "
+                        "full (also the vanishing points as thin lines) or none (no picture); "
+                        "default: the config's report.overlay (full)")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -135,6 +135,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .discovery.ablation import SOURCE_ROWS, ablation_overrides
     from .scene.analyse import SceneParams
     from .scene.vp.manhattan import ImageVPParams
+    from .scene.claims import ClaimParams
     from .discovery.stage1 import Stage1Params
     from .discovery.sources import DenseParams
     from .extension.params import Stage2Params, predict_only_error
@@ -182,6 +183,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     build("scene", lambda: SceneParams.from_config(scene))
     build("scene.completion", lambda: CompletionParams.from_dict(scene.get("completion") or {}))
     build("scene.image_vp", lambda: ImageVPParams.from_dict(scene.get("image_vp") or {}))
+    build("scene.claims", lambda: ClaimParams.from_dict(scene.get("claims") or {}))
     build("caption", lambda: CaptionParams.from_dict(config["caption"]))
     build("synthetic", lambda: SynthParams.from_dict(config["synthetic"]))
     build("evaluation", lambda: EvaluationParams.from_dict(config["evaluation"]))

@@ -689,9 +689,12 @@ def peer_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any],
 
 # --------------------------------------------------------------------------- captions
 def caption(png: str, meta_path: str, in_json: str, out_json: str,
-            params: dict[str, Any]) -> Failure | None:
-    """Base and enhanced caption into the final per-image JSON."""
+            params: dict[str, Any], claims: dict[str, Any] | None = None) -> Failure | None:
+    """The final per-image JSON: only the supported claims
+    (:func:`rescu.scene.claims.supported_claims`, ``claims`` the config's
+    ``scene.claims``, None = defaults), then base and enhanced caption of them."""
     from .captions import caption as CAP
+    from .scene.claims import ClaimParams, supported_claims
 
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)
@@ -700,7 +703,7 @@ def caption(png: str, meta_path: str, in_json: str, out_json: str,
         p = CAP.CaptionParams.from_dict(params)
         captioner = CAP.make_captioner(p, log=log.warning)
         rgb, _ = read_prepared(png, meta_path)
-        res = ImageResult.from_json(src.to_json())
+        res = supported_claims(src, ClaimParams.from_dict(claims))
         res.caption = CAP.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
         io.write_json(out_json, res)
 
@@ -718,13 +721,14 @@ def caption(png: str, meta_path: str, in_json: str, out_json: str,
 
 
 def overlay(png: str, meta_path: str, result_json: str, out_png: str,
-            rectified_dir: str | None = None) -> None:
-    """Picture of what was found (:func:`rescu.visualize.overlay`)."""
+            rectified_dir: str | None = None, mode: str = "full") -> None:
+    """Picture of what was found (:func:`rescu.visualize.overlay`; ``mode`` ``full`` or
+    ``boxes``: the config's ``report.overlay``)."""
     from . import visualize
 
     rgb, meta = read_prepared(png, meta_path)
     res = io.read_result(result_json)
-    img = visualize.overlay(rgb, float(meta.get("scale_factor", 1.0)), res)
+    img = visualize.overlay(rgb, float(meta.get("scale_factor", 1.0)), res, mode=mode)
     io.write_image(out_png, img)
 
 

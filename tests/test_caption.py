@@ -193,11 +193,11 @@ def test_ts_and_vp_sentences() -> None:
         "the image.")
 
 
-def test_image_level_vp_used_when_pattern_has_none() -> None:
+def test_image_level_vp_not_claimed_for_the_pattern() -> None:
+    # a VP of the image (from lines) is no fact about the objects: no VP sentence
     r = result(pattern(4))
     r.vanishing_point = VanishingPoint(np.array([1.0, 0.0, 0.0]), False)
-    assert C.enhance_caption("A row of lamps.", r) == (
-        "Four similar lamps. The lamps form a vanishing point outside of the image.")
+    assert C.enhance_caption("A row of lamps.", r) == "Four similar lamps."
 
 
 def test_capitalisation_kept_mid_sentence_and_proper_nouns() -> None:
@@ -264,7 +264,7 @@ def test_template_captioner_layouts() -> None:
         "A group of similar objects arranged in a grid."
     col = Pattern(0, 1.0, [Instance((0, 20 * i, 10, 10)) for i in range(4)])
     assert t.caption(RGB, result(col), "x.jpg") == "A group of similar objects in a column."
-    assert t.caption(RGB, result(), "x.jpg") == "A scene without repeated objects."
+    assert t.caption(RGB, result(), "x.jpg") == "No recurring pattern found."
     lay = pattern(9, grid=True)
     lay.extra["layout"] = "row"
     assert C.infer_layout(lay) == "row"

@@ -40,7 +40,7 @@ def test_help_explains_every_option():
         assert out.returncode == 0 and "usage: rescu" in out.stdout
     text = rescu("discover", "--help").stdout
     for opt in ("--out", "--method", "--config", "--set", "--dense", "--objects", "--keep-work",
-                "--quiet"):
+                "--quiet", "--overlay"):
         assert opt in text
 
 
@@ -57,6 +57,11 @@ def test_discover_on_own_photo_and_bad_file(tmp_path):
     assert max(p["count"] for p in d["patterns"]) == 5
     assert (tmp_path / "out" / "shelf.png").stat().st_size > 0
     assert json.loads((tmp_path / "out" / "broken.json").read_text())["failure"]["stage"] == "prepare"
+    # the gallery: both photos, the overlay linked at full size, the failure said
+    page = (tmp_path / "out" / "index.html").read_text()
+    assert "Gallery: " in out.stdout and "href='shelf.png'" in page
+    assert "data:image/jpeg;base64," in page and "failed in prepare" in page
+    assert d["caption"]["enhanced"].replace("'", "&#x27;") in page
 
 
 def test_discover_dense_adds_the_dense_source(tmp_path):

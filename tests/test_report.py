@@ -228,6 +228,20 @@ def test_vp_and_found_headlines():
                                          "Dominant count (median)": "7.0"}
 
 
+def test_a_peer_that_could_not_run_says_not_run():
+    errors = vp_errors()
+    peer = errors[errors["method"] == "LSD lines"].assign(
+        method="lu-vp-detect (true focal)", vp_missing=True, point_error_px=np.inf,
+        angle_error_deg=np.inf)
+    errors = pd.concat([errors, peer], ignore_index=True)
+    t = RT.vp_compact(EV.vp_success_table(errors), "synthetic", errors)
+    row = t.cells[t.cells["method"] == "lu-vp-detect (true focal)"].iloc[0]
+    assert (row.drop(["method", "Without a VP"]) == "not run").all()
+    assert row["Without a VP"] == "5"
+    ran = t.cells[t.cells["method"] == "LSD lines"].iloc[0]
+    assert "not run" not in ran.tolist()
+
+
 def test_long_tables_are_compact():
     errors = vp_errors()
     success = EV.vp_success_table(errors)     # 2 methods x 2 kinds x 7 thresholds
@@ -257,12 +271,16 @@ def test_report_page(run):
     for human in ("Instance precision", "Count error (MAE)", "Exact count rate",
                   "Flagged as TS", "Dominant count"):
         assert human in text, human
-    # the headline comes first: one per dataset, before the first section, with pictures
+    # real photos come first (8 picks, none from the synthetic benchmark, each a link to
+    # its full-size picture), then the headline per dataset with pictures, synthetic last
     first_h2 = page.index("<h2")
+    photos = page[page.index("id='photos'"):page.index("</section>")]
+    assert photos.count("<img") == 8 and "synthetic" not in photos
+    assert "href='../photos/overlay/photos_0.png'" in photos
     assert page[:first_h2].count("table class=\"t headline\"") == 4
-    assert page[:first_h2].count("<img") == 4 * 3
-    assert page.index("id='ds-synthetic'") < page.index("id='ds-photos'") \
-        < page.index("id='ds-york_urban'")
+    assert page[:first_h2].count("<img") == 8 + 4 * 3
+    assert page.index("id='photos'") < page.index("id='ds-photos'") \
+        < page.index("id='ds-york_urban'") < page.index("id='ds-synthetic'")
     york = page[page.index("id='ds-york_urban'"):page.index("</section>",
                                                              page.index("id='ds-york_urban'"))]
     assert "VP within 5 px" in york and "vanishing-point ground truth" in york
@@ -279,6 +297,22 @@ def test_report_page(run):
     assert order == sorted(order)
     assert "no proposals" in text                    # the failure is listed
     assert page.count("<table") == len(re.findall(r"<table class=\"t", page))
+
+
+def test_pick_photos_leads_with_confident_results_and_a_failure():
+    def sample(ds, i, conf=None, found=True, failed=False):
+        return R.Sample(ds, f"images/{ds}_{i}.png", Path("x.png"), found=found,
+                        failed=failed, confidence=conf)
+
+    pool = ([sample("synthetic", i, 0.99) for i in range(3)]
+            + [sample("cmp_facade", i, 0.1 * i) for i in range(5)]
+            + [sample("chess", i, 0.05 * i) for i in range(3)]
+            + [sample("photos", 0, found=False), sample("photos", 1, 0.9, failed=True)])
+    picks = R.pick_photos(pool, 5)
+    assert [Path(p.image).stem for p in picks] == [
+        "cmp_facade_4", "chess_2", "cmp_facade_3", "chess_1", "photos_0"]
+    assert R.pick_photos(pool[:3], 2)[0].dataset == "synthetic"  # only a benchmark: it
+    assert R.pick_photos(pool, 0) == []
 
 
 def test_report_without_paper_tables(tmp_path):
@@ -309,7 +343,8 @@ def test_first_screen_in_chromium(run, tmp_path):
     layout = R.chromium_layout(out, 1400, 900)
     assert layout["innerWidth"] == 1400
     assert R.first_screen_problems(layout, 900) == []
-    assert layout["headline"]["bottom"] < 900 and layout["imgsOnFirstScreen"] >= 1
+    assert layout["firstCaption"]["bottom"] < 900 and layout["imgsOnFirstScreen"] >= 3
+    assert layout["captionFontPx"] >= 14
     assert len(layout["tables"]) >= 10
     assert all(t["right"] <= layout["clientWidth"] for t in layout["tables"])
     png = R.chromium_screenshot(out, tmp_path / "first-screen.png", 1400, 900)

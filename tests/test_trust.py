@@ -296,7 +296,7 @@ def test_summary_line_of_a_degraded_result_shows_patterns_and_the_failure():
                       extra={"failure": {"stage": "stage2-predict", "message": "boom",
                                          "type": "ValueError", "degraded_to": "rescu-i"}})
     line = _summary_line("x.jpg", res)
-    assert line.startswith("x.jpg: 1 RP(s), counts 2")
+    assert line.startswith("x.jpg: 1 RP: 2 (score 1.00)")
     assert "FAILED in stage2-predict: boom; rescu-i's result kept" in line
     res.extra["failure"].pop("degraded_to")
     assert _summary_line("x.jpg", res) == "x.jpg: FAILED in stage2-predict: boom"
@@ -317,7 +317,8 @@ def test_degraded_result_is_drawn_with_its_patterns(monkeypatch):
                                          "degraded_to": "rescu-i"}})
     img = visualize.overlay(np.zeros((40, 60, 3), np.uint8), 1.0, res)
     assert img.shape[0] > 40
-    assert texts == ["Two similar objects. [stage2-train failed; rescu-i's result shown]"]
+    assert texts == ["RP0: 2 instances, score 1.00",  # the legend, then the caption
+                     "Two similar objects. [stage2-train failed; rescu-i's result shown]"]
 
 
 def test_overlay_marks_the_images_vps():
@@ -337,7 +338,7 @@ def test_overlay_marks_the_images_vps():
     ys, xs = np.nonzero(white)
     ring = np.hypot(xs - 60, ys - 40)
     assert ((ring > 5) & (ring < 25)).any() and not white[40, 60]   # a ring, hollow
-    # the arrow runs right from the centre (100, 60), 0.3 x the shorter side long
+    # the arrow runs right from the centre (100, 60), 0.25 x the shorter side long
     assert white[60, 102:130].all() and not white[60, 185:].any()  # the label at its tip
     plain = visualize.overlay(rgb, 2.0, ImageResult("x.jpg", 100, 60, "rescu-ii", []))[:120]
     assert not (plain == 255).all(axis=2).any()

@@ -160,18 +160,98 @@ def _area_inside(pattern: Pattern, box: Sequence[float]) -> float:
     return inside / tot if tot > 0 else 0.0
 
 
+NO_PATTERN = "No recurring pattern found."
+"""Caption and summary line of an image without a recurring pattern (no RP with two or
+more instances in ``patterns``; RPs set apart in ``candidate_patterns`` do not count)."""
+
+
+def pattern_confidence(pattern: Pattern) -> tuple[str, float]:
+    """``("confidence", c)`` when discovery gave the RP a confidence in [0, 1]
+    (``pattern.extra["confidence"]``), else ``("score", pattern.score)``."""
+    c = pattern.extra.get("confidence") if isinstance(pattern.extra, dict) else None
+    if isinstance(c, (int, float)) and np.isfinite(c):
+        return "confidence", float(c)
+    return "score", float(pattern.score)
+
+
+@dataclass(frozen=True)
+class SceneFacts:
+    """What the caption and the summary line may say about an image: only what its
+    result supports (after :func:`rescu.scene.claims.supported_claims`).
+
+    Attributes
+    ----------
+    n_patterns : int
+        RPs with at least two instances.
+    count : int
+        Instances of the dominant RP (0 without one).
+    layout : str
+        The dominant RP's measured layout (:func:`infer_layout`): ``"row"``,
+        ``"column"``, ``"grid"`` or ``"group"``.
+    vp : str or None
+        ``"inside"`` / ``"outside"``: the dominant RP's own (supported) VP lies inside /
+        outside the image; None: it has none.
+    ts : bool
+        The dominant RP passed the translation-symmetry test.
+    """
+
+    n_patterns: int
+    count: int
+    layout: str
+    vp: str | None
+    ts: bool
+
+
+def scene_facts(result: ImageResult) -> SceneFacts:
+    """The :class:`SceneFacts` of ``result``: the dominant RP's count, layout, own VP and
+    translation symmetry (an image VP from lines alone is not a fact about the RP)."""
+    dom = dominant_pattern(result)
+    n = sum(1 for p in result.patterns if p.count >= 2)
+    if dom is None or dom.count < 2:
+        return SceneFacts(n, 0, "group", None, False)
+    vp = dom.vanishing_point
+    ts = dom.translation_symmetry is not None and dom.translation_symmetry.detected
+    return SceneFacts(n, dom.count, infer_layout(dom),
+                      None if vp is None else ("inside" if vp.inside_image else "outside"),
+                      bool(ts))
+
+
 def _scene_sentence(noun_plural: str, pattern: Pattern, result: ImageResult) -> str:
-    ts = pattern.translation_symmetry is not None and pattern.translation_symmetry.detected
-    vp = pattern.vanishing_point or result.vanishing_point
+    facts = scene_facts(result)
     parts = []
-    if ts:
+    if facts.ts:
         parts.append("have a potential translation symmetry in 3D")
-    if vp is not None:
-        parts.append("form a vanishing point " + ("inside the image" if vp.inside_image
+    if facts.vp is not None:
+        parts.append("form a vanishing point " + ("inside the image" if facts.vp == "inside"
                                                    else "outside of the image"))
     if not parts:
         return ""
     return f"The {noun_plural} " + " and ".join(parts) + "."
+
+
+def summary_line(result: ImageResult) -> str:
+    """One line of what was found, stating the same facts as the caption
+    (:func:`scene_facts`) plus each RP's count and confidence (or score), e.g.
+    ``"2 RPs: 12 (confidence 0.83), 4 (confidence 0.41); grid; VP outside the image;
+    translation symmetry"``; :data:`NO_PATTERN` without an RP of two or more instances.
+    A failure record is not handled here (the caller says it)."""
+    facts = scene_facts(result)
+    pats = [p for p in result.patterns if p.count >= 2]
+    if facts.count < 2 or not pats:
+        return NO_PATTERN
+    counts = []
+    for p in pats:
+        kind, v = pattern_confidence(p)
+        counts.append(f"{p.count} ({kind} {v:.2f})")
+    parts = [f"{len(pats)} RP{'s' if len(pats) != 1 else ''}: " + ", ".join(counts)]
+    if facts.layout in ("row", "column", "grid"):
+        parts.append({"row": "in a row", "column": "in a column",
+                      "grid": "grid"}[facts.layout])
+    if facts.vp is not None:
+        parts.append(f"VP {facts.vp} the image")
+    if facts.ts:
+        parts.append("translation symmetry")
+    return "; ".join(parts)
 
 
 def enhance_caption(base: str, result: ImageResult, grounding: Grounder | None = None,
@@ -253,12 +333,28 @@ class Captioner(Protocol):
     def caption(self, rgb: np.ndarray, result: ImageResult, image_name: str) -> str: ...
 
 
-def infer_layout(pattern: Pattern, line_tolerance: float = 0.35) -> str:
-    """``"row"``, ``"column"``, ``"grid"`` or ``"group"`` from the instance centres.
+def _groups(v: np.ndarray, tol: float) -> np.ndarray:
+    """Labels (K,) int of 1-D coordinates ``v`` (K,) split where consecutive sorted values
+    are more than ``tol`` apart (same units)."""
+    order = np.argsort(v)
+    lab = np.empty(len(v), int)
+    lab[order] = np.concatenate([[0], np.cumsum(np.diff(v[order]) > tol)])
+    return lab
 
-    ``pattern.extra["layout"]`` wins when present. Centres lie on a line when their
-    spread across the principal direction is below ``line_tolerance`` times the median
-    instance side (pixels / pixels).
+
+def infer_layout(pattern: Pattern, line_tolerance: float = 0.35,
+                 min_fill: float = 0.6) -> str:
+    """``"row"``, ``"column"``, ``"grid"`` or ``"group"``, measured from the instance
+    centres.
+
+    ``pattern.extra["layout"]`` wins when present. Centres lie on a line (``"row"`` when
+    it is closer to horizontal, else ``"column"``) when their spread across the principal
+    direction is below ``line_tolerance`` times the median instance side (pixels /
+    pixels). ``"grid"`` only when rows *and* columns are measured: along the direction
+    of the instances' nearest neighbours, the centres fall into at least two rows and
+    two columns (coordinates split at gaps above half the median side), no cell holds
+    two instances, and the instances fill at least ``min_fill`` of the cells. Anything
+    else (scattered boxes) is a ``"group"``, which the captions give no layout words.
     """
     lay = pattern.extra.get("layout") if isinstance(pattern.extra, dict) else None
     if isinstance(lay, str) and lay:
@@ -267,14 +363,28 @@ def infer_layout(pattern: Pattern, line_tolerance: float = 0.35) -> str:
         return "group"
     b = np.array([i.bbox for i in pattern.instances], float)
     c = b[:, :2] + b[:, 2:] / 2.0
-    side = float(np.median(np.minimum(b[:, 2], b[:, 3])))
+    side = max(float(np.median(np.minimum(b[:, 2], b[:, 3]))), 1e-9)
     cc = c - c.mean(axis=0)
     _, s, vt = np.linalg.svd(cc, full_matrices=False)
     spread = s[1] / np.sqrt(len(c)) if len(s) > 1 else 0.0  # std across the line
-    if spread <= line_tolerance * max(side, 1e-9):
+    if spread <= line_tolerance * side:
         d = vt[0]
         return "column" if abs(d[1]) > abs(d[0]) else "row"
-    return "grid"
+    # the lattice direction: the folded (mod 180 degrees) angle to the nearest neighbours
+    dist = np.linalg.norm(c[:, None] - c[None], axis=2) + np.eye(len(c)) * 1e18
+    nn = c[np.argmin(dist, axis=1)] - c
+    ang = 2.0 * np.arctan2(nn[:, 1], nn[:, 0])
+    a = 0.5 * np.arctan2(np.median(np.sin(ang)), np.median(np.cos(ang)))
+    u = np.array([np.cos(a), np.sin(a)])
+    along, across = c @ u, c @ np.array([-u[1], u[0]])
+    rows, cols = _groups(across, 0.5 * side), _groups(along, 0.5 * side)
+    n_rows = int(sum(np.bincount(rows) >= 2))
+    n_cols = int(sum(np.bincount(cols) >= 2))
+    cells = set(zip(rows.tolist(), cols.tolist()))
+    fill = len(c) / float(len(set(rows.tolist())) * len(set(cols.tolist())))
+    if n_rows >= 2 and n_cols >= 2 and len(cells) == len(c) and fill >= min_fill:
+        return "grid"
+    return "group"
 
 
 @dataclass
@@ -289,14 +399,12 @@ class TemplateCaptioner:
     noun: str = "objects"
 
     def caption(self, rgb: np.ndarray, result: ImageResult, image_name: str) -> str:
-        dom = dominant_pattern(result)
-        if dom is None or dom.count < 2:
-            return "A scene without repeated objects."
-        lay = infer_layout(dom)
+        facts = scene_facts(result)
+        if facts.count < 2:
+            return NO_PATTERN
         where = {"row": " in a row", "column": " in a column",
-                 "grid": " arranged in a grid"}.get(lay, "")
-        n_rp = sum(1 for p in result.patterns if p.count >= 2)
-        more = ", next to other repeated items" if n_rp > 1 else ""
+                 "grid": " arranged in a grid"}.get(facts.layout, "")
+        more = ", next to other repeated items" if facts.n_patterns > 1 else ""
         return f"A group of similar {self.noun}{where}{more}."
 
 
@@ -471,6 +579,8 @@ def caption_result(rgb: np.ndarray, result: ImageResult, image_name: str,
     image_name : str
         File name of the image (used by the CSV captioner).
     captioner : Captioner
+        Without an RP of two or more instances both captions end with
+        :data:`NO_PATTERN` (the template captioner's caption is just that).
         From :func:`make_captioner`.
     params : CaptionParams, optional
         For ``grounding_coverage``.
@@ -487,6 +597,11 @@ def caption_result(rgb: np.ndarray, result: ImageResult, image_name: str,
             _GROUNDERS[params.grounding_model] = make_grounder(params)
         grounding = _GROUNDERS[params.grounding_model]
     base = captioner.caption(rgb, result, image_name)
+    if scene_facts(result).count < 2:  # nothing recurs: both captions say so
+        if NO_PATTERN not in base:
+            base = base.rstrip() + (" " if base.rstrip().endswith((".", "!", "?"))
+                                    else ". " if base.strip() else "") + NO_PATTERN
+        return {"base": base, "enhanced": base}
     enhanced = enhance_caption(base, result, grounding=grounding, rgb=rgb,
                                coverage=params.grounding_coverage)
     return {"base": base, "enhanced": enhanced}

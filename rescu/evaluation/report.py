@@ -80,10 +80,45 @@ class Sample:
     rectified: list[Path] = field(default_factory=list)
     summary: str = ""
     caption: str = ""
+    found: bool = False
+    failed: bool = False
+    confidence: float | None = None
 
     @property
     def anchor(self) -> str:
         return _anchor("img", self.dataset, Path(self.image).stem)
+
+
+BENCHMARKS = ("synthetic",)
+"""Datasets that are generated benchmarks, not photos: shown after the photos."""
+
+
+def pick_photos(samples: Sequence[Sample], n: int,
+                benchmarks: Sequence[str] = BENCHMARKS) -> list[Sample]:
+    """The pictures of the report's first screen: up to ``n`` real photos (datasets not
+    in ``benchmarks``; all datasets when there is none), the most confident results
+    first (a pattern's ``confidence`` where discovery gave one, else its score) taken in
+    turn from each dataset, then up to ``max(1, n // 4)`` without a pattern or failed."""
+    real = [s for s in samples if s.dataset not in benchmarks] or list(samples)
+    good = [s for s in real if s.found and not s.failed]
+    bad = [s for s in real if not s.found or s.failed]
+    k_bad = min(len(bad), max(1, n // 4)) if n else 0
+    by_ds: dict[str, list[Sample]] = {}
+    for s in sorted(good, key=lambda s: -(s.confidence if s.confidence is not None
+                                          else float("-inf"))):
+        by_ds.setdefault(s.dataset, []).append(s)
+    picked: list[Sample] = []
+    while len(picked) < n - k_bad and any(by_ds.values()):
+        for ds in list(by_ds):
+            if by_ds[ds] and len(picked) < n - k_bad:
+                picked.append(by_ds[ds].pop(0))
+    return picked + bad[:n - len(picked)]
+
+
+def _full_link(s: Sample, out_html: Path, inner: str) -> str:
+    """``inner`` (a picture) as a link to the full-size overlay, relative to the page."""
+    href = os.path.relpath(Path(s.overlay).resolve(), Path(out_html).resolve().parent)
+    return f"<a href='{html.escape(Path(href).as_posix())}' title='full size'>{inner}</a>"
 
 
 # ----------------------------------------------------------------------------- page
@@ -126,7 +161,13 @@ figure{margin:4px 0}
 figure img,.pair img{max-width:100%;height:auto}
 .gallery{display:flex;flex-wrap:wrap;gap:14px}
 .gallery figure{width:316px;margin:0}
-.gallery figcaption{font-size:12.5px}
+.gallery figcaption{font-size:14px}
+.gallery .cap,.picks .cap{font-style:italic;margin-top:2px}
+.picks{display:flex;flex-wrap:wrap;gap:14px 18px;margin:6px 0 10px}
+.picks figure{width:420px;max-width:100%;margin:0}
+.picks figcaption{font-size:14.5px}
+.picks .name{font-weight:600}
+.failed{color:#a00}
 .gallery .rect img{margin:2px 4px 0 0}
 details summary{cursor:pointer;font-size:13px;color:#0b5cad}
 code{font-size:12px}
@@ -145,7 +186,10 @@ CHECK_JS = """
   clientWidth:de.clientWidth,scrollWidth:de.scrollWidth,bodyScrollWidth:document.body.scrollWidth,
   tables:[],headline:box(document.querySelector("table.headline")),
   firstImg:box(document.querySelector("img")),imgsOnFirstScreen:0,
-  firstH2:box(document.querySelector("h2"))};
+  firstH2:box(document.querySelector("h2")),
+  firstCaption:box(document.querySelector(".picks figcaption")),
+  captionFontPx:(function(e){return e?parseFloat(getComputedStyle(e).fontSize):0;})(
+   document.querySelector(".picks figcaption"))};
  document.querySelectorAll("table").forEach(function(t){var b=box(t);
   b.cls=t.className;b.scrollWidth=t.scrollWidth;out.tables.push(b);});
  document.querySelectorAll("img").forEach(function(i){var b=box(i);
@@ -183,7 +227,7 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
                  samples: Sequence[Sample], datasets: Sequence[str] | None = None,
                  title: str = "RESCU report", meta: str = "", alpha: float = 0.05,
                  iod_h: float | None = None, decimals: int = 2, thumbs: int = 3,
-                 tables: Iterable[str | Path] | None = None) -> None:
+                 tables: Iterable[str | Path] | None = None, first_screen: int = 8) -> None:
     """Write the report: one HTML file with everything embedded but the TSV links.
 
     Parameters
@@ -191,8 +235,10 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
     tables_dir, figures_dir : folders of the run's tables (``*.tsv``; the ones that do
         not exist are left out) and curves (``rp_curves_<dataset>.png``,
         ``vpd_<dataset>.png``, ``ts_sweep.png``)
-    samples : pictures of what was found, in dataset order; the first ``thumbs`` of a
-        dataset stand beside its headline
+    samples : pictures of what was found, in dataset order; :func:`pick_photos` picks
+        ``first_screen`` of them (real photos) for the top of the page, the first
+        ``thumbs`` of a dataset stand beside its headline, all are in the pictures
+        section, each a link to the full-size picture
     datasets : the datasets of the run in order (default: as the samples and tables
         name them)
     meta : one line of Markdown under the title (what produced the tables)
@@ -219,6 +265,9 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
     failures = load(t / "failures.tsv")
     captions = load(t / "captions.tsv")
     names = list(datasets) if datasets else _datasets(samples, captions, rp, vpd)
+    names = ([n for n in names if n not in BENCHMARKS]       # photos first, the
+             + [n for n in names if n in BENCHMARKS])         # benchmark after them
+    picks = pick_photos(samples, first_screen)
     by_ds: dict[str, list[Sample]] = {}
     for s in samples:
         by_ds.setdefault(s.dataset, []).append(s)
@@ -227,7 +276,7 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
     h = f"IOD h = {iod_h:g}" if iod_h is not None else "the IOD protocol"
     link = lambda name, label=None: _tsv_link(t / name, out_html, label)  # noqa: E731
 
-    nav = [("rp", "Recurring patterns", rp), ("counting", "Counting", counting),
+    nav = [("photos", "Photos", picks or None), ("rp", "Recurring patterns", rp), ("counting", "Counting", counting),
            ("vp", "Vanishing points", vpd), ("ts", "Translation symmetry", ts),
            ("pictures", "Pictures", samples or None),
            ("ablations", "Ablations", abl if abl is not None else abl2),
@@ -242,14 +291,31 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
         "<p class='lead'>Recurring patterns found in "
         + (f"{_plural(n_total, 'image')} of " if n_total else "")
         + f"{_plural(len(names), 'dataset')} without training data or "
-        "labels: per dataset the headline figures beside pictures of what was found "
-        "(boxes: instances of each pattern), then each evaluation in detail.</p>",
+        "labels: first photos with what was found (the most confident results and some "
+        "without a pattern; a click opens the full picture), then per dataset the "
+        "headline figures, the synthetic benchmark last, and each evaluation in "
+        "detail.</p>",
         "<p class='meta'>" + (meta + " " if meta else "")
         + f"P / R: precision / recall of instances and of whole recurring patterns (RPs) at "
         f"{html.escape(h)}, mean ± std over images; <b>bold</b>: best. All tables as TSV in "
         + _tsv_link(t, out_html, "tables/") + ".</p>",
         "<nav>" + "".join(f"<a href='#{a}'>{label}</a>" for a, label, x in nav
                           if x is not None) + "</nav>"]
+
+    # First: real photos with what was found.
+    if picks:
+        cards = []
+        for p in picks:
+            cap = (f"<div class='cap'>{html.escape(p.caption)}</div>"
+                   if p.caption and p.caption != p.summary else "")
+            cls = " class='failed'" if p.failed or not p.found else ""
+            cards.append(
+                f"<figure>{_full_link(p, out_html, _img_tag(p.overlay, width=420, alt=p.image))}"
+                f"<figcaption><span class='name'>{html.escape(Path(p.image).name)}</span> "
+                f"<span class='sub'>({html.escape(p.dataset)})</span><div{cls}>"
+                f"{html.escape(p.summary)}</div>{cap}</figcaption></figure>")
+        parts.append("<section id='photos'><div class='picks'>" + "".join(cards)
+                     + "</div></section>")
 
     # Per dataset: the headline beside the first pictures.
     for ds in names:
@@ -344,20 +410,24 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
 
     if samples:
         parts.append("<h2 id='pictures'>Pictures: what was found</h2><p class='note'>The "
-                     "overlays: the instances of each recurring pattern (one colour per "
-                     "pattern), its count, vanishing point and translation symmetry (TS), the "
-                     "caption in the band below; under each, the rectified views of its "
-                     "patterns.</p>")
+                     "overlays of every image: the instances of each recurring pattern (one "
+                     "colour per pattern, labelled), a legend with each pattern's count and "
+                     "confidence, the supported vanishing points, the caption in the band "
+                     "below; under each, the rectified views of its patterns. A click opens "
+                     "the full picture.</p>")
         for ds in names:
             if ds not in by_ds:
                 continue
             parts.append(f"<h3>{html.escape(ds)}</h3><div class='gallery'>")
             for s in by_ds[ds]:
                 rect = "".join(_img_tag(r, height=48) for r in s.rectified[:6])
+                cap = (f"<div class='cap'>{html.escape(s.caption)}</div>"
+                       if s.caption and s.caption != s.summary else "")
                 parts.append(
-                    f"<figure id='{s.anchor}'>{_img_tag(s.overlay, width=316, alt=s.image)}"
+                    f"<figure id='{s.anchor}'>"
+                    f"{_full_link(s, out_html, _img_tag(s.overlay, width=316, alt=s.image))}"
                     f"<figcaption><b>{html.escape(s.image)}</b>: {html.escape(s.summary)}"
-                    + (f"<div class='rect'>{rect}</div>" if rect else "")
+                    + cap + (f"<div class='rect'>{rect}</div>" if rect else "")
                     + "</figcaption></figure>")
             parts.append("</div>")
 
@@ -430,14 +500,18 @@ def _summary_meta(summary_md: Path) -> str:
 def build_run_report(out_html: str | Path, results: str | Path,
                      samples: Mapping[str, Sequence[str]],
                      evaluation: Mapping[str, Any] | None = None,
-                     tables: Iterable[str | Path] | None = None) -> None:
+                     tables: Iterable[str | Path] | None = None,
+                     report: Mapping[str, Any] | None = None) -> None:
     """The report of a pipeline run from its results folder.
 
     ``samples`` maps each dataset to the image stems whose overlays are shown;
+    ``report`` is the config's ``report`` section (``first_screen``: photos picked for
+    the top, ``samples_per_dataset``: pictures beside each dataset's headline);
     ``evaluation`` is the config's ``evaluation`` section (``significance_alpha``,
     ``iod_h``, ``decimals``) for the notes and number formats; ``tables`` the table
     files the run made (default: all in ``<results>/tables``).
     """
+    from ..captions.caption import NO_PATTERN, pattern_confidence, summary_line
     from ..io import read_result
 
     results = Path(results)
@@ -449,21 +523,25 @@ def build_run_report(out_html: str | Path, results: str | Path,
             rect_dir = results / ds / "rectified" / stem
             rect = sorted(rect_dir.glob("*.png")) if rect_dir.is_dir() else []
             f = res.extra.get("failure")
-            counts = [p.count for p in res.patterns]
-            summary = (f"{len(counts)} pattern{'s' if len(counts) != 1 else ''}"
-                       + (f", counts {', '.join(str(c) for c in counts)}" if counts else ""))
+            summary = line = summary_line(res)
+            confs = [pattern_confidence(p)[1] for p in res.patterns if p.count >= 2]
             if f and f.get("degraded_to"):  # a step failed; the previous step's result kept
                 summary += f" ({f.get('stage')} failed; {f.get('degraded_to')}'s result)"
             elif f:
                 summary = f"failed in {f.get('stage')}: {f.get('message')}"
             items.append(Sample(ds, res.image or stem, results / ds / "overlay" / f"{stem}.png",
-                                rect, summary, (res.caption or {}).get("enhanced", "")))
+                                rect, summary, (res.caption or {}).get("enhanced", ""),
+                                found=line != NO_PATTERN,
+                                failed=bool(f) and not f.get("degraded_to"),
+                                confidence=max(confs) if confs else None))
     build_report(out_html, results / "tables", results / "figures", items,
                  datasets=list(samples) or None,
                  meta=_summary_meta(results / "tables" / "summary.md"),
                  alpha=float(evaluation.get("significance_alpha", 0.05)),
                  iod_h=evaluation.get("iod_h"),
-                 decimals=int(evaluation.get("decimals", 2)), tables=tables)
+                 decimals=int(evaluation.get("decimals", 2)), tables=tables,
+                 thumbs=int((report or {}).get("samples_per_dataset", 3)),
+                 first_screen=int((report or {}).get("first_screen", 8)))
 
 
 # ----------------------------------------------------------------------------- the page as seen
@@ -522,8 +600,9 @@ def chromium_layout(html_path: str | Path, width: int = 1400, height: int = 900,
 
 def first_screen_problems(layout: Mapping[str, Any], height: int = 900) -> list[str]:
     """What keeps the first screen of :func:`chromium_layout`'s page from reading well
-    (empty: nothing): a page or table wider than the window, no headline table or no
-    picture within the first ``height`` pixels (or the window's inner height, if less)."""
+    (empty: nothing): a page or table wider than the window, no picture or no photo
+    caption (of the picked photos, at least 13 px) within the first ``height`` pixels
+    (or the window's inner height, if less)."""
     problems = []
     width = layout["clientWidth"]
     screen = min(height, layout.get("innerHeight") or height)
@@ -533,12 +612,14 @@ def first_screen_problems(layout: Mapping[str, Any], height: int = 900) -> list[
         if t["right"] > width + 0.5 or t["scrollWidth"] > width:
             problems.append(f"table '{t['cls']}' reaches {t['right']:.0f} px "
                             f"({t['width']:.0f} px wide, window {width} px)")
-    hl = layout.get("headline")
-    if not hl:
-        problems.append("no headline table")
-    elif hl["bottom"] > screen:
-        problems.append(f"headline table ends at {hl['bottom']:.0f} px, below the first "
-                        f"screen ({screen} px)")
+    cap = layout.get("firstCaption")
+    if not cap:
+        problems.append("no photo caption")
+    elif cap["bottom"] > screen:
+        problems.append(f"the first photo's caption ends at {cap['bottom']:.0f} px, below "
+                        f"the first screen ({screen} px)")
+    elif layout.get("captionFontPx", 0) < 13:
+        problems.append(f"photo captions in {layout.get('captionFontPx')} px type")
     if layout.get("imgsOnFirstScreen", 0) < 1:
         problems.append("no picture on the first screen")
     return problems

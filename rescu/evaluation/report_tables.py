@@ -328,7 +328,9 @@ def _pick_thresholds(values: Iterable[float], k: int = 3) -> list[float]:
 def vp_compact(vpd: pd.DataFrame, dataset: str, errors: pd.DataFrame | None = None,
                decimals: int = 2) -> Table | None:
     """Methods x a few thresholds of the VP success rate (the full sweep is the curve and
-    the TSV), with the median angle error and the images without a VP."""
+    the TSV), with the median angle error and the images without a VP. A method with a
+    VP on no image of the dataset (a peer that could not run here) says "not run"
+    instead of zeros."""
     g = vpd[vpd["dataset"].astype(str) == dataset]
     if g.empty:
         return None
@@ -363,6 +365,13 @@ def vp_compact(vpd: pd.DataFrame, dataset: str, errors: pd.DataFrame | None = No
         if c in df:
             bold[c] = _best_mask(df[c], decimals, hi)
     cells = format_frame(df, decimals)
+    for i, m in enumerate(df["method"]):
+        if rows[m].get("Without a VP") is not None and rows[m]["Without a VP"] == rows[m].get(
+                "n_images", -1):
+            for c in cols[1:]:
+                if c not in ("n_images", "Without a VP"):
+                    cells.iloc[i, cols.index(c)] = "not run"
+                    bold.iloc[i, cols.index(c)] = False
     return Table(cells, bold, text=["method"], headers={"n_images": "Images"})
 
 

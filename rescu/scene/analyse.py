@@ -107,8 +107,9 @@ class SceneParams:
         """Build from the configuration's whole ``scene`` section: its ``source`` (which
         instances the scene step reads), ``completion``
         (:class:`rescu.scene.completion.CompletionParams`), ``image_vp``
-        (:class:`rescu.scene.vp.manhattan.ImageVPParams`) and ``peer_vp`` belong to other
-        steps and are left out; every other key goes to :meth:`from_dict`.
+        (:class:`rescu.scene.vp.manhattan.ImageVPParams`), ``claims``
+        (:class:`rescu.scene.claims.ClaimParams`) and ``peer_vp`` belong to other steps and
+        are left out; every other key goes to :meth:`from_dict`.
 
         >>> from rescu.params import config_defaults
         >>> p = SceneParams.from_config(config_defaults("scene"))
@@ -116,7 +117,8 @@ class SceneParams:
         (1000, 0.06)
         """
         return cls.from_dict({k: v for k, v in (section or {}).items()
-                              if k not in ("source", "completion", "image_vp", "peer_vp")})
+                              if k not in ("source", "completion", "image_vp", "peer_vp",
+                                           "claims")})
 
 
 def _boxes(p: Pattern) -> np.ndarray:

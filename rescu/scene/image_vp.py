@@ -13,7 +13,10 @@ step is kept as ``rp_vanishing_point``, and the new fields are
   "support", "direction" (unit 3D, camera frame: x right, y down, z forward),
   "weight", "cues": {"lines": n, "rp_rows": n}}``;
 * ``focal_px``: the focal length (original pixels) the directions are in, and
-  ``focal_estimated``: whether it was estimated (principal point at the image centre).
+  ``focal_estimated``: whether it was estimated (principal point at the image centre);
+* ``vp_lines``: ``{"lines": n, "rp_rows": n, "weight": w}``, the lines every VP was
+  drawn from and their total weight (on the scale of each VP's ``weight``), which the
+  claim tests compare a VP's inlier weight with (:mod:`rescu.scene.claims`).
 
 Documented empty result: with fewer than three lines in all (a blank image, no pattern),
 ``vanishing_points`` is ``[]``, ``focal_px`` is null and ``vanishing_point`` stays the
@@ -103,7 +106,13 @@ def image_vanishing_points(rgb: np.ndarray, scale_factor: float, result: ImageRe
     mh = manhattan_vps(cues, (w, h), params,
                        focal_px=None if focal is None else float(focal) * scale_factor,
                        point_hypotheses=points)
-    return _with_vps(result, mh, scale_factor)
+    out = _with_vps(result, mh, scale_factor)
+    # what the VPs were drawn from, for the claim tests (rescu.scene.claims): the lines
+    # of each cue and their total weight, on the scale of each VP's ``weight``
+    total = sum(float(np.sum(ln.weights)) * cw for _, ln, cw in cues if cw > 0)
+    out.extra["vp_lines"] = {"lines": int(len(cues[0][1])), "rp_rows": int(len(rp_proc)),
+                             "weight": round(total / scale_factor, 3)}
+    return out
 
 
 def _with_vps(result: ImageResult, mh: ManhattanResult | None,

@@ -10,6 +10,7 @@ rule caption:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
     params:
         caption=config["caption"],
+        claims=config["scene"]["claims"],
     log:
         LOGS + "/{dataset}/caption/{image}.log",
     benchmark:
@@ -25,6 +26,8 @@ rule overlay:
         code=step_code("overlay"),
     output:
         png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
+    params:
+        mode=config["report"]["overlay"],
     log:
         LOGS + "/{dataset}/overlay/{image}.log",
     script:

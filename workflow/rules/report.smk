@@ -3,8 +3,9 @@
 
 
 def report_samples():
-    k = config["report"]["samples_per_dataset"]
-    return {d: images(d)[:k] for d in DATASETS}
+    """Every image: the report picks the photos of its first screen from all of them and
+    shows each in its pictures section."""
+    return {d: images(d) for d in DATASETS}
 
 
 def sample_files(pattern):
@@ -34,6 +35,7 @@ rule report:
         samples=report_samples(),
         results=RESULTS,
         evaluation=config["evaluation"],
+        report=config["report"],
     log:
         LOGS + "/report.log",
     script:

@@ -3,4 +3,4 @@ from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])
 pipeline.overlay(snakemake.input.png, snakemake.input.meta, snakemake.input.result,
-                 snakemake.output.png)
+                 snakemake.output.png, mode=snakemake.params.mode)
