@@ -156,7 +156,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
     from .outputs import check_targets
     from .pipeline import setup_logging
 
-    sets = (["dense.enabled=true"] if args.dense else []) + list(args.set)
+    sets = (["dense.enabled=true"] if args.dense else []) \
+        + (["dense.enabled=false"] if args.no_dense else []) + list(args.set)
     cfg = load_config(args.config, _parse_set(sets), stage2=args.method == "rescu-ii",
                       profile="objects" if args.objects else None)
     photos = _collect_photos(args.photos)
@@ -320,9 +321,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="optional YAML file overriding sections of the default config/config.yaml")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter, e.g. --set stage1.max_patterns=2 (repeatable)")
-    d.add_argument("--dense", action="store_true",
-                   help="also find RPs in the CNN feature map (small or smooth objects: cars "
-                        "from above, chess pieces); same as --set dense.enabled=true")
+    dense = d.add_mutually_exclusive_group()
+    dense.add_argument("--dense", action="store_true",
+                       help="find whole objects in the CNN feature map and score every RP's "
+                            "confidence (the default; same as --set dense.enabled=true)")
+    dense.add_argument("--no-dense", action="store_true",
+                       help="stage I's keypoint RPs alone, every one reported, no confidence "
+                            "(the default before whole objects; --set dense.enabled=false)")
     d.add_argument("--objects", action="store_true",
                    help="photos of small or smooth objects (cars from above, chess pieces, "
                         "products): RPs from the CNN feature map only, extended by stage II "

@@ -225,8 +225,12 @@ def test_dense_step_and_rescu_i_with_it(tmp_path):
         [p.to_json() for p in got["all"].patterns]           # the same parameters, reused
     assert [len(p.instances) for p in got["dense-only"].patterns] == \
         [len(p.instances) for p in found.patterns]
+    both = dict(cfg["dense"], mode="both")
+    pipeline.stage1(w("f.h5"), w("m.json"), w("s5.json"), w("s5.h5"), cfg["stage1"],
+                    png=w("p.png"), dense_json=w("d.json"), dense_params=both)
+    res5 = ImageResult.from_json(io.read_json(w("s5.json")))
     assert [p.to_json() for p in got["sparse+dense"].patterns] == \
-        [p.to_json() for p in res.patterns]                   # = RESCU-I with the source on
+        [p.to_json() for p in res5.patterns]          # = RESCU-I with the source, mode both
     assert pipeline.ablation(w("f.h5"), w("m.json"), rows, cfg["stage1"],
                              {"all": ["P_d", "P_s", "P_theta"]}, png=w("p.png"),
                              dense_json=w("d2.json"), dense_params=cfg["dense"]) is None
@@ -276,7 +280,8 @@ def test_objectness_crops_the_first_instances_with_context():
     assert objectness(net, img, boxes, p) == pytest.approx(0.75)  # (1 + 0.5) / 2: 2 crops
     assert net.batches[-1].shape == (2, 32, 32, 3)
     # with context 2 the bright crop is a quarter object; a box at the border is cut
-    assert objectness(net, img, boxes[:1], _params(objectness_context=2.0, objectness_px=32)) \
+    assert objectness(net, img, boxes[:1], _params(objectness_crops=2, objectness_context=2.0,
+                                                   objectness_px=32)) \
         == pytest.approx(0.625, abs=0.01)
     assert 0 <= objectness(net, img, np.array([[190, 90, 30, 30]], float), p) <= 1
     assert objectness(net, img, boxes, _params(objectness_crops=0)) == 1.0

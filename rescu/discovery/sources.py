@@ -17,7 +17,7 @@ from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, failure_record
 
 #: The modes of :func:`combine_sources`.
-MODES = ("both", "dense")
+MODES = ("both", "dense", "objects")
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class DenseParams:
     enabled : bool
         Run the dense source and give its RPs to RESCU-I.
     mode : str
-        ``"both"`` or ``"dense"`` (:func:`combine_sources`).
+        ``"objects"``, ``"both"`` or ``"dense"`` (:func:`combine_sources`).
     backbone : str
         Frozen backbone name (:data:`rescu.extension.backbone.BACKBONES`).
     max_side : int
@@ -72,6 +72,33 @@ class DenseParams:
         Side of those crops when classified, pixels.
     objectness_context : float
         Side of a crop / the longer side of its instance box (>= 1: some context).
+    whole_objects : bool
+        Turn each ranked group into an RP of whole objects
+        (:func:`rescu.extension.objects.whole_objects`); false: the groups' blobs as they
+        are (the source before whole objects).
+    max_candidates : int
+        Ranked groups tried, best first, until ``max_patterns`` RPs are kept
+        (``>= max_patterns``; groups that hold parts of a kept RP's objects are skipped).
+    complete : bool
+        Completion by exemplar correlation (:func:`rescu.extension.objects.complete_group`).
+    completion_margin : float
+        Its threshold: the group's members' 20th-percentile similarity to their prototype
+        minus this ...
+    completion_floor : float
+        ... and never below this cosine similarity.
+    extent : bool
+        Refine each RP's box extent (:func:`rescu.extension.objects.refine_extent`).
+    extent_scales, extent_aspects, extent_shifts : tuple of float
+        Its candidate transforms: box side x scale, width / height, centre shift as a
+        fraction of the box.
+    part_cover : float
+        A box lying inside a kept RP's box (or around one) by more than this fraction of
+        the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
+    confidence_gap_scale, confidence_n_scale, confidence_contrast_scale : float
+        Scales of :func:`rescu.extension.objects.pattern_confidence`.
+    min_confidence : float
+        RPs whose confidence is below this are not reported: RESCU-I moves them to the
+        result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
     """
 
     enabled: bool
@@ -91,6 +118,20 @@ class DenseParams:
     objectness_crops: int
     objectness_px: int
     objectness_context: float
+    whole_objects: bool
+    max_candidates: int
+    complete: bool
+    completion_margin: float
+    completion_floor: float
+    extent: bool
+    extent_scales: tuple[float, ...]
+    extent_aspects: tuple[float, ...]
+    extent_shifts: tuple[float, ...]
+    part_cover: float
+    confidence_gap_scale: float
+    confidence_n_scale: float
+    confidence_contrast_scale: float
+    min_confidence: float
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -117,6 +158,25 @@ class DenseParams:
                              f"{self.objectness_px}, {self.objectness_context}")
         if self.max_side < 64:
             raise ValueError(f"dense.max_side must be >= 64, got {self.max_side}")
+        if self.max_candidates < self.max_patterns:
+            raise ValueError(f"dense.max_candidates ({self.max_candidates}) must be >= "
+                             f"dense.max_patterns ({self.max_patterns})")
+        if not -1.0 < self.completion_floor < 1.0 or self.completion_margin < 0:
+            raise ValueError("dense.completion_floor must be in (-1, 1) and completion_margin "
+                             f">= 0, got {self.completion_floor}, {self.completion_margin}")
+        if not self.extent_scales or min(self.extent_scales) <= 0 or \
+                not self.extent_aspects or min(self.extent_aspects) <= 0 or \
+                not self.extent_shifts:
+            raise ValueError("dense.extent_scales and extent_aspects must be non-empty lists of "
+                             "positive numbers, extent_shifts a non-empty list")
+        if not 0.0 < self.part_cover <= 1.0:
+            raise ValueError(f"dense.part_cover must be in (0, 1], got {self.part_cover}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ValueError(f"dense.min_confidence must be in [0, 1], got {self.min_confidence}")
+        if min(self.confidence_gap_scale, self.confidence_n_scale,
+               self.confidence_contrast_scale) <= 0:
+            raise ValueError("dense.confidence_gap_scale, confidence_n_scale and "
+                             "confidence_contrast_scale must be > 0")
         if not 0 < self.min_side <= self.max_side:
             raise ValueError(f"dense.min_side must be in [1, max_side = {self.max_side}], "
                              f"got {self.min_side}")
@@ -127,6 +187,9 @@ class DenseParams:
         d = checked_mapping(cls, d, "dense parameter")
         if "sizes" in d:
             d["sizes"] = tuple(int(s) for s in d["sizes"])
+        for k in ("extent_scales", "extent_aspects", "extent_shifts"):
+            if k in d:
+                d[k] = tuple(float(v) for v in d[k])
         return cls(**d)
 
 
@@ -137,23 +200,56 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     ``params.mode == "dense"``: the dense RPs only. ``"both"``: stage I's RPs first, then
     each dense RP without its instances that overlap a stage-I instance (IOD above
     ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
+    ``"objects"``: the dense RPs (whole objects) first, then each stage-I RP without its
+    instances that overlap a dense instance the same way (a keypoint RP on parts of the
+    objects is absorbed by them), kept when ``params.min_instances`` remain.
     """
     if params.mode == "dense":
         out = list(dense)
+    elif params.mode == "objects":
+        out = list(dense) + _without_overlap(sparse, dense, params)
     else:
-        out = list(sparse)
-        taken = np.array([i.bbox for p in sparse for i in p.instances], float).reshape(-1, 4)
-        for p in dense:
-            b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
-            ok = (np.ones(len(b), bool) if not len(taken)
-                  else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
-            if ok.sum() >= params.min_instances:
-                out.append(Pattern(id=0, score=p.score,
-                                   instances=[i for i, k in zip(p.instances, ok) if k],
-                                   extra=dict(p.extra)))
+        out = list(sparse) + _without_overlap(dense, sparse, params)
     for k, p in enumerate(out):
         p.id = k
     return out
+
+
+def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: DenseParams
+                     ) -> list[Pattern]:
+    """Each of ``patterns`` less its instances that overlap an instance of ``first`` (IOD
+    above ``params.overlap_iod`` either way), those with ``params.min_instances`` left;
+    feature points follow their instances."""
+    taken = np.array([i.bbox for p in first for i in p.instances], float).reshape(-1, 4)
+    out = []
+    for p in patterns:
+        b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+        ok = (np.ones(len(b), bool) if not len(taken)
+              else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
+        if ok.sum() < params.min_instances:
+            continue
+        fp = p.feature_points
+        if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
+            fp = np.asarray(fp)[:, ok]
+        out.append(Pattern(id=0, score=p.score, feature_points=fp, extra=dict(p.extra),
+                           instances=[i for i, k in zip(p.instances, ok) if k]))
+    return out
+
+
+def split_by_confidence(res: ImageResult, min_confidence: float) -> None:
+    """Move the RPs of ``res`` whose ``extra["confidence"]`` is below ``min_confidence``
+    out of ``res.patterns`` into ``res.extra["candidate_patterns"]`` (their JSON, for
+    experts; not analysed further), in place; ids of both lists renumbered 0.. . An RP
+    without a confidence stays. ``res.extra["n_candidate_patterns"]`` counts them."""
+    kept, dropped = [], []
+    for p in res.patterns:
+        c = p.extra.get("confidence")
+        (dropped if c is not None and float(c) < min_confidence else kept).append(p)
+    for k, p in enumerate(kept):
+        p.id = k
+    res.patterns = kept
+    res.extra["candidate_patterns"] = [dict(p.to_json(), id=k) for k, p in enumerate(dropped)]
+    res.extra["n_candidate_patterns"] = len(dropped)
 
 
 def read_dense(path: str) -> ImageResult:

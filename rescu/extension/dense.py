@@ -247,11 +247,13 @@ class DenseCandidate:
     score : float, mean box contrast (:func:`box_contrast`) x rarity (1 - cosine of the
         group's mean feature with the image's mean feature)
     touching : float, mean :func:`touching_sides` of the boxes (0..4)
+    emb : (n, C) float32 or None, the blobs' unit mean features (row i of box i)
     """
 
     boxes: np.ndarray
     score: float
     touching: float
+    emb: np.ndarray | None = None
 
 
 def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams
@@ -316,7 +318,8 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
         rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
         out.append(DenseCandidate(
             boxes=boxes[m], score=float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity,
-            touching=float(touching_sides(boxes[m], params.touch_tolerance).mean())))
+            touching=float(touching_sides(boxes[m], params.touch_tolerance).mean()),
+            emb=emb[m]))
     out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
     return out
 
@@ -378,7 +381,8 @@ def rank_candidates(cands: Sequence[DenseCandidate],
                 c.score < sorted(x.score for x in out)[-top]:
             break
         out.append(c if objectness_of is None else DenseCandidate(
-            boxes=c.boxes, score=c.score * objectness_of(c.boxes), touching=c.touching))
+            boxes=c.boxes, score=c.score * objectness_of(c.boxes), touching=c.touching,
+            emb=c.emb))
     out.sort(key=key)
     return out if top is None else out[:top]
 
@@ -457,6 +461,13 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
                scale_factor: float = 1.0) -> list[Pattern]:
     """The dense source on one prepared image.
 
+    Groups of recurring blobs (:func:`dense_candidates`) that do not tile the plane,
+    ranked by contrast x rarity [x objectness] (:func:`rank_candidates`); with
+    ``params.whole_objects`` each is turned into an RP of whole objects
+    (:func:`rescu.extension.objects.whole_objects`: completion by exemplar correlation,
+    extent, one RP per object, confidence), else the first ``params.max_patterns`` are
+    kept as they are (the blobs' squares).
+
     Parameters
     ----------
     rgb : (H, W, 3) uint8, the prepared image (processed pixels)
@@ -467,23 +478,34 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     Returns
     -------
     list of Pattern (ids 0..; instances in **original** pixels, ``source="stage1"``;
-    ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``)
+    ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``, with
+    ``whole_objects`` also ``"confidence"`` (:func:`rescu.extension.objects.pattern_confidence`),
+    ``"seeds"`` (blobs of the group), ``"gap"`` and ``"extent"`` (the box transform))
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
     []
     """
     from .backbone import FrozenBackbone
+    from .objects import whole_objects
 
     if backbone is None:
         backbone = FrozenBackbone(params.backbone, feature_stride=16)
+    rgb = np.asarray(rgb)
     f, s = dense_map(rgb, params, backbone)
-    to_orig = 1.0 / (s * float(scale_factor))
+    to_orig = 1.0 / float(scale_factor)
+    cands = [c for c in dense_candidates(f, 8.0, params) if c.touching <= params.max_touching]
+    objectness_of = objectness_for(rgb, s, params, backbone)
     pats = []
-    found = dense_patterns(f, 8.0, params, objectness_for(np.asarray(rgb), s, params, backbone))
-    for k, (score, boxes) in enumerate(found):
-        b = boxes * to_orig
-        pats.append(Pattern(id=k, score=score, instances=[
+    if params.whole_objects:
+        ranked = rank_candidates(cands, objectness_of, params.max_candidates)
+        found = whole_objects(f, 8.0, s, rgb, ranked, params)
+    else:
+        found = [(c.score, c.boxes / s, {}) for c in
+                 rank_candidates(cands, objectness_of, params.max_patterns)]
+    for k, (score, boxes, info) in enumerate(found):
+        b = np.asarray(boxes, float) * to_orig
+        pats.append(Pattern(id=k, score=float(score), instances=[
             Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
-            for row in b], extra={"source": "dense"}))
+            for row in b], extra={"source": "dense", **info}))
     return pats

@@ -1,0 +1,566 @@
+"""Whole objects from the dense source's groups: completion, extent, one RP per object.
+
+The dense source (:mod:`rescu.extension.dense`) groups feature-map blobs that look
+alike. A group holds only the blobs that were strong enough to be detected, each a
+square of one of a few fixed sizes, often on one part of an object (a coin's bright
+rim, a chess piece's head), and two groups often sit on two parts of the same objects.
+This module turns each kept group into an RP of whole objects, the way class-agnostic
+counters work once they hold a few exemplars:
+
+1. **Completion by exemplar correlation** (:func:`complete_group`): the group's
+   prototype (its blobs' mean feature) is correlated over the whole feature map with a
+   window of the group's size (:func:`similarity_map`, cosine of the window's mean
+   feature); the local maxima above a threshold taken from the group's own members
+   (``completion_margin`` below their lower quantile, never below
+   ``completion_floor``), suppressed at the instance size, are its instances. Objects
+   that the blob detector missed (weaker contrast, a neighbour's ring in the way) are
+   found when they look like the others.
+2. **Extent** (:func:`refine_extent`): one scale, aspect and shift for all of the RP's
+   boxes, chosen where the colour inside the boxes differs most from a ring around
+   them (Fisher ratio in CIELAB, :func:`colour_contrast`): the classical scale
+   selection of a blob detector, done jointly over the instances. A coin's box grows
+   from its bright centre to the coin.
+3. **One RP per object** (:func:`suppress_parts`): a group whose boxes lie mostly
+   inside (or around) the boxes of a better-ranked RP holds parts of the same objects
+   and is dropped; its boxes that lie elsewhere are not enough to make an RP.
+4. **Confidence** (:func:`pattern_confidence`): a number in [0, 1], computed without
+   ground truth, of how clearly the RP's instances recur: how much more they resemble
+   their prototype than the rest of the image does (the *gap*), and how many they are.
+
+Every function works in the pixels of the backbone input (cells of ``cell_px``) or of
+the image it is given; :func:`rescu.extension.dense.find_dense` converts to original
+pixels.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..evaluation.metrics import cover_matrix
+
+__all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness", "whole_objects", "rp_confidence", "colour_integrals", "colour_contrast",
+           "refine_extent", "suppress_parts", "pattern_confidence", "box_nms"]
+
+
+def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
+                   ) -> np.ndarray:
+    """Cosine similarity of the mean feature of the ``side x side`` window centred at each
+    cell with ``proto``.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, feature map (unit norm per cell)
+    proto : (C,) float, the prototype (any norm)
+    side : window side, cells (>= 1); or ``(width, height)``
+
+    Returns
+    -------
+    (h, w) float32 in [-1, 1]
+
+    >>> f = np.zeros((2, 5, 5), np.float32); f[0] = 1; f[:, 2, 2] = [0, 1]
+    >>> s = similarity_map(f, np.array([0.0, 1.0]), 1)
+    >>> float(s[2, 2]), float(s[0, 0])
+    (1.0, 0.0)
+    """
+    import cv2
+
+    sw, sh = (side, side) if np.isscalar(side) else side   # type: ignore[misc]
+    ksize = (max(1, int(sw)), max(1, int(sh)))
+    acc = np.zeros(f.shape[1:], np.float32)
+    norm = np.zeros(f.shape[1:], np.float32)
+    p = np.asarray(proto, np.float32) / (np.linalg.norm(proto) + 1e-9)
+    for c in range(f.shape[0]):
+        m = cv2.boxFilter(f[c], -1, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
+        acc += m * p[c]
+        norm += m * m
+    return acc / (np.sqrt(norm) + 1e-9)
+
+
+def box_nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> np.ndarray:
+    """Indices of the boxes kept by greedy non-maximum suppression, best score first.
+
+    Parameters
+    ----------
+    boxes : (n, 4) ``[x, y, w, h]``
+    scores : (n,)
+    iou : a box overlapping a kept one by more than this IoU is dropped
+
+    >>> box_nms(np.array([[0, 0, 10, 10], [1, 0, 10, 10], [30, 0, 10, 10]]),
+    ...         np.array([0.5, 0.9, 0.1]), 0.3).tolist()
+    [1, 2]
+    """
+    from ..evaluation.metrics import iou_matrix
+
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    order = np.argsort(-np.asarray(scores, float), kind="stable")
+    if not len(b):
+        return np.zeros(0, int)
+    ov = iou_matrix(b, b)
+    alive = np.ones(len(b), bool)
+    keep = []
+    for i in order:
+        if alive[i]:
+            keep.append(int(i))
+            alive &= ov[i] <= iou
+    return np.array(keep, int)
+
+
+def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray:
+    """The unit mean feature of ``f`` over each box.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32
+    cell_px : pixels per cell
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input (each covers >= 1 cell)
+
+    Returns
+    -------
+    (n, C) float32, rows of unit norm
+    """
+    from .dense import integral_map
+
+    ii = integral_map(f)
+    h, w = f.shape[1:]
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    emb = np.zeros((len(b), f.shape[0]), np.float32)
+    for i, (x, y, bw, bh) in enumerate(b):
+        x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
+        y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
+        x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
+        y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+        v = ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
+        emb[i] = v / (np.linalg.norm(v) + 1e-12)
+    return emb
+
+
+def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: float,
+                   floor: float, quantile: float = 20.0
+                   ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Every instance of an RP, by correlating its prototype over the map.
+
+    The prototype is the mean of the instances' features (:func:`box_features`); the
+    similarity map uses a window of their median width and height
+    (:func:`similarity_map`); its local maxima (within 0.6 x the window) above the
+    threshold, suppressed at IoU 0.2, are the instances, boxes of the median size.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, unit norm per cell (:func:`rescu.extension.dense.hypercolumn`)
+    cell_px : pixels of the map's input per cell
+    boxes : (m, 4) ``[x, y, w, h]`` the RP's instances so far, pixels of the map's input
+    margin : the threshold is the instances' ``quantile``-th percentile similarity to the
+        prototype minus this
+    floor : ... and never below this
+    quantile : percentile of the instances' similarities, in [0, 100]
+
+    Returns
+    -------
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input, best similarity first
+    sims : (n,) their similarity to the prototype
+    tau : the threshold used
+    sim : (h, w) the similarity map
+    """
+    from scipy.ndimage import maximum_filter
+
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    emb = box_features(f, cell_px, b)
+    proto = emb.mean(0)
+    proto /= np.linalg.norm(proto) + 1e-9
+    bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
+    sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
+    sim = similarity_map(f, proto, (sw, sh))
+    tau = max(float(floor), float(np.percentile(emb @ proto, quantile)) - float(margin))
+    ry, rx = max(1, int(round(sh * 0.6))), max(1, int(round(sw * 0.6)))
+    peak = (sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1), mode="nearest")) \
+        & (sim >= tau)
+    ys, xs = np.nonzero(peak)
+    h, w = sim.shape
+    inside = ((ys + 0.5 >= 0.25 * sh) & (ys + 0.5 <= h - 0.25 * sh)
+              & (xs + 0.5 >= 0.25 * sw) & (xs + 0.5 <= w - 0.25 * sw))
+    ys, xs = ys[inside], xs[inside]
+    sims = sim[ys, xs].astype(float)
+    out = np.c_[(xs + 0.5) * cell_px - bw / 2, (ys + 0.5) * cell_px - bh / 2,
+                np.full(len(xs), bw), np.full(len(xs), bh)]
+    keep = box_nms(out, sims, 0.2)
+    order = keep[np.argsort(-sims[keep], kind="stable")]
+    return out[order].reshape(-1, 4), sims[order], tau, sim
+
+
+# ----------------------------------------------------------------------------- extent
+def colour_integrals(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Summed-area tables of an image's CIELAB values and of their squares.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+
+    Returns
+    -------
+    (H + 1, W + 1, 3) float64 twice: sums of L, a, b and of their squares
+    """
+    import cv2
+
+    lab = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2LAB).astype(np.float64)
+    return cv2.integral(lab), cv2.integral(lab * lab)
+
+
+def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
+                    ring: float = 0.5) -> np.ndarray:
+    """How much the colour inside each box differs from a ring around it.
+
+    ``|m_in - m_ring|^2 / (v_in + v_ring + 25)``: the squared distance of the mean CIELAB
+    colours over the summed variances (a Fisher ratio; 25 = a noise floor of 5 grey
+    levels), the ring being the box grown by ``ring`` x its width and height on each side
+    (clipped to the image).
+
+    Parameters
+    ----------
+    integrals : :func:`colour_integrals` of the image
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of that image
+    ring : ring width / box side
+
+    Returns
+    -------
+    (n,) float >= 0
+    """
+    ii, ii2 = integrals
+    H, W = ii.shape[0] - 1, ii.shape[1] - 1
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    x0 = np.clip(np.round(b[:, 0]), 0, W - 1).astype(int)
+    y0 = np.clip(np.round(b[:, 1]), 0, H - 1).astype(int)
+    x1 = np.clip(np.round(b[:, 0] + b[:, 2]), x0 + 1, W).astype(int)
+    y1 = np.clip(np.round(b[:, 1] + b[:, 3]), y0 + 1, H).astype(int)
+    rw = np.maximum(1, np.round(b[:, 2] * ring)).astype(int)
+    rh = np.maximum(1, np.round(b[:, 3] * ring)).astype(int)
+    X0, Y0 = np.clip(x0 - rw, 0, W), np.clip(y0 - rh, 0, H)
+    X1, Y1 = np.clip(x1 + rw, 0, W), np.clip(y1 + rh, 0, H)
+
+    def total(t: np.ndarray, a0: np.ndarray, b0: np.ndarray, a1: np.ndarray,
+              b1: np.ndarray) -> np.ndarray:
+        return t[b1, a1] - t[b0, a1] - t[b1, a0] + t[b0, a0]
+
+    si, si2 = total(ii, x0, y0, x1, y1), total(ii2, x0, y0, x1, y1)
+    so, so2 = total(ii, X0, Y0, X1, Y1) - si, total(ii2, X0, Y0, X1, Y1) - si2
+    ni = ((x1 - x0) * (y1 - y0)).astype(float)[:, None]
+    no = np.maximum(((X1 - X0) * (Y1 - Y0)).astype(float)[:, None] - ni, 1.0)
+    mi, mo = si / ni, so / no
+    vi = np.maximum(si2 / ni - mi ** 2, 0).sum(1)
+    vo = np.maximum(so2 / no - mo ** 2, 0).sum(1)
+    return ((mi - mo) ** 2).sum(1) / (vi + vo + 25.0)
+
+
+def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
+                  aspects: Sequence[float], shifts: Sequence[float],
+                  integrals: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The RP's boxes at the extent where they stand out most from their surroundings.
+
+    One transform for all boxes (they show the same kind of object): side ``scale`` x the
+    median box side, width / height ``aspect``, centre moved by ``shift`` x the new width
+    and height; the transform with the largest median :func:`colour_contrast` over the
+    boxes that stay (mostly) inside the image wins. Boxes are clipped to the image.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of ``rgb``
+    scales, aspects, shifts : the candidate transforms (1.0, 1.0, 0.0 included: the
+        boxes as they are, squared to their median side)
+    integrals : :func:`colour_integrals` of ``rgb`` when already computed
+
+    Returns
+    -------
+    boxes : (n, 4) float, the refined boxes
+    transform : ``(scale, aspect, shift_x, shift_y)`` chosen
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if not len(b):
+        return b, (1.0, 1.0, 0.0, 0.0)
+    ii = colour_integrals(rgb) if integrals is None else integrals
+    H, W = rgb.shape[:2]
+    c = b[:, :2] + b[:, 2:] / 2
+    side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
+    best, best_t, best_v = b, (1.0, 1.0, 0.0, 0.0), -1.0
+    for s in scales:
+        for r in aspects:
+            bw, bh = side * s * np.sqrt(r), side * s / np.sqrt(r)
+            for dx in shifts:
+                for dy in shifts:
+                    cc = c + np.array([dx * bw, dy * bh])
+                    nb = np.c_[cc[:, 0] - bw / 2, cc[:, 1] - bh / 2,
+                               np.full(len(c), bw), np.full(len(c), bh)]
+                    inside = ((nb[:, 0] >= -0.15 * bw) & (nb[:, 1] >= -0.15 * bh)
+                              & (nb[:, 0] + bw <= W + 0.15 * bw)
+                              & (nb[:, 1] + bh <= H + 0.15 * bh))
+                    if inside.mean() < 0.7:
+                        continue
+                    v = float(np.median(colour_contrast(ii, nb[inside])))
+                    if v > best_v + 1e-12:
+                        best, best_t, best_v = nb, (float(s), float(r), float(dx), float(dy)), v
+    x0 = np.clip(best[:, 0], 0, W)
+    y0 = np.clip(best[:, 1], 0, H)
+    x1 = np.clip(best[:, 0] + best[:, 2], 0, W)
+    y1 = np.clip(best[:, 1] + best[:, 3], 0, H)
+    return np.c_[x0, y0, x1 - x0, y1 - y0], best_t
+
+
+def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
+                    cell_px: float, quantile: float = 95.0, grow: float = 0.5) -> float:
+    """How much more an RP's instances resemble their prototype than anything else.
+
+    The median similarity of the instances minus the ``quantile``-th percentile of the
+    similarity map over the cells away from every instance: outside each box grown by
+    ``grow`` x its width and height on every side (a window there does not overlap an
+    instance much; when such cells are fewer than 5 % of the map, outside the boxes
+    themselves). A pattern of texture or background (found everywhere) scores about 0 or
+    less, a set of distinct objects clearly more.
+
+    Parameters
+    ----------
+    sim : (h, w) similarity map (:func:`similarity_map`)
+    sims : (n,) the instances' similarities
+    boxes : (n, 4) the instances' boxes, pixels of the map's input
+    cell_px : pixels per cell
+    quantile : percentile of the other cells, in [0, 100]
+    grow : margin around each box, fraction of its side
+
+    Returns
+    -------
+    float in [-2, 2]; -1.0 when no cell is outside the boxes
+    """
+    h, w = sim.shape
+    b = np.asarray(boxes, float).reshape(-1, 4)
+
+    def free_cells(g: float) -> np.ndarray:
+        free = np.ones(sim.shape, bool)
+        for x, y, bw, bh in b:
+            x0 = max(0, int(np.floor((x - g * bw) / cell_px)))
+            y0 = max(0, int(np.floor((y - g * bh) / cell_px)))
+            x1 = min(w, int(np.ceil((x + (1 + g) * bw) / cell_px)))
+            y1 = min(h, int(np.ceil((y + (1 + g) * bh) / cell_px)))
+            free[y0:y1, x0:x1] = False
+        return free
+
+    free = free_cells(grow)
+    if free.mean() < 0.05:
+        free = free_cells(0.0)
+    if not free.any() or not len(sims):
+        return -1.0
+    return float(np.median(sims) - np.percentile(sim[free], quantile))
+
+
+def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
+                  integrals: tuple[np.ndarray, np.ndarray], params: Any) -> dict[str, float]:
+    """The confidence of any RP (from any source) from its instance boxes.
+
+    The instances' mean features over their boxes give the prototype; the similarity map
+    at the median box size (:func:`similarity_map`) and :func:`distinctiveness` give the
+    gap; :func:`pattern_confidence` combines it with the number of instances.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, the feature map of the image resized by ``s``
+    cell_px : pixels of the backbone input per cell
+    s : backbone-input pixels per pixel of ``boxes``
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the image of ``integrals``
+    integrals : :func:`colour_integrals` of that image
+    params : :class:`rescu.discovery.sources.DenseParams` (``confidence_*`` scales)
+
+    Returns
+    -------
+    ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4) * s
+    if len(b) < 2:
+        return {"confidence": 0.0, "gap": -1.0, "contrast": 0.0}
+    emb = box_features(f, cell_px, b)
+    proto = emb.mean(0)
+    proto /= np.linalg.norm(proto) + 1e-9
+    side = (max(1, int(round(float(np.median(b[:, 2])) / cell_px))),
+            max(1, int(round(float(np.median(b[:, 3])) / cell_px))))
+    gap = distinctiveness(similarity_map(f, proto, side), emb @ proto, b, cell_px)
+    con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
+    conf = pattern_confidence(gap, len(b), con, params.confidence_gap_scale,
+                              params.confidence_n_scale, params.confidence_contrast_scale)
+    return {"confidence": round(conf, 4), "gap": round(gap, 4), "contrast": round(con, 4)}
+
+
+# ------------------------------------------------------------------------- selection
+def suppress_parts(ranked: Sequence[np.ndarray], cover: float, min_instances: int,
+                   max_patterns: int) -> list[np.ndarray]:
+    """One RP per object: the first ``max_patterns`` box sets of ``ranked`` (best first)
+    that do not hold parts of a better one's objects.
+
+    A box *overlaps* a kept RP when it lies inside one of its boxes, or one of them inside
+    it, by more than ``cover`` of the smaller (:func:`rescu.evaluation.metrics.cover_matrix`).
+    A set whose boxes mostly overlap is dropped; otherwise its overlapping boxes are
+    removed, and it is kept when ``min_instances`` remain.
+
+    Parameters
+    ----------
+    ranked : list of (n_i, 4) ``[x, y, w, h]`` arrays, best first
+    cover : in (0, 1]
+    min_instances : least boxes of a kept set
+    max_patterns : most sets kept
+
+    Returns
+    -------
+    list of (m_i, 4) arrays, in the order of ``ranked``
+
+    >>> a = np.array([[0, 0, 10, 10], [20, 0, 10, 10], [40, 0, 10, 10]], float)
+    >>> parts = a * [1, 1, 0.5, 0.5] + [2, 2, 0, 0]
+    >>> [len(k) for k in suppress_parts([a, parts, a + [0, 50, 0, 0]], 0.5, 2, 3)]
+    [3, 3]
+    """
+    kept: list[np.ndarray] = []
+    taken = np.zeros((0, 4))
+    for boxes in ranked:
+        b = np.asarray(boxes, float).reshape(-1, 4)
+        if len(taken) and len(b):
+            dup = (cover_matrix(b, taken).max(1) > cover) | (cover_matrix(taken, b).max(0) > cover)
+            if dup.mean() > 0.5:
+                continue
+            b = b[~dup]
+        if len(b) < min_instances:
+            continue
+        kept.append(b)
+        taken = np.vstack([taken, b])
+        if len(kept) >= max_patterns:
+            break
+    return kept
+
+
+def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
+                       n_scale: float, contrast_scale: float) -> float:
+    """How clearly an RP recurs, in [0, 1], without ground truth.
+
+    The product of three saturating terms ``1 - exp(-x / scale)``:
+
+    * the *gap* (:func:`distinctiveness`): how much more the instances resemble their
+      prototype than anything else in the image does. A pattern that is everywhere
+      (texture, background) or that its own instances barely share has none;
+    * ``n - 1``, the number of instances beyond the first: two make a weak pattern,
+      ten a clear one;
+    * the instances' median colour *contrast* with their surroundings
+      (:func:`colour_contrast`): objects stand out from what surrounds them, the
+      gaps between objects and patches of texture do not.
+
+    >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5), 3)
+    0.829
+    >>> pattern_confidence(-0.1, 12, 2.0, 0.15, 3.0, 0.5)
+    0.0
+    """
+    g = 1.0 - np.exp(-max(float(gap), 0.0) / gap_scale)
+    k = 1.0 - np.exp(-max(int(n) - 1, 0) / n_scale)
+    c = 1.0 - np.exp(-max(float(contrast), 0.0) / contrast_scale)
+    return float(g * k * c)
+
+
+def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
+                  ranked: Sequence[Any], params: Any
+                  ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
+    """RPs of whole objects from the dense source's ranked groups (steps 1-4 of the
+    module docstring).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, the feature map of ``rgb`` resized by ``s``
+        (:func:`rescu.extension.dense.dense_map`)
+    cell_px : pixels of the backbone input per cell (8)
+    s : backbone-input pixels per pixel of ``rgb``
+    rgb : (H, W, 3) uint8, the prepared image
+    ranked : :class:`rescu.extension.dense.DenseCandidate` list, best first (with ``emb``)
+    params : :class:`rescu.discovery.sources.DenseParams`
+
+    Returns
+    -------
+    list of ``(score, boxes, info)``, best first, at most ``params.max_patterns``: boxes
+    (n, 4) ``[x, y, w, h]`` in pixels of ``rgb``, n >= ``params.min_instances``; info
+    ``{"confidence", "gap", "seeds", "extent"}`` (:func:`pattern_confidence`, the
+    number of blobs the group started from, the transform of :func:`refine_extent`)
+    """
+    from .dense import touching_sides
+
+    integrals = colour_integrals(rgb)
+    out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
+    taken = np.zeros((0, 4))
+    for c in ranked:
+        boxes = np.asarray(c.boxes, float)               # the group's blobs, map pixels
+        if params.complete and len(boxes):
+            boxes = complete_group(f, cell_px, boxes, params.completion_margin,
+                                   params.completion_floor)[0]
+        b = boxes / s
+        t: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
+        if params.extent and len(b):
+            b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
+                                 params.extent_shifts, integrals)
+            # two instances on one object (two parts) become one box at the object's extent
+            b = b[np.sort(box_nms(b, colour_contrast(integrals, b), 0.5))]
+        boxes = b * s
+        if len(boxes) < params.min_instances:
+            continue
+        if float(touching_sides(boxes, params.touch_tolerance).mean()) > params.max_touching:
+            continue
+        b = _clip(boxes / s, rgb.shape[1], rgb.shape[0])
+        kept = suppress_parts([b], params.part_cover, params.min_instances, 1) \
+            if not len(taken) else _without_parts(b, taken, params)
+        if not kept:
+            continue
+        b = kept[0]
+        taken = np.vstack([taken, b])
+        info = rp_confidence(f, cell_px, s, b, integrals, params)
+        out.append((float(c.score), b, {**info,
+                                        "seeds": int(len(c.boxes)),
+                                        "extent": [float(v) for v in t]}))
+        if len(out) >= params.max_patterns:
+            break
+    return out
+
+
+def _clip(b: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Boxes ``[x, y, w, h]`` clipped to a ``width x height`` image."""
+    x0, y0 = np.clip(b[:, 0], 0, width), np.clip(b[:, 1], 0, height)
+    x1 = np.clip(b[:, 0] + b[:, 2], 0, width)
+    y1 = np.clip(b[:, 1] + b[:, 3], 0, height)
+    return np.c_[x0, y0, x1 - x0, y1 - y0]
+
+
+def _without_parts(b: np.ndarray, taken: np.ndarray, params: Any) -> list[np.ndarray]:
+    """:func:`suppress_parts` of one box set against the boxes already kept."""
+    dup = (cover_matrix(b, taken).max(1) > params.part_cover) | \
+        (cover_matrix(taken, b).max(0) > params.part_cover)
+    if dup.mean() > 0.5 or (~dup).sum() < params.min_instances:
+        return []
+    return [b[~dup]]
+
+
+def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float,
+                   params: Any, backbone: Any = None) -> None:
+    """Give every pattern without one a confidence (:func:`rp_confidence`), in place.
+
+    For the RPs of stage I (the dense source's RPs carry theirs): the frozen backbone's
+    map of the prepared image (:func:`rescu.extension.dense.dense_map`, one pass, only
+    when some pattern needs it) and each RP's instance boxes; ``extra["confidence"]`` and
+    ``extra["gap"]``, ``extra["contrast"]`` are set.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8, the prepared image
+    patterns : list of :class:`rescu.types.Pattern`, instances in original pixels
+    scale_factor : processed = original x scale_factor
+    params : :class:`rescu.discovery.sources.DenseParams`
+    backbone : FrozenBackbone or None (None: ``params.backbone``)
+    """
+    todo = [p for p in patterns if "confidence" not in p.extra]
+    if not todo:
+        return
+    from .dense import dense_map
+
+    f, s = dense_map(rgb, params, backbone)
+    integrals = colour_integrals(rgb)
+    for p in todo:
+        b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
+        p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params))
