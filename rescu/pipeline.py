@@ -267,7 +267,10 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
             res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
             if found is not None:
                 add_dense(res, found, dense_params)
-                _score_and_split(res, found, dense_params, png, meta_path)
+                if png is not None:
+                    from .extension.objects import score_and_split
+
+                    score_and_split(res, found, dense_params, *read_prepared(png, meta_path))
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                          objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
@@ -277,25 +280,6 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         io.write_json(out_json, empty_result(meta, method, f))
 
     return _guard(method, _h5_failure(features_h5), run, empty)
-
-
-def _score_and_split(res: ImageResult, found: ImageResult, dense_params: dict[str, Any] | None,
-                     png: str | None, meta_path: str) -> None:
-    """``dense.mode: objects``: every RP of ``res`` gets a confidence
-    (:func:`rescu.extension.objects.score_patterns`), and those below
-    ``dense.min_confidence`` move to ``candidate_patterns``
-    (:func:`rescu.discovery.sources.split_by_confidence`). Not after a failed dense step."""
-    from .discovery.sources import DenseParams, split_by_confidence
-
-    dp = DenseParams.from_dict(dense_params)
-    if dp.mode != "objects" or found.extra.get("failure") or png is None:
-        return
-    from .extension.objects import score_patterns
-
-    rgb, meta = read_prepared(png, meta_path)
-    score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp)
-    split_by_confidence(res, dp.min_confidence)
-    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
 
 
 def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,

@@ -23,9 +23,12 @@ counters work once they hold a few exemplars:
 3. **One RP per object** (:func:`suppress_parts`): a group whose boxes lie mostly
    inside (or around) the boxes of a better-ranked RP holds parts of the same objects
    and is dropped; its boxes that lie elsewhere are not enough to make an RP.
-4. **Confidence** (:func:`pattern_confidence`): a number in [0, 1], computed without
-   ground truth, of how clearly the RP's instances recur: how much more they resemble
-   their prototype than the rest of the image does (the *gap*), and how many they are.
+4. **Confidence** (:func:`rp_confidence`, :func:`pattern_confidence`): a number in
+   [0, 1], computed without ground truth for every RP of any source (stage I's too,
+   :func:`score_patterns`), of how clearly its instances recur: how much more they
+   resemble their prototype than the rest of the image does (the *gap*), how many they
+   are, and how much their colour differs from their surroundings. RESCU-I reports only
+   the RPs at or above ``dense.min_confidence`` (:func:`score_and_split`).
 
 Every function works in the pixels of the backbone input (cells of ``cell_px``) or of
 the image it is given; :func:`rescu.extension.dense.find_dense` converts to original
@@ -40,8 +43,10 @@ import numpy as np
 
 from ..evaluation.metrics import cover_matrix
 
-__all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness", "whole_objects", "rp_confidence", "colour_integrals", "colour_contrast",
-           "refine_extent", "suppress_parts", "pattern_confidence", "box_nms"]
+__all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
+           "whole_objects", "rp_confidence", "score_patterns", "score_and_split",
+           "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
+           "pattern_confidence", "box_nms"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -564,3 +569,28 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
     for p in todo:
         b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
         p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params))
+
+
+def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
+                    meta: dict[str, Any]) -> None:
+    """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
+    (:func:`score_patterns`), and those below ``dense.min_confidence`` move to
+    ``candidate_patterns`` (:func:`rescu.discovery.sources.split_by_confidence`), in
+    place. Nothing in the other modes or after a failed dense step (``found``'s failure).
+
+    Parameters
+    ----------
+    res : :class:`rescu.types.ImageResult`, RESCU-I's result (instances in original pixels)
+    found : :class:`rescu.types.ImageResult`, the dense step's result
+    dense_params : the ``dense`` config section (mapping)
+    rgb : (H, W, 3) uint8, the prepared image
+    meta : its meta (``scale_factor``: processed = original x scale_factor)
+    """
+    from ..discovery.sources import DenseParams, split_by_confidence
+
+    dp = DenseParams.from_dict(dense_params)
+    if dp.mode != "objects" or found.extra.get("failure"):
+        return
+    score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp)
+    split_by_confidence(res, dp.min_confidence)
+    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
