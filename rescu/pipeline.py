@@ -268,7 +268,7 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
             if found is not None:
                 add_dense(res, found, dense_params)
                 if png is not None:
-                    from .extension.objects import score_and_split
+                    from .extension.dense import score_and_split
 
                     score_and_split(res, found, dense_params, *read_prepared(png, meta_path))
         res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,

@@ -66,8 +66,10 @@ def test_discover_on_own_photo_and_bad_file(tmp_path):
 
 def test_discover_dense_adds_the_dense_source(tmp_path):
     photo = shelf_photo(tmp_path / "shelf.png")
+    # mode both: stage I's RPs first, every RP reported (mode objects, the default of
+    # --dense, scores and may hide RPs: tests/test_objects.py)
     out = rescu("discover", str(photo), "--out", str(tmp_path / "out"), "--method", "rescu-i",
-                "--dense", "--quiet")
+                "--dense", "--set", "dense.mode=both", "--quiet")
     assert out.returncode == 0, out.stderr
     d = json.loads((tmp_path / "out" / "shelf.json").read_text())
     n_dense = sum(p.get("source") == "dense" for p in d["patterns"])

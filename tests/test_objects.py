@@ -197,3 +197,12 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})
+
+
+def test_the_dominant_rp_is_the_most_confident_when_rps_have_confidences():
+    from rescu.scene.counting import dominant_pattern
+
+    many, sure = _pat([[0, 0, 1, 1]] * 9, confidence=0.4), _pat([[0, 0, 1, 1]] * 4,
+                                                                 confidence=0.9)
+    assert dominant_pattern([many, sure]) == 1
+    assert dominant_pattern([_pat([[0, 0, 1, 1]] * 9), _pat([[0, 0, 1, 1]] * 4)]) == 0

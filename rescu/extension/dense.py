@@ -49,11 +49,12 @@ import numpy as np
 from ..discovery.sources import DenseParams
 from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
+from .objects import integral_map, touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
-           "objectness_for", "dense_map", "find_dense"]
+           "objectness_for", "dense_map", "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -153,15 +154,6 @@ def blob_boxes(cells: np.ndarray, sizes: Sequence[int], cell_px: float) -> np.nd
                  a * cell_px, a * cell_px] if len(cells) else np.zeros((0, 4))
 
 
-def integral_map(f: np.ndarray) -> np.ndarray:
-    """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
-    :func:`box_contrast`)."""
-    c, h, w = f.shape
-    ii = np.zeros((c, h + 1, w + 1), np.float64)
-    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
-    return ii
-
-
 def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
                  integral: np.ndarray | None = None) -> np.ndarray:
     """Centre-surround contrast of pixel boxes in a feature map.
@@ -201,38 +193,6 @@ def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
         mr = (total(X0, Y0, X1, Y1) - s) / (outer - inner) if outer > inner else mc
         nc, nr = np.linalg.norm(mc) + 1e-9, np.linalg.norm(mr) + 1e-9
         out[i] = (1.0 - float(mc @ mr) / (nc * nr)) * nc
-    return out
-
-
-def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
-    """On how many of its four sides each box abuts another box of the set.
-
-    A box abuts another on its right (left, below, above) when the other's centre lies
-    one median box width (height) to the right (...) within ``tolerance`` x the median
-    width and height on each axis: the boxes tile the plane there, with no gap.
-
-    Parameters
-    ----------
-    boxes : (n, 4) ``[x, y, w, h]``, any pixel unit
-    tolerance : fraction of the median box side, in (0, 0.5)
-
-    Returns
-    -------
-    (n,) float in {0, 1, 2, 3, 4}
-
-    >>> touching_sides(np.array([[0, 0, 10, 10], [10, 0, 10, 10], [40, 0, 10, 10]]), 0.35)
-    array([1., 1., 0.])
-    """
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    if len(b) < 2:
-        return np.zeros(len(b))
-    side = np.maximum(np.median(b[:, 2:], axis=0), 1e-9)
-    c = b[:, :2] + b[:, 2:] / 2
-    d = (c[None, :, :] - c[:, None, :]) / side          # (n, n, 2) in box sides
-    out = np.zeros(len(b))
-    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        out += ((np.abs(d[..., 0] - dx) < tolerance)
-                & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
     return out
 
 
@@ -509,3 +469,34 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
             Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
             for row in b], extra={"source": "dense", **info}))
     return pats
+
+
+def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
+                    meta: dict[str, Any], backbone: Any = None) -> None:
+    """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
+    (:func:`rescu.extension.objects.score_patterns` on the map of :func:`dense_map`, one
+    backbone pass, only when a pattern needs it), and those below
+    ``dense.min_confidence`` move to ``candidate_patterns``
+    (:func:`rescu.discovery.sources.split_by_confidence`), in place. Nothing in the other
+    modes or after a failed dense step (``found``'s failure).
+
+    Parameters
+    ----------
+    res : :class:`rescu.types.ImageResult`, RESCU-I's result (instances in original pixels)
+    found : :class:`rescu.types.ImageResult`, the dense step's result
+    dense_params : the ``dense`` config section (mapping)
+    rgb : (H, W, 3) uint8, the prepared image
+    meta : its meta (``scale_factor``: processed = original x scale_factor)
+    backbone : FrozenBackbone or None (None: ``dense.backbone``)
+    """
+    from ..discovery.sources import split_by_confidence
+    from .objects import score_patterns
+
+    dp = DenseParams.from_dict(dense_params)
+    if dp.mode != "objects" or found.extra.get("failure"):
+        return
+    if any("confidence" not in p.extra for p in res.patterns):
+        f, s = dense_map(rgb, dp, backbone)
+        score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, f, s)
+    split_by_confidence(res, dp.min_confidence)
+    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)

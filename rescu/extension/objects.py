@@ -43,8 +43,49 @@ import numpy as np
 
 from ..evaluation.metrics import cover_matrix
 
+
+def integral_map(f: np.ndarray) -> np.ndarray:
+    """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
+    :func:`box_contrast`)."""
+    c, h, w = f.shape
+    ii = np.zeros((c, h + 1, w + 1), np.float64)
+    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+    return ii
+
+
+def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
+    """On how many of its four sides each box abuts another box of the set.
+
+    A box abuts another on its right (left, below, above) when the other's centre lies
+    one median box width (height) to the right (...) within ``tolerance`` x the median
+    width and height on each axis: the boxes tile the plane there, with no gap.
+
+    Parameters
+    ----------
+    boxes : (n, 4) ``[x, y, w, h]``, any pixel unit
+    tolerance : fraction of the median box side, in (0, 0.5)
+
+    Returns
+    -------
+    (n,) float in {0, 1, 2, 3, 4}
+
+    >>> touching_sides(np.array([[0, 0, 10, 10], [10, 0, 10, 10], [40, 0, 10, 10]]), 0.35)
+    array([1., 1., 0.])
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if len(b) < 2:
+        return np.zeros(len(b))
+    side = np.maximum(np.median(b[:, 2:], axis=0), 1e-9)
+    c = b[:, :2] + b[:, 2:] / 2
+    d = (c[None, :, :] - c[:, None, :]) / side          # (n, n, 2) in box sides
+    out = np.zeros(len(b))
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        out += ((np.abs(d[..., 0] - dx) < tolerance)
+                & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
+    return out
+
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
-           "whole_objects", "rp_confidence", "score_patterns", "score_and_split",
+           "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
            "pattern_confidence", "box_nms"]
 
@@ -125,8 +166,6 @@ def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray
     -------
     (n, C) float32, rows of unit norm
     """
-    from .dense import integral_map
-
     ii = integral_map(f)
     h, w = f.shape[1:]
     b = np.asarray(boxes, float).reshape(-1, 4)
@@ -487,8 +526,6 @@ def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
     ``{"confidence", "gap", "seeds", "extent"}`` (:func:`pattern_confidence`, the
     number of blobs the group started from, the transform of :func:`refine_extent`)
     """
-    from .dense import touching_sides
-
     integrals = colour_integrals(rgb)
     out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
     taken = np.zeros((0, 4))
@@ -543,12 +580,12 @@ def _without_parts(b: np.ndarray, taken: np.ndarray, params: Any) -> list[np.nda
 
 
 def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float,
-                   params: Any, backbone: Any = None) -> None:
+                   params: Any, f: np.ndarray, s: float) -> None:
     """Give every pattern without one a confidence (:func:`rp_confidence`), in place.
 
     For the RPs of stage I (the dense source's RPs carry theirs): the frozen backbone's
-    map of the prepared image (:func:`rescu.extension.dense.dense_map`, one pass, only
-    when some pattern needs it) and each RP's instance boxes; ``extra["confidence"]`` and
+    map of the prepared image (:func:`rescu.extension.dense.dense_map`) and each RP's
+    instance boxes; ``extra["confidence"]`` and
     ``extra["gap"]``, ``extra["contrast"]`` are set.
 
     Parameters
@@ -557,40 +594,13 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
     patterns : list of :class:`rescu.types.Pattern`, instances in original pixels
     scale_factor : processed = original x scale_factor
     params : :class:`rescu.discovery.sources.DenseParams`
-    backbone : FrozenBackbone or None (None: ``params.backbone``)
+    f : (C, h, w) float32, the map of ``rgb`` resized by ``s`` (:func:`rescu.extension.dense.dense_map`)
+    s : backbone-input pixels per pixel of ``rgb``
     """
     todo = [p for p in patterns if "confidence" not in p.extra]
     if not todo:
         return
-    from .dense import dense_map
-
-    f, s = dense_map(rgb, params, backbone)
     integrals = colour_integrals(rgb)
     for p in todo:
         b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
         p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params))
-
-
-def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
-                    meta: dict[str, Any]) -> None:
-    """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
-    (:func:`score_patterns`), and those below ``dense.min_confidence`` move to
-    ``candidate_patterns`` (:func:`rescu.discovery.sources.split_by_confidence`), in
-    place. Nothing in the other modes or after a failed dense step (``found``'s failure).
-
-    Parameters
-    ----------
-    res : :class:`rescu.types.ImageResult`, RESCU-I's result (instances in original pixels)
-    found : :class:`rescu.types.ImageResult`, the dense step's result
-    dense_params : the ``dense`` config section (mapping)
-    rgb : (H, W, 3) uint8, the prepared image
-    meta : its meta (``scale_factor``: processed = original x scale_factor)
-    """
-    from ..discovery.sources import DenseParams, split_by_confidence
-
-    dp = DenseParams.from_dict(dense_params)
-    if dp.mode != "objects" or found.extra.get("failure"):
-        return
-    score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp)
-    split_by_confidence(res, dp.min_confidence)
-    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)

@@ -28,17 +28,21 @@ def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:
 def dominant_pattern(patterns: Sequence[Pattern]) -> int | None:
     """Index (position in ``patterns``) of the dominant RP, None when there is none.
 
-    The dominant RP has the most instances; ties: higher score, then lower index.
-    Patterns with no instance are never dominant.
+    The dominant RP is the most confident one (``extra["confidence"]``,
+    :func:`rescu.extension.objects.rp_confidence`) when the patterns carry confidences,
+    else the one with the most instances; ties: more instances, higher score, then lower
+    index. Patterns with no instance are never dominant.
     """
-    best: tuple[int, float, int] | None = None
+    conf = any("confidence" in p.extra for p in patterns)
+    best: tuple[float, int, float, int] | None = None
     for i, p in enumerate(patterns):
         if p.count == 0:
             continue
-        key = (p.count, float(p.score), -i)
+        key = (float(p.extra.get("confidence", 0.0)) if conf else 0.0, p.count,
+               float(p.score), -i)
         if best is None or key > best:
             best = key
-    return None if best is None else -best[2]
+    return None if best is None else -best[3]
 
 
 def count_pairs(det_counts: Sequence[int], gt_counts: Sequence[int],
