@@ -77,6 +77,7 @@ class RunMonitor:
         self._last_tenth = -1
         self._first_done_at: float | None = None
         self._first_done = 0
+        self._said: set[str] = set()
 
     # ------------------------------------------------------------------ lines
     def feed(self, line: str) -> None:
@@ -118,7 +119,8 @@ class RunMonitor:
         if m:
             self._error = {"rule": m.group(1)}
             return
-        if _PASS.match(t) and "libpng" not in t:
+        if _PASS.match(t) and "libpng" not in t and t not in self._said:
+            self._said.add(t)  # Snakemake parses the Snakefile again for some steps: once
             self._say(t)
 
     def close(self) -> None:

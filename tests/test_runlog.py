@@ -94,3 +94,15 @@ def test_run_prints_report_and_summary(tmp_path: Path) -> None:
             "in 0; 0 failed") in text
     assert (res / "logs" / "run.log").read_text().startswith("Assuming")
     assert len(text.splitlines()) <= 10
+
+
+def test_a_message_repeated_by_each_parse_of_the_snakefile_is_shown_once():
+    from rescu.runlog import RunMonitor
+
+    shown = []
+    mon = RunMonitor(shown.append)
+    for _ in range(18):
+        mon.feed("rescu: dataset 'chess': folder ../shared/data/chess not found, skipped")
+    mon.feed("rescu: dataset 'cars': folder x not found, skipped")
+    assert shown == ["rescu: dataset 'chess': folder ../shared/data/chess not found, skipped",
+                     "rescu: dataset 'cars': folder x not found, skipped"]
