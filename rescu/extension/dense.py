@@ -49,7 +49,7 @@ import numpy as np
 from ..discovery.sources import DenseParams
 from ..evaluation.metrics import cover_matrix
 from ..types import Instance, Pattern
-from .objects import integral_map, touching_sides
+from .objects import box_cells, integral_map, touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
@@ -180,11 +180,8 @@ def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
         return ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
 
     out = np.zeros(len(boxes))
-    for i, (x, y, bw, bh) in enumerate(np.asarray(boxes, float).reshape(-1, 4)):
-        x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
-        y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
-        x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
-        y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+    for i, box in enumerate(np.asarray(boxes, float).reshape(-1, 4)):
+        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
         dx, dy = x1 - x0, y1 - y0
         X0, Y0, X1, Y1 = max(0, x0 - dx), max(0, y0 - dy), min(w, x1 + dx), min(h, y1 + dy)
         inner, outer = dx * dy, (X1 - X0) * (Y1 - Y0)

@@ -87,7 +87,7 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "box_nms"]
+           "pattern_confidence", "box_nms", "without_parts", "box_cells"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -153,6 +153,22 @@ def box_nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> np.ndarray:
     return np.array(keep, int)
 
 
+def box_cells(box: Sequence[float], cell_px: float, h: int, w: int
+              ) -> tuple[int, int, int, int]:
+    """The cells ``[x0, x1) x [y0, y1)`` of an ``h x w`` map that a pixel box
+    ``[x, y, w, h]`` touches, at least one, clipped to the map.
+
+    >>> box_cells([4, 0, 20, 8], 8.0, 10, 10)
+    (0, 0, 3, 1)
+    """
+    x, y, bw, bh = (float(v) for v in box)
+    x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
+    y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
+    x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
+    y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+    return x0, y0, x1, y1
+
+
 def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray:
     """The unit mean feature of ``f`` over each box.
 
@@ -170,11 +186,8 @@ def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray
     h, w = f.shape[1:]
     b = np.asarray(boxes, float).reshape(-1, 4)
     emb = np.zeros((len(b), f.shape[0]), np.float32)
-    for i, (x, y, bw, bh) in enumerate(b):
-        x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
-        y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
-        x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
-        y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+    for i, box in enumerate(b):
+        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
         v = ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
         emb[i] = v / (np.linalg.norm(v) + 1e-12)
     return emb
@@ -462,19 +475,35 @@ def suppress_parts(ranked: Sequence[np.ndarray], cover: float, min_instances: in
     kept: list[np.ndarray] = []
     taken = np.zeros((0, 4))
     for boxes in ranked:
-        b = np.asarray(boxes, float).reshape(-1, 4)
-        if len(taken) and len(b):
-            dup = (cover_matrix(b, taken).max(1) > cover) | (cover_matrix(taken, b).max(0) > cover)
-            if dup.mean() > 0.5:
-                continue
-            b = b[~dup]
-        if len(b) < min_instances:
+        b = without_parts(np.asarray(boxes, float).reshape(-1, 4), taken, cover,
+                          min_instances)
+        if b is None:
             continue
         kept.append(b)
         taken = np.vstack([taken, b])
         if len(kept) >= max_patterns:
             break
     return kept
+
+
+def without_parts(boxes: np.ndarray, taken: np.ndarray, cover: float, min_instances: int
+                  ) -> np.ndarray | None:
+    """``boxes`` less those on the objects of ``taken`` (:func:`suppress_parts`' rule), or
+    None when most of them are (the set holds parts of those objects) or fewer than
+    ``min_instances`` remain.
+
+    >>> kept = np.array([[0, 0, 10, 10]], float)
+    >>> without_parts(np.array([[2, 2, 5, 5], [30, 0, 10, 10], [50, 0, 10, 10]], float),
+    ...               kept, 0.5, 2).tolist()
+    [[30.0, 0.0, 10.0, 10.0], [50.0, 0.0, 10.0, 10.0]]
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if len(taken) and len(b):
+        dup = (cover_matrix(b, taken).max(1) > cover) | (cover_matrix(taken, b).max(0) > cover)
+        if dup.mean() > 0.5:
+            return None
+        b = b[~dup]
+    return b if len(b) >= min_instances else None
 
 
 def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
@@ -547,11 +576,9 @@ def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
         if float(touching_sides(boxes, params.touch_tolerance).mean()) > params.max_touching:
             continue
         b = _clip(boxes / s, rgb.shape[1], rgb.shape[0])
-        kept = suppress_parts([b], params.part_cover, params.min_instances, 1) \
-            if not len(taken) else _without_parts(b, taken, params)
-        if not kept:
+        b = without_parts(b, taken, params.part_cover, params.min_instances)
+        if b is None:
             continue
-        b = kept[0]
         taken = np.vstack([taken, b])
         info = rp_confidence(f, cell_px, s, b, integrals, params)
         out.append((float(c.score), b, {**info,
@@ -568,15 +595,6 @@ def _clip(b: np.ndarray, width: int, height: int) -> np.ndarray:
     x1 = np.clip(b[:, 0] + b[:, 2], 0, width)
     y1 = np.clip(b[:, 1] + b[:, 3], 0, height)
     return np.c_[x0, y0, x1 - x0, y1 - y0]
-
-
-def _without_parts(b: np.ndarray, taken: np.ndarray, params: Any) -> list[np.ndarray]:
-    """:func:`suppress_parts` of one box set against the boxes already kept."""
-    dup = (cover_matrix(b, taken).max(1) > params.part_cover) | \
-        (cover_matrix(taken, b).max(0) > params.part_cover)
-    if dup.mean() > 0.5 or (~dup).sum() < params.min_instances:
-        return []
-    return [b[~dup]]
 
 
 def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float,
