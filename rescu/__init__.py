@@ -6,8 +6,9 @@ II, RESCU-II: each RP extended with region proposals and a per-image classifier)
 ``scene`` (vanishing points, 3D translation symmetry, completion and counts) ->
 ``captions`` (the same in words); ``evaluation`` scores them over datasets and ``data``
 makes the synthetic benchmark. Beneath them all: ``types``, ``params``, ``io`` and
-``layout`` (row geometry); on top: ``pipeline`` (one step per file), ``api``
-(:func:`discover`), ``cli`` (the ``rescu`` command) and ``config``.
+``layout`` (row geometry); on top: ``core`` (the stages in memory, :func:`run`),
+``pipeline`` (one step per file), ``api`` (:func:`discover`), ``cli`` (the ``rescu``
+command) and ``config``.
 
 The user API is importable from here (``__all__``), each name loaded on first use:
 
@@ -28,7 +29,8 @@ _logging.getLogger("rescu").addHandler(_logging.NullHandler())
 
 # the user API: ``from rescu import discover`` etc.; each name is imported on first use
 _EXPORTS = {
-    "discover": "api",                          # one photo, end to end
+    "run": "core",                              # one RGB array (or photo), in memory
+    "discover": "api",                          # one photo, end to end, results written
     "load_config": "config",                    # the default configuration, checked
     "validate_config": "config",
     "InputError": "io",                         # bad input or configuration

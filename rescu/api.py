@@ -4,8 +4,9 @@
 >>> result = discover("shelf.jpg", out_dir="out")    # doctest: +SKIP
 >>> result.patterns[0].count, result.caption["enhanced"]   # doctest: +SKIP
 
-It runs the same per-image steps as the pipeline (:mod:`rescu.pipeline`), in order, in a
-work folder, and returns the final :class:`~rescu.types.ImageResult`.
+It runs the same steps as the pipeline, in memory (:func:`rescu.core.run_image`), writes
+the results when asked, and returns the final :class:`~rescu.types.ImageResult`. For an
+RGB array and no file at all, :func:`rescu.run`.
 """
 
 from __future__ import annotations
@@ -13,27 +14,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from . import io, outputs, pipeline
+from . import core, io, outputs
 from .config import load_config
 from .io import InputError
 from .types import ImageResult
 
-METHODS = ("rescu-ii", "rescu-i", "grasp")
-
-
-def _dense_step(cfg: dict[str, Any], w: Any) -> None:
-    """The pipeline's dense step with its thread count (config ``threads``, as in the
-    workflow), the caller's torch / OpenCV thread settings restored afterwards."""
-    import cv2
-    import torch
-
-    restore = (torch.get_num_threads(), cv2.getNumThreads())
-    pipeline.limit_threads((cfg.get("threads") or {}).get("stage2_features", 2), torch=True)
-    try:
-        pipeline.dense(w("image.png"), w("meta.json"), w("dense.json"), cfg["dense"])
-    finally:
-        torch.set_num_threads(restore[0])
-        cv2.setNumThreads(restore[1])
+METHODS = core.METHODS
 
 
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
@@ -141,85 +127,76 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         outputs.check_targets(out, [stem], force=force)
         out.mkdir(parents=True, exist_ok=True)
         outputs.sweep_stale_work(out)
+    mode = overlay or cfg["report"]["overlay"]
     try:
+        if out_dir is None:  # nothing is written
+            return _run(image, cfg, method, None, None, stem, False, mode)
         with outputs.staging(out_dir) as staged:
-            return _run(image, cfg, method, staged, out_dir, stem, keep_work,
-                        overlay or cfg["report"]["overlay"])
+            return _run(image, cfg, method, staged, out_dir, stem, keep_work, mode)
     except io.DiskFullError:
         raise
     except OSError as e:  # a result that cannot be written: this photo fails, not the run
-        from .pipeline import empty_result
         from .types import failure_record
 
         rec = failure_record("write", e)
-        return empty_result({"image": io.display_name(image.name)}, method, rec)
+        return core.empty_result({"image": io.display_name(image.name)}, method, rec)
 
 
-def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path,
+def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
          out_dir: str | Path | None, stem: str, keep_work: bool, overlay: str) -> ImageResult:
-    """:func:`discover`'s steps, the new result set made under ``staged`` and committed
-    (the overlay picture drawn in mode ``overlay``, none for ``"none"``)."""
-    if out_dir is not None and keep_work:
-        work = Path(out_dir) / ".work" / stem
-        work.mkdir(parents=True, exist_ok=True)
-    else:
-        work = staged / "work"
-        work.mkdir()
-    w = lambda name: str(work / name)  # noqa: E731
-    pipeline.prepare(str(image), w("image.png"), w("meta.json"), image_name=image.name,
-                     max_side=cfg["image"]["max_side"], min_side=cfg["image"]["min_side"],
-                     max_pixels=cfg["image"]["max_pixels"])
-    meta = io.read_json(w("meta.json"))
-    if meta.get("failure"):  # nothing to process: no step past this one needs to run
-        result = pipeline.empty_result(meta, method, meta["failure"])
-        io.write_json(w("final.json"), result)
-    else:
-        result = _steps(cfg, method, w, staged / f"{stem}_rectified")
-    if out_dir is not None:
-        io.write_json(staged / f"{stem}.json", result)
-        if overlay != "none":
-            pipeline.overlay(w("image.png"), w("meta.json"), w("final.json"),
-                             str(staged / f"{stem}.png"), mode=overlay)
-        outputs.commit(out_dir, stem, staged, io.display_name(str(image)))
+    """:func:`discover`'s computation (:func:`rescu.core.run_image`, in memory); with
+    ``out_dir``, the result set made under ``staged`` (the overlay picture drawn in mode
+    ``overlay``, none for ``"none"``) and committed."""
+    ran = core.run_image(image, cfg, method, name=image.name, validated=True,
+                         keep=keep_work and out_dir is not None)
+    result = ran.result
+    if out_dir is None or staged is None:
+        return result
+    if keep_work:
+        _write_work(Path(out_dir) / ".work" / stem, ran)
+    io.write_json(staged / f"{stem}.json", result)
+    if not ran.prepared.failure:
+        rect = staged / f"{stem}_rectified"
+        rect.mkdir()
+        for pid, view in ran.rectified.items():
+            io.write_image(rect / f"rp{pid}.png", view)
+    if overlay != "none":
+        from . import visualize
+
+        io.write_image(staged / f"{stem}.png",
+                       visualize.overlay(ran.prepared.rgb, ran.prepared.scale_factor, result,
+                                         mode=overlay))
+    outputs.commit(out_dir, stem, staged, io.display_name(str(image)))
     return result
 
 
-def _steps(cfg: dict[str, Any], method: str, w: Any, rect: Path) -> ImageResult:
-    """The steps after ``prepare`` on a prepared photo; the final result."""
-    pipeline.features(w("image.png"), w("meta.json"), w("features.h5"), cfg["features"])
-    s1 = "grasp" if method == "grasp" else "rescu-i"
-    dense = s1 == "rescu-i" and bool(cfg["dense"]["enabled"])
-    if dense:
-        _dense_step(cfg, w)
-    pipeline.stage1(w("features.h5"), w("meta.json"), w(f"{s1}.json"), w(f"{s1}.rp.h5"),
-                    cfg["grasp"] if s1 == "grasp" else cfg["stage1"], method=s1,
-                    png=w("image.png"), dense_json=w("dense.json") if dense else None,
-                    dense_params=cfg["dense"])
-    source = w(f"{s1}.json")
-    if method == "rescu-ii":
-        # the pipeline's thread counts (config `threads`): the same floats as its run,
-        # and no threads spinning against each other on a busy machine
-        import cv2
-        import torch
+def _write_work(work: Path, ran: core.RunOutput) -> None:
+    """``keep_work``: the intermediate records as the pipeline's per-image files
+    (``image.png``, ``meta.json``, ``features.h5``, ``dense.json``, ``rescu-i.json`` or
+    ``grasp.json`` with its ``.rp.h5``, ``stage2.h5``, ``head.pt``, ``rescu-ii.json``,
+    ``scene.json``, ``joint.json``, ``final.json``), those of the steps that ran."""
+    from .discovery import features as F
+    from .discovery import stage1 as S1
 
-        threads = cfg.get("threads") or {}
-        restore = (torch.get_num_threads(), cv2.getNumThreads())
-        pipeline.limit_threads(threads.get("stage2_features", 2), torch=True)
-        try:
-            pipeline.stage2_features(w("image.png"), w("meta.json"), source, w("stage2.h5"),
-                                     cfg["stage2"])
-            pipeline.limit_threads(threads.get("stage2_head", 1), torch=True)
-            pipeline.stage2_train(w("stage2.h5"), source, w("head.pt"), cfg["stage2"])
-            pipeline.stage2_predict(w("stage2.h5"), w("head.pt"), source, w("rescu-ii.json"),
-                                    w("meta.json"), cfg["stage2"])
-        finally:
-            torch.set_num_threads(restore[0])  # the caller's settings back
-            cv2.setNumThreads(restore[1])
-        source = w("rescu-ii.json")
-    pipeline.scene(w("image.png"), w("meta.json"), source, w("scene.json"), str(rect),
-                   cfg["scene"])
-    pipeline.image_vp(w("image.png"), w("meta.json"), w("scene.json"), w("joint.json"),
-                      cfg["scene"])
-    pipeline.caption(w("image.png"), w("meta.json"), w("joint.json"), w("final.json"),
-                     cfg["caption"], claims=cfg["scene"].get("claims"))
-    return io.read_result(w("final.json"))
+    work.mkdir(parents=True, exist_ok=True)
+    kept = ran.intermediate
+    io.write_image(work / "image.png", ran.prepared.rgb)
+    io.write_json(work / "meta.json", ran.prepared.meta)
+    if "features" in kept:
+        F.save_features(work / "features.h5", kept["features"])
+    if "dense" in kept:
+        io.write_json(work / "dense.json", kept["dense"])
+    if "stage1" in kept:
+        s1 = kept["stage1"].method
+        io.write_json(work / f"{s1}.json", kept["stage1"])
+        S1.save_rps(work / f"{s1}.rp.h5", kept["rp_matrices"])
+    if "stage2_features" in kept:
+        io.write_h5(work / "stage2.h5", kept["stage2_features"])
+    if "head" in kept:
+        from .extension.train import save_checkpoint
+
+        save_checkpoint(work / "head.pt", kept["head"])
+    for name in ("rescu-ii", "scene", "joint"):
+        if name in kept:
+            io.write_json(work / f"{name}.json", kept[name])
+    io.write_json(work / "final.json", ran.result)

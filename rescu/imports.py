@@ -137,16 +137,24 @@ def _resolve(node: ast.ImportFrom | ast.Import, package: list[str],
     return [m for m in out if m in modules]
 
 
+#: modules whose functions are the steps: a step depends on the functions it calls in
+#: them, not on everything they import (``rescu.pipeline`` reads and writes one step's
+#: files, ``rescu.core`` computes it)
+STEP_MODULES = ("pipeline", "core")
+
+
 def step_dependencies(script: Path, package_dir: Path = PACKAGE_DIR) -> list[Path]:
     """Source files of the package that one workflow script runs, sorted.
 
-    The script's own imports of the package, and for every function of
-    ``<package>.pipeline`` it calls (``pipeline.scene(...)`` or ``from rescu.pipeline
-    import scene``) the imports inside that function and inside the pipeline functions
-    it refers to by name; then everything those import (:func:`import_closure`), plus
-    ``pipeline.py`` itself and what it imports at module level. The pipeline imports each
-    step's modules inside the step's function, so a step does not depend on the modules
-    of the other steps.
+    The script's own imports of the package, and for every function of a step module
+    (:data:`STEP_MODULES`: ``pipeline``, ``core``) it calls (``pipeline.scene(...)``,
+    ``from rescu.pipeline import scene``) the imports inside that function and the
+    functions of the step modules it refers to (by name, ``core.analyse_scene``, or a
+    name imported from another step module), followed in turn; then everything those
+    import (:func:`import_closure`), plus each step module used and what it imports at
+    module level (other than step modules). The step modules import each step's
+    modules inside the step's function, so a step does not depend on the modules of the
+    other steps.
 
     Parameters
     ----------
@@ -159,44 +167,68 @@ def step_dependencies(script: Path, package_dir: Path = PACKAGE_DIR) -> list[Pat
     """
     modules, _ = _parsed(package_dir)
     pkg = package_dir.name
-    pipe_name = f"{pkg}.pipeline"
-    pipe_tree = _parsed_module(modules[pipe_name])
-    defs = {n.name: n for n in pipe_tree.body
+    steps = [f"{pkg}.{m}" for m in STEP_MODULES if f"{pkg}.{m}" in modules]
+    trees = {m: _parsed_module(modules[m]) for m in steps}
+    defs = {(m, n.name): n for m in steps for n in trees[m].body
             if isinstance(n, (ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))}
-    entries: set[str] = set()
-    called: set[str] = set()
-    uses_pipeline = False
-    for node in ast.walk(ast.parse(Path(script).read_text(), str(script))):
-        if isinstance(node, (ast.Import, ast.ImportFrom)):
-            for m in _resolve(node, [], modules):
-                if m == pipe_name:
-                    uses_pipeline = True
-                    if isinstance(node, ast.ImportFrom) and node.module == pipe_name:
-                        called.update(a.name for a in node.names)
-                else:
-                    entries.add(m)
-        elif (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
-              and node.value.id == "pipeline"):
-            called.add(node.attr)
-    files: set[Path] = set()
-    if uses_pipeline:
-        files.add(modules[pipe_name])
-        package = pipe_name.split(".")[:-1]
-        for node in pipe_tree.body:  # what importing the pipeline runs
-            if isinstance(node, (ast.Import, ast.ImportFrom)):
-                entries.update(m for m in _resolve(node, package, modules) if m != pipe_name)
-        todo, seen = [c for c in called if c in defs], set()
-        while todo:
-            f = todo.pop()
-            if f in seen:
+
+    def bindings(body: list[ast.stmt] | ast.AST, package: list[str]) -> tuple[
+            dict[str, str], dict[str, tuple[str, str]], set[str]]:
+        """Module aliases, aliases of step functions, other package modules imported."""
+        mods, funcs, other = {}, {}, set()
+        nodes = body if isinstance(body, list) else list(ast.walk(body))
+        for node in nodes:
+            if not isinstance(node, (ast.Import, ast.ImportFrom)):
                 continue
-            seen.add(f)
-            for node in ast.walk(defs[f]):
-                if isinstance(node, (ast.Import, ast.ImportFrom)):
-                    entries.update(_resolve(node, package, modules))
-                elif isinstance(node, ast.Name) and node.id in defs:
-                    todo.append(node.id)
-    entries.discard(pipe_name)
+            for m in _resolve(node, package, modules):
+                if m not in steps:
+                    other.add(m)
+            if isinstance(node, ast.Import):
+                continue
+            base = ".".join(package[:len(package) - (node.level - 1)]
+                            + ([node.module] if node.module else [])) if node.level \
+                else (node.module or "")
+            for a in node.names:
+                sub = f"{base}.{a.name}"
+                if sub in steps:
+                    mods[a.asname or a.name] = sub
+                elif base in steps:
+                    funcs[a.asname or a.name] = (base, a.name)
+        return mods, funcs, other
+
+    package = [pkg]
+    script_tree = ast.parse(Path(script).read_text(), str(script))
+    mods, funcs, entries = bindings(script_tree, [])
+    env = {m: bindings(trees[m].body, package)[:2] for m in steps}
+    todo: list[tuple[str, str]] = list(funcs.values())
+    todo += [(mods[n.value.id], n.attr) for n in ast.walk(script_tree)
+             if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)
+             and n.value.id in mods]
+    used = {m for m in steps if m in mods.values() or any(m == f[0] for f in funcs.values())}
+    seen: set[tuple[str, str]] = set()
+    while todo:
+        key = todo.pop()
+        if key in seen or key not in defs:
+            continue
+        seen.add(key)
+        m = key[0]
+        used.add(m)
+        m_mods, m_funcs = env[m]
+        f_mods, f_funcs, f_other = bindings(defs[key], package)
+        entries |= f_other
+        for node in ast.walk(defs[key]):
+            if isinstance(node, ast.Name):
+                if (m, node.id) in defs:
+                    todo.append((m, node.id))
+                elif node.id in m_funcs or node.id in f_funcs:
+                    todo.append({**m_funcs, **f_funcs}[node.id])
+            elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+                target = {**m_mods, **f_mods}.get(node.value.id)
+                if target is not None:
+                    todo.append((target, node.attr))
+    files = {modules[m] for m in used}
+    for m in used:  # what importing the step module runs
+        entries |= bindings(trees[m].body, package)[2]
     return sorted(files | set(import_closure(sorted(entries), package_dir)))
 
 

@@ -311,9 +311,23 @@ def load_image(path: str | os.PathLike[str], max_side: int | None = None,
     except MemoryError:
         raise InputError(f"{path}: not enough memory to decode this image; lower "
                          f"image.max_pixels or downscale it first") from None
+    return fit_image(rgb, max_side, min_side, str(path), notes)
+
+
+def fit_image(rgb: np.ndarray, max_side: int, min_side: int, name: str = "image",
+              notes: list[str] | None = None) -> LoadedImage:
+    """An (H, W, 3) uint8 RGB image ready for processing: refused when a side is below
+    ``min_side`` pixels (:class:`InputError` naming ``name``), downscaled (area
+    interpolation) so that its longer side is at most ``max_side`` pixels.
+
+    >>> im = fit_image(np.zeros((100, 400, 3), np.uint8), max_side=200, min_side=16)
+    >>> im.rgb.shape, im.original_size, im.scale_factor, im.notes
+    ((50, 200, 3), (400, 100), 0.5, ['downscaled x0.5000'])
+    """
+    notes = list(notes or [])
     h, w = rgb.shape[:2]
     if min(h, w) < min_side:
-        raise InputError(f"{path}: image too small ({w}x{h} pixels; at least {min_side} "
+        raise InputError(f"{name}: image too small ({w}x{h} pixels; at least {min_side} "
                          f"pixels per side are needed)")
     scale = 1.0
     if max(h, w) > max_side:

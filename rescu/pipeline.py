@@ -1,8 +1,8 @@
 """Per-image steps of the RESCU pipeline, file to file.
 
-Each function here is one step of the data flow (one Snakemake rule, or one call of the
-``rescu discover`` command): it reads the files the previous step wrote, calls the
-algorithms of the other ``rescu`` modules, and writes its outputs atomically.
+Each function here is one step of the data flow (one Snakemake rule): it reads the files
+the previous step wrote, calls its stage's in-memory function (:mod:`rescu.core`), and
+writes its outputs atomically.
 
 Failure isolation (documented empty results): when a step fails on an image (bad file,
 no features, an exception inside an algorithm), it still writes all its outputs, empty,
@@ -49,8 +49,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import io
-from .types import Failure, Features, ImageResult, Pattern, RPMatrix, failure_record
+from . import core, io
+from .core import (RETAIN_BYTES, degraded_result, empty_result, is_degraded,  # noqa: F401
+                   limit_threads, retain_freed_memory)
+from .core import blocking as _blocking
+from .types import Failure, Features, ImageResult, Pattern
+
+__all__ = ["RETAIN_BYTES", "degraded_result", "empty_result", "is_degraded", "limit_threads",
+           "retain_freed_memory"]
 
 log = logging.getLogger("rescu")
 
@@ -67,34 +73,10 @@ def _h5_failure(path: str | os.PathLike[str]) -> Failure | None:
     return json.loads(f) if f else None
 
 
-def is_degraded(failure: Failure | None) -> bool:
-    """True when ``failure`` is the record of a degraded result (a failed step whose
-    output is the previous step's result, see the module docstring): the image keeps
-    patterns, and later steps run on it."""
-    return bool(failure) and bool(failure.get("degraded_to"))
 
 
-def _blocking(failure: Failure | None) -> Failure | None:
-    """The upstream failure that makes a step skip: ``failure`` unless it is degraded."""
-    return None if not failure or is_degraded(failure) else failure
 
 
-def degraded_result(kept: ImageResult, method: str, failure: Failure) -> ImageResult:
-    """``kept`` (the previous step's result) as the output of a step that failed.
-
-    A copy of ``kept`` with ``method`` set and ``extra["failure"]`` = ``failure`` plus
-    ``"degraded_to"``: the method whose patterns were kept (``kept.method``, or the
-    ``degraded_to`` of ``kept``'s own degraded record, which is then also kept under
-    ``"upstream"``).
-    """
-    res = ImageResult.from_json(kept.to_json())
-    prev = kept.extra.get("failure")
-    rec: Failure = {**failure, "degraded_to": (prev or {}).get("degraded_to") or kept.method}
-    if prev:
-        rec["upstream"] = prev
-    res.method = method
-    res.extra["failure"] = rec
-    return res
 
 
 def _kept_stage1(stage1_json: str) -> ImageResult | None:
@@ -121,16 +103,10 @@ def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
                     upstream.get("message"))
         write_empty(upstream)
         return upstream
-    try:
-        run()
-        return None
-    except (MemoryError, KeyboardInterrupt, io.DiskFullError):  # not the image's fault
-        raise
-    except Exception as e:  # noqa: BLE001 - isolation is the point
-        log.error("%s failed: %s\n%s", stage, e, traceback.format_exc())
-        rec = failure_record(stage, e)
+    _, rec = core.attempt(stage, run)
+    if rec is not None:
         write_empty(rec)
-        return rec
+    return rec
 
 
 def _keep_input(meta: dict[str, Any], src: ImageResult,
@@ -146,12 +122,6 @@ def _keep_input(meta: dict[str, Any], src: ImageResult,
     return empty
 
 
-def empty_result(meta: dict[str, Any], method: str, failure: Failure | None) -> ImageResult:
-    """A result with no pattern for the image described by ``meta``."""
-    w, h = meta.get("original_size", [0, 0])
-    extra = {"failure": failure} if failure else {}
-    return ImageResult(image=meta.get("image", ""), width=int(w), height=int(h),
-                       method=method, extra=extra)
 
 
 # --------------------------------------------------------------------------- prepare
@@ -162,28 +132,13 @@ def prepare(image_path: str, out_png: str, out_meta: str, *, image_name: str,
     ``out_meta`` JSON: ``{"image": image_name, "source": image_path, "original_size":
     [w, h], "processed_size": [w, h], "scale_factor": s, "notes": [...], "failure"?}``.
     A bad image (or one above ``max_pixels``, None: the configuration's) gets a 1x1
-    placeholder PNG and a meta with ``failure`` set. Names that are not UTF-8 are written
-    with U+FFFD in place of their undecodable bytes (:func:`rescu.io.display_name`).
+    placeholder PNG and a meta with ``failure`` set (:func:`rescu.core.prepare_file`).
     """
-    meta: dict[str, Any] = {"image": io.display_name(image_name),
-                            "source": io.display_name(str(image_path))}
-
-    def run() -> None:
-        im = io.load_image(image_path, max_side=max_side, min_side=min_side,
-                           max_pixels=max_pixels)
-        meta.update(original_size=list(im.original_size),
-                    processed_size=[int(im.rgb.shape[1]), int(im.rgb.shape[0])],
-                    scale_factor=float(im.scale_factor), notes=im.notes)
-        io.write_image(out_png, im.rgb)
-        io.write_json(out_meta, meta)
-
-    def empty(f: Failure) -> None:
-        meta.update(original_size=[0, 0], processed_size=[1, 1], scale_factor=1.0, notes=[],
-                    failure=f)
-        io.write_image(out_png, np.zeros((1, 1, 3), np.uint8))
-        io.write_json(out_meta, meta)
-
-    return _guard("prepare", None, run, empty)
+    prep = core.prepare_file(image_path, image_name, max_side=max_side, min_side=min_side,
+                             max_pixels=max_pixels)
+    io.write_image(out_png, prep.rgb)
+    io.write_json(out_meta, prep.meta)
+    return prep.failure
 
 
 def read_prepared(png: str, meta_path: str) -> tuple[np.ndarray, dict[str, Any]]:
@@ -197,20 +152,22 @@ def read_prepared(png: str, meta_path: str) -> tuple[np.ndarray, dict[str, Any]]
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), meta
 
 
+def read_prepared_image(png: str, meta_path: str) -> core.Prepared:
+    """The :func:`prepare` step's outputs as the in-memory record."""
+    return core.Prepared(*read_prepared(png, meta_path))
+
+
 # --------------------------------------------------------------------------- features
 def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> Failure | None:
-    """SIFT features of the processed image to HDF5
-    (:func:`rescu.discovery.features.save_features`)."""
+    """SIFT features of the processed image to HDF5 (:func:`rescu.core.extract_features`,
+    :func:`rescu.discovery.features.save_features`)."""
     from .discovery import features as F
-    from .types import Features
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
-        rgb, _ = read_prepared(png, meta_path)
-        feats = F.extract_features(rgb, F.FeatureParams.from_dict(params),
-                                   scale_factor=float(meta["scale_factor"]))
-        F.save_features(out_h5, feats)
+        F.save_features(out_h5, core.extract_features(read_prepared_image(png, meta_path),
+                                                      params))
 
     def empty(f: Failure) -> None:
         size = tuple(meta.get("processed_size", [1, 1]))
@@ -225,54 +182,31 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
            params: dict[str, Any], method: str = "rescu-i",
            png: str | None = None, dense_json: str | None = None,
            dense_params: dict[str, Any] | None = None) -> Failure | None:
-    """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features.
+    """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features
+    (:func:`rescu.core.discover_patterns`).
 
     Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
-    matrices (feature indices) to HDF5. With ``png`` (the prepared image) and
-    ``stage1.refine_boxes``, RESCU-I's boxes are moved onto the edges each RP's instances
-    share (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense_json`` (the
-    :func:`dense` step's result) RESCU-I's RPs are combined with the dense ones
-    (:func:`rescu.discovery.sources.combine_sources`, section ``dense``); a failed dense
-    step, or a dense result that cannot be read, leaves stage I's RPs alone and is
-    recorded as ``extra["dense_failure"]``. With
+    matrices (feature indices) to HDF5. ``png`` (the prepared image) is what box
+    refinement and the dense source's scoring look at; ``dense_json`` the :func:`dense`
+    step's result. A failed dense step, or a dense result that cannot be read, leaves
+    stage I's RPs alone and is recorded as ``extra["dense_failure"]``. With
     ``dense.mode: dense`` and a dense result that did not fail, the stage-I search is
-    not run at all (its RPs would be dropped): the RP matrices file holds no RP, and
-    ``extra["chosen_by"]`` is ``"skipped"``.
+    not run at all: the RP matrices file holds no RP, and ``extra["chosen_by"]`` is
+    ``"skipped"``.
     """
     from .discovery import features as F
     from .discovery import stage1 as S1
-    from .discovery.sources import add_dense, read_dense, skips_stage1
+    from .discovery.sources import read_dense
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         feats = F.load_features(features_h5)
         found = None if dense_json is None or method == "grasp" else read_dense(dense_json)
-        if method == "grasp":
-            from .discovery import grasp as G
-
-            out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
-        else:
-            p = S1.Stage1Params.from_dict(params)
-            if skips_stage1(found, dense_params):
-                out = S1.Stage1Output(rps=[], chosen={}, objective=0.0, chosen_by="skipped")
-            else:
-                out = S1.discover(feats, p)
+        rgb = None if png is None else read_prepared(png, meta_path)[0]
+        res, out = core.discover_patterns(feats, params, meta, method, rgb, found,
+                                          dense_params)
         S1.save_rps(out_h5, out)
-        res = empty_result(meta, method, None)
-        if method == "grasp":
-            res.patterns = S1.rps_to_patterns(feats, out.rps)
-        else:
-            gray = _prepared_gray(png if p.refine_boxes and out.rps else None, meta_path)
-            res.patterns = _rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
-            if found is not None:
-                add_dense(res, found, dense_params)
-                if png is not None:
-                    from .extension.dense import score_and_split
-
-                    score_and_split(res, found, dense_params, *read_prepared(png, meta_path))
-        res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
-                         objective=out.objective, n_features=len(feats))
         io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:
@@ -282,37 +216,17 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
     return _guard(method, _h5_failure(features_h5), run, empty)
 
 
-def _rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
-                      gray: np.ndarray | None, scale_factor: float) -> list[Pattern]:
-    """RESCU-I's RP matrices as patterns (original pixels); with ``gray`` (the prepared
-    image, :func:`_prepared_gray`; processed = original x ``scale_factor``, the meta's
-    value) and ``p.refine_boxes``, their boxes moved onto the
-    edges each RP's instances share (:func:`rescu.discovery.extent.refine_pattern_boxes`)."""
-    from .discovery import stage1 as S1
 
-    pats = S1.rps_to_patterns(feats, rps)
-    if gray is not None and p.refine_boxes and pats:
-        from .discovery.extent import refine_pattern_boxes
-
-        refine_pattern_boxes(gray, scale_factor, pats, p.refine_shifts,
-                             p.refine_scales)
-    return pats
 
 
 def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
-    """The dense source (:func:`rescu.extension.dense.find_dense`) on one prepared image:
-    its RPs (instances in original pixels, ``method="dense"``) -> ``out_json``. A failed
+    """The dense source (:func:`rescu.core.find_dense`) on one prepared image: its RPs
+    (instances in original pixels, ``method="dense"``) -> ``out_json``. A failed
     upstream step or an error writes an empty result with the failure recorded."""
-    from .extension import dense as D
-
     meta = io.read_json(meta_path)
 
     def run() -> None:
-        rgb, _ = read_prepared(png, meta_path)
-        res = empty_result(meta, "dense", None)
-        res.patterns = D.find_dense(rgb, D.DenseParams.from_dict(params),
-                                    scale_factor=float(meta["scale_factor"]))
-        io.write_json(out_json, res)
+        io.write_json(out_json, core.find_dense(read_prepared_image(png, meta_path), params))
 
     return _guard("dense", _blocking(meta.get("failure")), run,
                   lambda f: io.write_json(out_json, empty_result(meta, "dense", f)))
@@ -357,7 +271,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
             p = S1.Stage1Params.from_dict({**params, **over})
             o = S1.discover(feats, p)
             res = empty_result(meta, f"rescu-i[{name}]", None)
-            res.patterns = _rescu_i_patterns(feats, o.rps, p, gray, float(meta["scale_factor"]))
+            res.patterns = core.rescu_i_patterns(feats, o.rps, p, gray, float(meta["scale_factor"]))
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,
                              objective=o.objective, ablation=over)
             io.write_json(out_jsons[name], res)
@@ -384,7 +298,7 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
     p = S1.Stage1Params.from_dict(params)
     sparse = next((pats for q, pats in done if q == p), None)
     if sparse is None:
-        sparse = _rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
+        sparse = core.rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
                                    float(meta["scale_factor"]))
     found = D.read_dense(dense_json)  # unreadable: costs the dense rows, not the variants
     dense, failure = found.patterns, found.extra.get("failure")
@@ -398,17 +312,12 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
 # --------------------------------------------------------------------------- stage II
 def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
                     params: dict[str, Any]) -> Failure | None:
-    """Proposals and pooled backbone features of one image to HDF5."""
-    from .extension.features import compute_stage2_features
-    from .extension.params import Stage2Params
-
-    meta = io.read_json(meta_path)
+    """Proposals and pooled backbone features of one image to HDF5
+    (:func:`rescu.core.stage2_features`)."""
 
     def run() -> None:
-        rgb, _ = read_prepared(png, meta_path)
-        s1 = io.read_result(stage1_json)
-        feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1,
-                                        Stage2Params.from_dict(params))
+        feats = core.stage2_features(read_prepared_image(png, meta_path),
+                                     io.read_result(stage1_json), params)
         backbone = (params.get("backbone") or {}).get("name", "")
         io.write_h5(out_h5, feats, attrs={"backbone": str(backbone)})
 
@@ -420,15 +329,14 @@ def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
 
 def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
                  params: dict[str, Any]) -> Failure | None:
-    """Train the per-image head on cached features; save the checkpoint."""
-    from .extension.params import Stage2Params
-    from .extension.train import save_checkpoint, train_heads
+    """Train the per-image head on cached features (:func:`rescu.core.stage2_train`);
+    save the checkpoint."""
+    from .extension.train import save_checkpoint
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
-        ckpt, info = train_heads(feats, io.read_result(stage1_json),
-                                 Stage2Params.from_dict(params))
-        save_checkpoint(out_ckpt, {"head": ckpt, "info": info})
+        save_checkpoint(out_ckpt, core.stage2_train(feats, io.read_result(stage1_json),
+                                                    params))
 
     def empty(f: Failure) -> None:
         save_checkpoint(out_ckpt, {"failure": f})
@@ -438,9 +346,8 @@ def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
 
 def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,
                    meta_path: str, params: dict[str, Any]) -> Failure | None:
-    """RESCU-II instances: stage-I instances plus the head's positive proposals."""
-    from .extension.params import Stage2Params
-    from .extension.predict import predict_stage2
+    """RESCU-II instances: stage-I instances plus the head's positive proposals
+    (:func:`rescu.core.stage2_predict`)."""
     from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
@@ -448,13 +355,8 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
-        res = predict_stage2(feats, ckpt["head"], io.read_result(stage1_json),
-                             Stage2Params.from_dict(params))
-        res.method = "rescu-ii"
-        # the head's training record, and prediction's own (instances added, RPs merged)
-        res.extra["stage2"] = {**ckpt.get("info", {}),
-                               "prediction": res.extra.get("stage2", {})}
-        io.write_json(out_json, res)
+        io.write_json(out_json, core.stage2_predict(feats, ckpt, io.read_result(stage1_json),
+                                                    params))
 
     def empty(f: Failure) -> None:
         # a failure in stage II (features, train or here): keep stage I's patterns
@@ -476,7 +378,6 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
     ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
     """
     from .extension.params import Stage2Params, predict_only_error
-    from .extension.predict import predict_stage2
     from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
@@ -492,10 +393,7 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
         feats, _ = io.read_h5(feats_h5)
         s1 = io.read_result(stage1_json)
         for name, p in plist.items():
-            res = predict_stage2(feats, ckpt["head"], s1, p)
-            res.method = f"rescu-ii[{name}]"
-            res.extra["stage2"] = {**ckpt.get("info", {}),
-                                   "prediction": res.extra.get("stage2", {})}
+            res = core.stage2_predict(feats, ckpt, s1, p, method=f"rescu-ii[{name}]")
             res.extra["ablation"] = dict(variants[name])
             io.write_json(out_jsons[name], res)
 
@@ -554,36 +452,20 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 # --------------------------------------------------------------------------- scene
 def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_dir: str,
           params: dict[str, Any]) -> Failure | None:
-    """Row completion, vanishing points, translation symmetry, counts; rectified views.
+    """Row completion, vanishing points, translation symmetry, counts; rectified views
+    (:func:`rescu.core.analyse_scene`).
 
-    ``params`` is the config's ``scene`` section; its ``completion`` entry
-    (:class:`rescu.scene.completion.CompletionParams`, absent = defaults) fills the missing
-    instances of equally spaced rows first (:func:`rescu.scene.completion.complete_rows`).
-    ``out_rectified_dir`` receives ``rp<id>.png`` for every pattern that has a VP (the
-    folder may be empty).
+    ``params`` is the config's ``scene`` section. ``out_rectified_dir`` receives
+    ``rp<id>.png`` for every pattern that has a VP (the folder may be empty).
     """
-    import cv2
-
-    from .scene import completion as CO
-    from .scene import analyse as SC
-
     meta = io.read_json(meta_path)
     Path(out_rectified_dir).mkdir(parents=True, exist_ok=True)
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = SC.SceneParams.from_config(params)
-        cp = CO.CompletionParams.from_dict(params.get("completion") or {})
-        rgb, _ = read_prepared(png, meta_path)
-        completed = CO.complete_rows(src, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cp,
-                                     scale_factor=float(meta["scale_factor"]), vp_params=p.vp)
-        res = SC.analyse_scene(completed, p)
-        for pat in res.patterns:
-            if pat.vanishing_point is None:
-                continue
-            view = SC.rectify_pattern(rgb, float(meta["scale_factor"]), pat, p)
-            if view is not None:
-                io.write_image(Path(out_rectified_dir) / f"rp{pat.id}.png", view)
+        res, views = core.analyse_scene(read_prepared_image(png, meta_path), src, params)
+        for pid, view in views.items():
+            io.write_image(Path(out_rectified_dir) / f"rp{pid}.png", view)
         io.write_json(out_json, res)
 
     return _guard("scene", _blocking(src.extra.get("failure")), run,
@@ -637,26 +519,19 @@ def dataset_focal(gt_json: str | None, meta_path: str) -> float | None:
 
 def image_vp(png: str, meta_path: str, in_json: str, out_json: str,
              params: dict[str, Any], focal_px: float | None = None) -> Failure | None:
-    """The image's VPs from RP rows and LSD lines together (the joint estimator).
+    """The image's VPs from RP rows and LSD lines together (the joint estimator,
+    :func:`rescu.core.image_vanishing_points`).
 
-    ``params`` is the config's ``scene`` section (its ``image_vp`` entry:
-    :class:`rescu.scene.vp.manhattan.ImageVPParams`); ``focal_px`` the true focal length
-    (original pixels) when known. See :mod:`rescu.scene.image_vp`; a failure of this
-    step keeps the scene result (degraded).
+    ``params`` is the config's ``scene`` section; ``focal_px`` the true focal length
+    (original pixels) when known. A failure of this step keeps the scene result
+    (degraded).
     """
-    from .scene import analyse as SC
-    from .scene.image_vp import image_vanishing_points
-    from .scene.vp.manhattan import ImageVPParams
-
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = SC.SceneParams.from_config(params)
-        ip = ImageVPParams.from_dict(params.get("image_vp"))
-        rgb, _ = read_prepared(png, meta_path)
-        res = image_vanishing_points(rgb, float(meta["scale_factor"]), src, p, ip, focal_px)
-        io.write_json(out_json, res)
+        io.write_json(out_json, core.image_vanishing_points(
+            read_prepared_image(png, meta_path), src, params, focal_px))
 
     return _guard("image-vp", _blocking(src.extra.get("failure")), run,
                   _keep_input(meta, src, out_json))
@@ -696,20 +571,14 @@ def caption(png: str, meta_path: str, in_json: str, out_json: str,
             params: dict[str, Any], claims: dict[str, Any] | None = None) -> Failure | None:
     """The final per-image JSON: only the supported claims
     (:func:`rescu.scene.claims.supported_claims`, ``claims`` the config's
-    ``scene.claims``, None = defaults), then base and enhanced caption of them."""
-    from .captions import caption as CAP
-    from .scene.claims import ClaimParams, supported_claims
-
+    ``scene.claims``, None = defaults), then base and enhanced caption of them
+    (:func:`rescu.core.describe`)."""
     meta = io.read_json(meta_path)
     src = io.read_result(in_json)
 
     def run() -> None:
-        p = CAP.CaptionParams.from_dict(params)
-        captioner = CAP.make_captioner(p, log=log.warning)
-        rgb, _ = read_prepared(png, meta_path)
-        res = supported_claims(src, ClaimParams.from_dict(claims))
-        res.caption = CAP.caption_result(rgb, res, Path(meta["image"]).name, captioner, p)
-        io.write_json(out_json, res)
+        io.write_json(out_json, core.describe(read_prepared_image(png, meta_path), src,
+                                              params, claims))
 
     upstream = _blocking(src.extra.get("failure"))
 
@@ -750,49 +619,3 @@ def setup_logging(log_path: str | None = None, level: int = logging.INFO) -> Non
     root.handlers[:] = [handler]
     root.setLevel(level)
     logging.captureWarnings(True)
-
-
-def limit_threads(n: int, torch: bool = False) -> None:
-    """Use at most ``n`` CPU threads in OpenCV, and in torch when ``torch`` is true or
-    torch is already imported.
-
-    Importing torch costs about 2 s, so steps that do not use it (everything but
-    stage II) leave it alone instead of importing it to set its thread count.
-    """
-    import sys
-
-    import cv2
-
-    cv2.setNumThreads(max(1, int(n)))
-    if torch or "torch" in sys.modules:
-        import torch as _torch
-
-        _torch.set_num_threads(max(1, int(n)))
-        retain_freed_memory()
-
-
-#: freed blocks up to this size stay in the process for reuse (see retain_freed_memory)
-RETAIN_BYTES = 1 << 30
-
-
-def retain_freed_memory(limit: int = RETAIN_BYTES) -> bool:
-    """Let glibc keep freed memory (blocks up to ``limit`` bytes) for reuse.
-
-    By default glibc serves blocks over 128 KiB-32 MiB with ``mmap`` and returns them to
-    the kernel on ``free``; torch's CPU convolutions allocate and free such buffers on
-    every layer, so each backbone pass faults the same pages in again (about 2 million
-    page faults and 4 s of system time per stage-II image on a 2-core machine). This sets
-    glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to ``limit``: the process's
-    peak resident memory grows by about 0.4 GB and stage II runs about 1.5x faster
-    (``benchmarks/speed/stage2_cost.py``). Outputs do not change. A no-op returning False
-    where the C library has no ``mallopt`` (macOS, Windows); True once set.
-    """
-    import ctypes
-
-    try:
-        mallopt = ctypes.CDLL(None).mallopt  # the process's C library
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
-    limit = int(limit)
-    return bool(mallopt(m_mmap_threshold, limit)) and bool(mallopt(m_trim_threshold, limit))

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rescu import cli, outputs, pipeline
+from rescu import cli, core, outputs
 from rescu.api import discover
 from rescu.config import load_config
 from rescu.io import InputError
@@ -95,20 +95,16 @@ def test_rerun_replaces_the_whole_result_set(tmp_path, cfg, monkeypatch):
     """A rerun with fewer rectified views left the old rp2..rp9.png beside the new JSON."""
     photo = shelf_photo(tmp_path / "x.png")
     out = tmp_path / "out"
-    real = pipeline.scene
+    real = core.analyse_scene
 
     def scene_with(n):
-        def scene(png, meta, in_json, out_json, rect_dir, params):
-            f = real(png, meta, in_json, out_json, rect_dir, params)
-            shutil.rmtree(rect_dir)  # n views instead of the real ones
-            Path(rect_dir).mkdir(parents=True)
-            for k in range(n):
-                Image.fromarray(np.full((8, 8, 3), k, np.uint8)).save(Path(rect_dir) / f"rp{k}.png")
-            return f
-        return scene
+        def analyse_scene(prep, src, params):
+            res, _ = real(prep, src, params)
+            return res, {k: np.full((8, 8, 3), k, np.uint8) for k in range(n)}  # n views
+        return analyse_scene
 
     for n, want in ((5, {f"rp{k}.png" for k in range(5)}), (1, {"rp0.png"}), (0, None)):
-        monkeypatch.setattr(pipeline, "scene", scene_with(n))
+        monkeypatch.setattr(core, "analyse_scene", scene_with(n))
         run(photo, out, cfg)
         rect = out / "x_rectified"
         assert (sorted(p.name for p in rect.iterdir()) if rect.exists() else None) == \
