@@ -129,7 +129,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     """
     from .captions.caption import CaptionParams
     from .scene.completion import CompletionParams
-    from .evaluation.core import EvaluationParams
+    from .params import EvaluationParams
     from .discovery.features import FeatureParams
     from .discovery.grasp import GraspParams
     from .discovery.ablation import SOURCE_ROWS, ablation_overrides

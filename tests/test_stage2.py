@@ -262,7 +262,7 @@ def test_lattice_only_needs_lattice_windows(six):
 
 
 def test_spacing_suppression():
-    from rescu.extension.boxes import suppress
+    from rescu.boxes import suppress
 
     own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
     cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)

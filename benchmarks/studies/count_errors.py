@@ -4,7 +4,7 @@ For each ground-truth RP whose count is wrong (the counting table's exact-count 
 counts it as a miss), lists the GT instances the counting RP missed and the detected
 instances that match none (with their source: stage1 / stage2 / completion), with the
 synthetic benchmark's truth (row, column, occluded fraction, blur, equal spacing) where
-the dataset has it (:func:`rescu.evaluation.count_errors`). Prints; asserts nothing.
+the dataset has it (:func:`_diagnostics.count_errors`). Prints; asserts nothing.
 
 Usage (after ``snakemake --cores 2``, from the repository root)::
 
@@ -30,7 +30,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     from _cli import inputs_present, print_rows, run_dataset, run_parser
 
-    from rescu.evaluation.diagnostics import count_errors
+    from _diagnostics import count_errors
     from rescu.evaluation.counting import counting_table
 
     ap = run_parser(__doc__)

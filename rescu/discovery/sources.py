@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, failure_record
 

@@ -61,7 +61,7 @@ from scipy.spatial import cKDTree
 from ..params import config_section, params_from_dict
 from ..io import read_h5, write_h5
 from ..layout import registered_centres
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix
 from .search import (SearchContext, SearchParams, matrix_objective, objective_parts, prune,
                      search)
 from ..types import Features, Instance, Pattern, RPMatrix

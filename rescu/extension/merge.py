@@ -60,7 +60,7 @@ from typing import Any
 import numpy as np
 
 from ..discovery.extent import unrefined_boxes
-from ..evaluation.metrics import cover_matrix, iou_matrix
+from ..boxes import cover_matrix, iou_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Instance, Pattern
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..types import ImageResult, Instance
-from .boxes import size_gate, suppress
+from ..boxes import size_gate, suppress
 from .examples import select_examples
 from .features import to_str
 from .head import make_head
