@@ -318,7 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rescu-ii (default): stage I extended by the self-supervised stage II; "
                         "rescu-i: stage I only (fast); grasp: the GRASP baseline")
     d.add_argument("--config", metavar="YAML", default=None,
-                   help="optional YAML file overriding sections of the default config/config.yaml")
+                   help="optional YAML file overriding sections of the default configuration "
+                        "(rescu/defaults/config.yaml)")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter, e.g. --set stage1.max_patterns=2 (repeatable)")
     dense = d.add_mutually_exclusive_group()
@@ -333,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--objects", action="store_true",
                    help="photos of small or smooth objects (cars from above, chess pieces, "
                         "products): RPs from the CNN feature map only, extended by stage II "
-                        "from any proposal (the profile config/objects.yaml; --config and "
+                        "from any proposal (the profile rescu/defaults/objects.yaml; --config and "
                         "--set still apply over it)")
     d.add_argument("--force", action="store_true",
                    help="replace files in DIR named like results (<stem>.json, <stem>.png, "

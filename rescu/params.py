@@ -2,7 +2,8 @@
 the one home of their defaults.
 
 Every default value lives once, in the shipped default configuration
-(``rescu/defaults/config.yaml``, equal to the checkout's ``config/config.yaml``). A
+(``rescu/defaults/config.yaml``; the checkout's ``config/config.yaml`` holds only
+overrides). A
 parameter dataclass reads its field defaults from there with :func:`config_section`,
 so each tunable is named once in the code::
 

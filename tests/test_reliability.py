@@ -53,7 +53,7 @@ def make_photo_folder(root: Path) -> Path:
 
 
 def config_for(tmp: Path, folder: Path) -> Path:
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())
     datasets = {name: {"enabled": False} for name in default["datasets"]}
     datasets["mine"] = {"path": str(folder)}
     cfg = {"datasets": datasets, "scene": {"source": "rescu-i"}, "ablation": {"datasets": []}}

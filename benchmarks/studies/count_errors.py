@@ -13,8 +13,8 @@ Usage (after ``snakemake --cores 2``, from the repository root)::
     python benchmarks/studies/count_errors.py results --dataset cmp_facade --all
 
 ``--method`` is the per-image JSON folder under ``<results>/<dataset>/`` (final,
-rescu-ii, rescu-i, grasp, scene). The dataset folder comes from ``config/config.yaml``
-(or ``--config``), as in the run.
+rescu-ii, rescu-i, grasp, scene). The dataset folder comes from the
+configuration (the defaults, or ``--config`` merged over them), as in the run.
 """
 
 from __future__ import annotations

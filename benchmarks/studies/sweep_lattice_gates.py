@@ -16,7 +16,8 @@ Usage (after ``snakemake --cores 2``)::
     python benchmarks/studies/sweep_lattice_gates.py results --datasets synthetic cmp_facade \\
         --ratios 1.0 1.25 1.5 --thresholds 0.99 0.97 0.95 0.9 --scene
 
-The dataset folders are read from ``config/config.yaml`` (synthetic:
+The dataset folders are read from the configuration (``config/config.yaml`` merged over
+the defaults; synthetic:
 ``<results>/data/synthetic``; relative paths from the current folder, as snakemake
 reads them: run it from the repository root).
 """

@@ -23,7 +23,7 @@ MODES = ("both", "dense", "objects")
 @dataclass(frozen=True)
 @config_section("dense")
 class DenseParams:
-    """Config section ``dense`` (see ``config/config.yaml`` for each key's meaning).
+    """Config section ``dense`` (see ``rescu/defaults/config.yaml`` for each key's meaning).
 
     Attributes
     ----------
