@@ -16,9 +16,8 @@ from typing import Any
 from . import io, outputs, pipeline
 from .config import load_config
 from .io import InputError
+from .names import METHODS
 from .types import ImageResult
-
-METHODS = ("rescu-ii", "rescu-i", "grasp")
 
 
 def _dense_step(cfg: dict[str, Any], w: Any) -> None:

@@ -284,6 +284,7 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .names import METHODS, OVERLAY_MODES
     from .params import config_defaults
 
     p = argparse.ArgumentParser(
@@ -314,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")
     d.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
-    d.add_argument("--method", default="rescu-ii", choices=["rescu-ii", "rescu-i", "grasp"],
+    d.add_argument("--method", default=METHODS[0], choices=list(METHODS),
                    help="rescu-ii (default): stage I extended by the self-supervised stage II; "
                         "rescu-i: stage I only (fast); grasp: the GRASP baseline")
     d.add_argument("--config", metavar="YAML", default=None,
@@ -340,7 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace files in DIR named like results (<stem>.json, <stem>.png, "
                         "<stem>_rectified/) that rescu did not write; without it such files "
                         "stop the run before any work (exit 2)")
-    d.add_argument("--overlay", default=None, choices=["boxes", "full", "none"],
+    d.add_argument("--overlay", default=None, choices=list(OVERLAY_MODES),
                    help="what <stem>.png shows: boxes (instances, labels, legend, caption), "
                         "full (also the vanishing points as thin lines) or none (no picture); "
                         "default: the config's report.overlay (full)")

@@ -121,6 +121,11 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
 
 
 # ------------------------------------------------------------------ evaluation section
+TS_WHICH: tuple[str, ...] = ("any", "dominant")
+"""Which RPs decide an image's translation symmetry (``evaluation.ts_which``): any
+pattern, or the dominant one."""
+
+
 @dataclass(frozen=True)
 @config_section("evaluation")
 class EvaluationParams:
@@ -176,8 +181,8 @@ class EvaluationParams:
         if not 0.0 < self.significance_alpha < 1.0:
             raise ValueError("EvaluationParams.significance_alpha must be in (0, 1), got "
                              f"{self.significance_alpha}")
-        if self.ts_which not in ("any", "dominant"):
-            raise ValueError("EvaluationParams.ts_which must be 'any' or 'dominant', got "
+        if self.ts_which not in TS_WHICH:
+            raise ValueError(f"EvaluationParams.ts_which must be one of {TS_WHICH}, got "
                              f"{self.ts_which!r}")
         for name in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "vp_aa_thresholds",
                      "ts_t_fine", "ts_t_coarse"):

@@ -21,6 +21,7 @@ from . import plots as EP
 from . import ts as ET
 from . import vpd as EV
 from ..io import atomic_path, read_result
+from ..names import METHOD_LABELS, METHODS
 from .metrics import TABLE_METRICS
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
@@ -28,7 +29,7 @@ NO_RP_TRUTH = ("_no ground truth: no dataset of this run has recurring-pattern a
                "(annotations.json)_\n")
 NO_VP_TRUTH = ("_no ground truth: no dataset of this run has vanishing-point annotations "
                "(vanishing_points.json, or vp_truth)_\n")
-RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
+RP_METHODS = {METHOD_LABELS[m]: m for m in reversed(METHODS)}  # GRASP first, as in the paper
 VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines": "vp-lsd",
               "RESCU joint": "scene-joint", "RESCU joint (true focal)": "scene-joint-f",
               "lu-vp-detect (true focal)": "vp-lu"}
