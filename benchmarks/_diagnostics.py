@@ -18,7 +18,7 @@ import pandas as pd
 from rescu.io import GroundTruthRP
 from rescu.types import ImageResult
 from rescu.evaluation.core import _load
-from rescu.evaluation.counting import _score_counting
+from rescu.evaluation.count_table import _score_counting
 from rescu.evaluation.metrics import IOD_H, MIN_RP_PRECISION, iod_matrix, match_boxes, score_image
 
 if TYPE_CHECKING:     # imported where used: the evaluation rules never read stage II's code

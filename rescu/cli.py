@@ -214,7 +214,7 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None 
     from .evaluation.core import (RP_TABLE_NOTE, EvaluationParams, evaluate_rp_dataset,
                                   frame_markdown, summary_markdown, summary_table, write_tsv)
     from .evaluation.metrics import TABLE_METRICS
-    from .evaluation.counting import counting_table
+    from .evaluation.count_table import counting_table
     from .evaluation.vpd import vp_frame, vp_markdown, vp_success_table
     from .io import InputError, read_json
 

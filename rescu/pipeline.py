@@ -399,7 +399,7 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
 def stage2_features(png: str, meta_path: str, stage1_json: str, out_h5: str,
                     params: dict[str, Any]) -> Failure | None:
     """Proposals and pooled backbone features of one image to HDF5."""
-    from .extension.features import compute_stage2_features
+    from .extension.proposal_features import compute_stage2_features
     from .extension.params import Stage2Params
 
     meta = io.read_json(meta_path)
@@ -518,7 +518,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     ``out_jsons`` maps each variant to its per-image result JSON (method
     ``rescu-ii[<variant>]``).
     """
-    from .extension.features import compute_stage2_features
+    from .extension.proposal_features import compute_stage2_features
     from .extension.params import Stage2Params
     from .extension.predict import predict_stage2
     from .extension.train import train_heads

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rescu.evaluation import core as E
-from rescu.evaluation import counting as EC
+from rescu.evaluation import count_table as EC
 from rescu.evaluation import failures as EF
 from rescu.evaluation import plots as EP
 from rescu.evaluation import ts as ET

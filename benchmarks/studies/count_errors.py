@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     from _cli import inputs_present, print_rows, run_dataset, run_parser
 
     from _diagnostics import count_errors
-    from rescu.evaluation.counting import counting_table
+    from rescu.evaluation.count_table import counting_table
 
     ap = run_parser(__doc__)
     ap.add_argument("--method", default="final", help="per-image JSON folder to evaluate")

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.extension.train import load_checkpoint
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
-    from rescu.evaluation.counting import count_frame
+    from rescu.evaluation.count_table import count_frame
     from rescu.evaluation.core import evaluate_rp_dataset
 
     ap = argparse.ArgumentParser(description=__doc__,

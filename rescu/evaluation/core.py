@@ -20,7 +20,7 @@ over the images where both values are defined (finite), all through
 Markdown the best mean is bold and a method whose difference to the best is *not*
 significant (p >= alpha) is in italics, as in the paper.
 
-The other tables build on this module: :mod:`rescu.evaluation.counting`,
+The other tables build on this module: :mod:`rescu.evaluation.count_table`,
 :mod:`rescu.evaluation.vpd` (vanishing points), :mod:`rescu.evaluation.ts`
 (translation symmetry), :mod:`rescu.evaluation.failures`; their figures are in
 :mod:`rescu.evaluation.plots`.

@@ -1,5 +1,5 @@
 """The paper's tables and curves over all datasets of a run (built on
-:mod:`rescu.evaluation.core`, ``counting``, ``vpd``, ``ts`` and ``plots``), written as TSV
+:mod:`rescu.evaluation.core`, ``count_table``, ``vpd``, ``ts`` and ``plots``), written as TSV
 (numbers) and Markdown (people).
 
 Each ``*_tables`` function takes the datasets to evaluate as ``{name: DatasetRef}`` and
@@ -16,7 +16,7 @@ from typing import Any, Mapping, Sequence
 import pandas as pd
 
 from . import core as E
-from . import counting as EC
+from . import count_table as EC
 from . import plots as EP
 from . import ts as ET
 from . import vpd as EV

@@ -111,7 +111,7 @@ def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2P
     Parameters
     ----------
     feats : dict
-        Output of :func:`rescu.extension.features.compute_stage2_features`.
+        Output of :func:`rescu.extension.proposal_features.compute_stage2_features`.
     params : Stage2Params
 
     Returns
