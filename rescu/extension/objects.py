@@ -493,7 +493,7 @@ def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
       gaps between objects and patches of texture do not.
 
     >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5), 3)
-    0.829
+    0.827
     >>> pattern_confidence(-0.1, 12, 2.0, 0.15, 3.0, 0.5)
     0.0
     """
