@@ -2,14 +2,17 @@
 # Table of contents: config + validation, one rule file per stage, the final targets.
 import sys
 
-from snakemake.utils import min_version, update_config, validate
+from snakemake.utils import min_version, update_config
 
-from rescu.config import typed_cli_overrides, validate_config
+from rescu.config import DEFAULT_CONFIG, typed_cli_overrides, validate_config
 from rescu.io import InputError
 
 min_version("9.0")
 
 
+# the defaults, once, inside the package (every key, documented in config/README.md);
+# then the checkout's overrides; --configfile and --config go on top of both
+configfile: str(DEFAULT_CONFIG)
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
@@ -17,22 +20,21 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 update_config(config, typed_cli_overrides(workflow.config_settings.config))
 
 
-# every key of every section checked once, before any job (schema + parameter classes):
-# one line naming the key, its value and what is allowed, exit 2
+# every key of every section checked once, before any job (the package's schema, then the
+# parameter classes): one line naming the key, its value and what is allowed, exit 2
 try:
     validate_config(config, ", ".join(map(str, workflow.configfiles)) or "config",
                     [("--config", workflow.config_settings.config)])
 except InputError as e:
     print(f"rescu: error: {e}", file=sys.stderr)
     sys.exit(2)
-validate(config, os.path.join(workflow.basedir, "config", "config.schema.yaml"))
 
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/features.smk"
-include: "workflow/rules/stage1.smk"
-include: "workflow/rules/stage2.smk"
+include: "workflow/rules/discovery.smk"
+include: "workflow/rules/extension.smk"
 include: "workflow/rules/scene.smk"
 include: "workflow/rules/caption.smk"
 include: "workflow/rules/evaluate.smk"

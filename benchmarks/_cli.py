@@ -15,7 +15,7 @@ def run_parser(doc: str) -> argparse.ArgumentParser:
     ap.add_argument("results", type=Path, help="results folder of a finished run")
     ap.add_argument("--dataset", default="synthetic")
     ap.add_argument("--config", type=Path, default=None,
-                    help="config file (default config/config.yaml)")
+                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
     return ap
 
 

@@ -17,9 +17,9 @@ from typing import Any
 from . import core, io, outputs
 from .config import load_config
 from .io import InputError
+from .names import METHODS, OVERLAY_MODES
 from .types import ImageResult
 
-METHODS = core.METHODS
 
 
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
@@ -103,8 +103,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     if not isinstance(image, (str, os.PathLike)):
         raise TypeError(f"image must be a path (str or os.PathLike), got "
                         f"{type(image).__name__} {image!r}")
-    if overlay is not None and overlay not in ("full", "boxes", "none"):
-        raise InputError(f"overlay must be 'full', 'boxes' or 'none', got {overlay!r}")
+    if overlay is not None and overlay not in OVERLAY_MODES:
+        raise InputError(f"overlay must be one of {OVERLAY_MODES}, got {overlay!r}")
     image = Path(image)
     try:
         io.check_photo_file(image)

@@ -214,7 +214,7 @@ def evaluate_predictions_cli(dataset_dir: Path, pred_dir: Path, h: float | None 
     from .evaluation.core import (RP_TABLE_NOTE, EvaluationParams, evaluate_rp_dataset,
                                   frame_markdown, summary_markdown, summary_table, write_tsv)
     from .evaluation.metrics import TABLE_METRICS
-    from .evaluation.counting import counting_table
+    from .evaluation.count_table import counting_table
     from .evaluation.vpd import vp_frame, vp_markdown, vp_success_table
     from .io import InputError, read_json
 
@@ -284,6 +284,7 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .names import METHODS, OVERLAY_MODES
     from .params import config_defaults
 
     p = argparse.ArgumentParser(
@@ -314,11 +315,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")
     d.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
-    d.add_argument("--method", default="rescu-ii", choices=["rescu-ii", "rescu-i", "grasp"],
+    d.add_argument("--method", default=METHODS[0], choices=list(METHODS),
                    help="rescu-ii (default): stage I extended by the self-supervised stage II; "
                         "rescu-i: stage I only (fast); grasp: the GRASP baseline")
     d.add_argument("--config", metavar="YAML", default=None,
-                   help="optional YAML file overriding sections of the default config/config.yaml")
+                   help="optional YAML file overriding sections of the default configuration "
+                        "(rescu/defaults/config.yaml)")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter, e.g. --set stage1.max_patterns=2 (repeatable)")
     dense = d.add_mutually_exclusive_group()
@@ -333,13 +335,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--objects", action="store_true",
                    help="photos of small or smooth objects (cars from above, chess pieces, "
                         "products): RPs from the CNN feature map only, extended by stage II "
-                        "from any proposal (the profile config/objects.yaml; --config and "
+                        "from any proposal (the profile rescu/defaults/objects.yaml; --config and "
                         "--set still apply over it)")
     d.add_argument("--force", action="store_true",
                    help="replace files in DIR named like results (<stem>.json, <stem>.png, "
                         "<stem>_rectified/) that rescu did not write; without it such files "
                         "stop the run before any work (exit 2)")
-    d.add_argument("--overlay", default=None, choices=["boxes", "full", "none"],
+    d.add_argument("--overlay", default=None, choices=list(OVERLAY_MODES),
                    help="what <stem>.png shows: boxes (instances, labels, legend, caption), "
                         "full (also the vanishing points as thin lines) or none (no picture); "
                         "default: the config's report.overlay (full)")

@@ -1,10 +1,11 @@
 """Loading and validating the pipeline configuration (the Snakefile, the CLI, the API).
 
-The defaults ship inside the package (``rescu/defaults/config.yaml``, validated against
-``rescu/defaults/config.schema.yaml``, JSON Schema Draft 2020-12), so an installed
-``rescu`` works outside the source checkout. The checkout's ``config/config.yaml`` and
-``config/config.schema.yaml`` are the pipeline's copies of the same two files (a test
-checks they are equal: edit ``config/`` and copy both into ``rescu/defaults/``).
+The defaults exist once, inside the package (``rescu/defaults/config.yaml``, validated
+against ``rescu/defaults/config.schema.yaml``, JSON Schema Draft 2020-12), so an
+installed ``rescu`` works outside the source checkout. The CLI and the API read them
+here (:func:`load_config`); the Snakefile reads the same file, then the checkout's
+``config/config.yaml`` (overrides only), then ``--configfile`` / ``--config``, and checks
+the result once with :func:`validate_config`.
 """
 
 from __future__ import annotations
@@ -18,13 +19,13 @@ from .params import deep_merge  # noqa: F401  (part of this module's API)
 
 DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
 DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
-"""The default configuration shipped in the package (equal to the checkout's
-``config/config.yaml``)."""
+"""The default configuration shipped in the package, its one copy."""
 SCHEMA = DEFAULTS_DIR / "config.schema.yaml"
-"""Its JSON Schema (equal to ``config/config.schema.yaml``)."""
+"""Its JSON Schema, applied by :func:`validate_config` only."""
 PROFILES = {"objects": DEFAULTS_DIR / "objects.yaml"}
-"""Named override files shipped in the package (equal to the checkout's ``config/<name>.yaml``):
-``objects`` for photos of small or smooth objects (``rescu discover --objects``)."""
+"""Named override files shipped in the package: ``objects`` for photos of small or smooth
+objects (``rescu discover --objects``; for Snakemake ``--configfile
+rescu/defaults/objects.yaml``)."""
 
 
 def _read_yaml(path: Any) -> Any:
@@ -129,7 +130,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     """
     from .captions.caption import CaptionParams
     from .scene.completion import CompletionParams
-    from .evaluation.core import EvaluationParams
+    from .params import EvaluationParams
     from .discovery.features import FeatureParams
     from .discovery.grasp import GraspParams
     from .discovery.ablation import SOURCE_ROWS, ablation_overrides

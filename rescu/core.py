@@ -48,12 +48,11 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from . import io
+from .names import METHODS
 from .types import Failure, Features, ImageResult, Pattern, RPMatrix, failure_record
 
 log = logging.getLogger("rescu")
 
-#: the methods whose instances the scene analysis and caption use (:func:`run`)
-METHODS = ("rescu-ii", "rescu-i", "grasp")
 
 T = TypeVar("T")
 
@@ -343,7 +342,7 @@ def _gray(rgb: np.ndarray) -> np.ndarray:
 def stage2_features(prep: Prepared, s1: ImageResult, params: dict[str, Any]) -> dict[str, Any]:
     """Proposals and pooled backbone features of one image (section ``stage2``), as
     stored: ``{name: array | {name: array}}`` (:func:`as_stored`)."""
-    from .extension.features import compute_stage2_features
+    from .extension.proposal_features import compute_stage2_features
     from .extension.params import Stage2Params
 
     return as_stored(compute_stage2_features(prep.rgb, prep.scale_factor, s1,

@@ -51,7 +51,7 @@ def write_gallery(out_dir: str | Path, names: Sequence[str] | None = None,
         The page written (atomically).
     """
     from .captions.caption import NO_PATTERN, summary_line
-    from .evaluation.report import _img_tag
+    from .pages import img_tag
 
     out_dir = Path(out_dir)
     if names is None:
@@ -77,7 +77,7 @@ def write_gallery(out_dir: str | Path, names: Sequence[str] | None = None,
         cap = (res.caption or {}).get("enhanced") or ""
         png = out_dir / f"{name}.png"
         pic = (f"<a href='{html.escape(png.name)}' title='full size'>"
-               f"{_img_tag(png, width=420, alt=name)}</a>" if png.exists() else "")
+               f"{img_tag(png, width=420, alt=name)}</a>" if png.exists() else "")
         cards.append(
             f"<figure>{pic}<figcaption><div class='name'>{html.escape(Path(res.image).name or name)}"
             f"</div><div class='found'>{found}</div>"

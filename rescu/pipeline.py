@@ -416,7 +416,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     ``out_jsons`` maps each variant to its per-image result JSON (method
     ``rescu-ii[<variant>]``).
     """
-    from .extension.features import compute_stage2_features
+    from .extension.proposal_features import compute_stage2_features
     from .extension.params import Stage2Params
     from .extension.predict import predict_stage2
     from .extension.train import train_heads

@@ -214,11 +214,16 @@ def _results_dir(argv: Sequence[str], default: str) -> str:
     for a in argv:
         if a.startswith("results_dir="):
             return a.split("=", 1)[1]
-    try:
+    try:                              # the checkout's overrides, then the package defaults
         import yaml
 
-        return str(yaml.safe_load(Path("config/config.yaml").read_text())["results_dir"])
-    except (OSError, KeyError, TypeError, ValueError):
+        user = yaml.safe_load(Path("config/config.yaml").read_text()) or {}
+        if "results_dir" in user:
+            return str(user["results_dir"])
+        from .params import config_defaults
+
+        return str(config_defaults()["results_dir"])
+    except (OSError, KeyError, TypeError, ValueError, AttributeError):
         return default
 
 
@@ -282,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--verbose", action="store_true", help="pass the full output through")
     p.add_argument("--results", default=None,
                    help="the run's results folder (default: results_dir= in the command, "
-                        "else config/config.yaml's)")
+                        "else config/config.yaml's or the default's)")
     p.add_argument("command", nargs=argparse.REMAINDER)
     a = p.parse_args(argv)
     cmd = a.command[1:] if a.command[:1] == ["--"] else a.command

@@ -13,15 +13,13 @@ from typing import Sequence
 
 import numpy as np
 
+from .names import DRAW_MODES, OVERLAY_MODES  # noqa: F401  (OVERLAY_MODES: re-exported)
 from .types import ImageResult
 
 # Distinct colours (RGB) for up to 10 patterns, then they repeat.
 PALETTE = [(230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180),
            (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 190), (0, 128, 128)]
 
-OVERLAY_MODES = ("boxes", "full", "none")
-"""``boxes``: instances, labels, legend and caption; ``full``: also the vanishing points;
-``none``: no picture (the callers write none)."""
 
 MIN_BOX_PX = 8
 """A box smaller than this (picture pixels) is drawn at this size around its centre."""
@@ -185,8 +183,8 @@ def draw_overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     """
     import cv2
 
-    if mode not in ("boxes", "full"):
-        raise ValueError(f"mode must be 'boxes' or 'full', got {mode!r}")
+    if mode not in DRAW_MODES:
+        raise ValueError(f"mode must be one of {DRAW_MODES}, got {mode!r}")
     img = np.ascontiguousarray(rgb.copy())
     h, w = img.shape[:2]
     s = float(scale_factor)

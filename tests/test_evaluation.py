@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rescu.evaluation import core as E
-from rescu.evaluation import counting as EC
-from rescu.evaluation import diagnostics as ED
+from rescu.evaluation import count_table as EC
 from rescu.evaluation import failures as EF
 from rescu.evaluation import plots as EP
 from rescu.evaluation import ts as ET
@@ -25,6 +25,10 @@ from rescu.evaluation.metrics import METRICS
 from rescu.types import ImageResult, Instance, Pattern, TranslationSymmetry, VanishingPoint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+# the diagnostics only the benchmark scripts print live beside them
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import _diagnostics as ED  # noqa: E402
 
 
 def _row(n, x0=10.0, y0=10.0, size=20.0, gap=40.0):

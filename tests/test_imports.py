@@ -41,3 +41,20 @@ def test_each_step_depends_on_its_own_modules_only():
     assert "data/synth.py" in dep["generate_synthetic"]
     for stem, files in dep.items():
         assert "pipeline.py" in files, stem  # every adapter logs through the pipeline
+
+
+def test_evaluation_sits_above_the_stages():
+    """Only the evaluation itself and the command line (which runs its tables) import
+    ``rescu.evaluation``; the stages measure box overlaps with ``rescu.boxes``, which
+    imports nothing of the package."""
+    from rescu.imports import import_graph
+
+    graph = import_graph()
+    allowed = ("rescu.evaluation", "rescu.cli")
+    bad = {m: sorted(t for t in edges if t == "rescu.evaluation"
+                     or t.startswith("rescu.evaluation."))
+           for m, edges in graph.items()
+           if not (m == allowed[1] or m == allowed[0] or m.startswith(allowed[0] + "."))}
+    assert not {m: t for m, t in bad.items() if t}, bad
+    assert graph["rescu.boxes"] == {}
+    assert "rescu.evaluation.diagnostics" not in graph     # lives in benchmarks/

@@ -53,7 +53,7 @@ def make_photo_folder(root: Path) -> Path:
 
 
 def config_for(tmp: Path, folder: Path) -> Path:
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())
     datasets = {name: {"enabled": False} for name in default["datasets"]}
     datasets["mine"] = {"path": str(folder)}
     cfg = {"datasets": datasets, "scene": {"source": "rescu-i"}, "ablation": {"datasets": []}}
@@ -210,7 +210,7 @@ def _stage2(w, cfg):
 
 
 @pytest.mark.parametrize("step, module, fn",
-                         [("stage2-features", "features", "compute_stage2_features"),
+                         [("stage2-features", "proposal_features", "compute_stage2_features"),
                           ("stage2-train", "train", "train_heads"),
                           ("stage2-predict", "predict", "predict_stage2")])
 def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, module, fn):
@@ -247,7 +247,7 @@ def test_stage2_failure_keeps_stage1_patterns(tmp_path, monkeypatch, step, modul
 
 
 def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
-    from rescu.extension import features
+    from rescu.extension import proposal_features as features
     from rescu.config import load_config
 
     cfg = load_config()

@@ -11,7 +11,7 @@ from rescu.evaluation.metrics import iod_matrix  # noqa: E402
 from rescu.extension.augment import occlude_instances  # noqa: E402
 from rescu.extension.examples import (cluster_centres, dbscan_labels,  # noqa: E402
                                       select_examples)
-from rescu.extension.features import compute_stage2_features, finetune_record  # noqa: E402
+from rescu.extension.proposal_features import compute_stage2_features, finetune_record  # noqa: E402
 from rescu.extension.params import Stage2Params  # noqa: E402
 from rescu.params import deep_merge as merged  # noqa: E402
 from rescu.extension.predict import (impute_half, predict_stage2,  # noqa: E402
@@ -262,7 +262,7 @@ def test_lattice_only_needs_lattice_windows(six):
 
 
 def test_spacing_suppression():
-    from rescu.extension.boxes import suppress
+    from rescu.boxes import suppress
 
     own = np.array([[0, 0, 10, 10], [40, 0, 10, 10]], float)
     cand = np.array([[80, 0, 10, 10], [86, 2, 10, 10], [60, 0, 10, 10]], float)

@@ -181,12 +181,21 @@ def test_snakefile_checks_the_config_before_any_job(tmp_path):
         assert "Traceback" not in proc.stderr
 
 
-def test_shipped_defaults_equal_the_pipeline_config():
-    for name in ("config.yaml", "config.schema.yaml", "objects.yaml"):
-        assert (REPO / "config" / name).read_bytes() == \
-            (REPO / "rescu" / "defaults" / name).read_bytes(), (
-            f"config/{name} and rescu/defaults/{name} differ: edit config/{name}, then "
-            f"cp config/{name} rescu/defaults/")
+def test_defaults_exist_once_inside_the_package():
+    """The default configuration, its schema and the objects profile have one copy, in
+    rescu/defaults/; config/config.yaml holds overrides only (none shipped), and the
+    Snakefile reads the package's defaults and validates with rescu.config alone."""
+    import yaml
+
+    shipped = {p.name: p.read_bytes() for p in (REPO / "rescu" / "defaults").glob("*.yaml")}
+    assert set(shipped) == {"config.yaml", "config.schema.yaml", "objects.yaml"}
+    assert yaml.safe_load((REPO / "config" / "config.yaml").read_text()) == {}
+    for other in [*(REPO / "config").glob("*.yaml"), *(REPO / "profiles").rglob("*.yaml")]:
+        assert other.name not in {"config.schema.yaml", "objects.yaml"}, other
+        assert other.read_bytes() not in shipped.values(), other
+    snakefile = (REPO / "Snakefile").read_text()
+    assert "configfile: str(DEFAULT_CONFIG)" in snakefile
+    assert "validate(" not in snakefile.replace("validate_config(", "")
 
 
 # ----------------------------------------------------------------------- no traceback

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 
 def tiny_config(tmp: Path, **overrides) -> Path:
     """A config that processes only three small synthetic images, fast settings."""
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())
     datasets = {name: {"enabled": False} for name in default["datasets"]}
     datasets["synthetic"] = {"kind": "synthetic", "enabled": True}
     cfg = {
@@ -113,7 +113,7 @@ def test_outputs_exist_and_parse(finished_run):
         assert (res / "tables" / f"{table}.tsv").exists(), table
     assert "RESCU joint" in (res / "tables" / "vpd.md").read_text()
     # every ablation variant has its per-image JSONs and a row in its table
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())
     abl = (res / "tables" / "ablation.tsv").read_text()
     s2 = (res / "tables" / "stage2_ablation.tsv").read_text()
     for v in default["ablation"]["variants"]:
@@ -215,7 +215,7 @@ def test_holdout_config_plans_only_the_reseeded_synthetic_set(tmp_path, seed):
     proc = snakemake(tmp_path, REPO / "config" / "holdout.yaml", "-n", *extra)
     jobs = planned_jobs(proc)
     holdout = yaml.safe_load((REPO / "config" / "holdout.yaml").read_text())
-    n = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["synthetic"]["n_images"]
+    n = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())["synthetic"]["n_images"]
     assert holdout["synthetic"]["seed"] != 0 and holdout["results_dir"] == "results/holdout"
     assert holdout["run_datasets"] == ["synthetic"]
     assert jobs.get("generate_synthetic") == 1 and jobs.get("scene") == n, jobs
@@ -267,7 +267,7 @@ def test_stress_config_plans_the_occluded_set_up_to_the_stage2_tables(tmp_path):
     occluders than the default set, its own seed and folder; ``make stress`` asks for the
     stage-II and counting tables only (no GRASP, no stage-I ablation)."""
     stress = yaml.safe_load((REPO / "config" / "stress.yaml").read_text())
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["synthetic"]
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())["synthetic"]
     holdout = yaml.safe_load((REPO / "config" / "holdout.yaml").read_text())["synthetic"]
     syn = stress["synthetic"]
     assert syn["seed"] not in (default["seed"], holdout["seed"])
@@ -301,7 +301,7 @@ def test_stage2_misses_gives_every_missed_instance_one_cause(finished_run):
     work, _ = finished_run
     res = work / "results"
     data = res / "data" / "synthetic"
-    stage2 = yaml.safe_load((REPO / "config" / "config.yaml").read_text())["stage2"]
+    stage2 = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())["stage2"]
     df = SM.classify_misses(data, res, "synthetic", stage2)
     gt = load_coco_rps(data / "annotations.json")
     preds = load_predictions(res / "synthetic" / "rescu-ii", gt.keys())
@@ -331,7 +331,7 @@ def test_predict_only_variants_reuse_the_runs_features_and_head(finished_run, ca
 
     work, _ = finished_run
     res = work / "results"
-    pv = yaml.safe_load((REPO / "config" / "config.yaml").read_text())[
+    pv = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())[
         "stage2_ablation"]["predict_variants"]
     assert pv["visible-half"] == {"predict": {"visible_half": True}}
     sets = [f"predict.{k}={str(v).lower()}" for k, v in pv["visible-half"]["predict"].items()]
@@ -454,7 +454,7 @@ def test_photo_only_dataset_runs_to_the_report(tmp_path):
     photos.mkdir()
     shelf_photo(photos / "a.png")
     shelf_photo(photos / "b.png")
-    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    default = yaml.safe_load((REPO / "rescu" / "defaults" / "config.yaml").read_text())
     cfg = tmp_path / "config.yaml"
     cfg.write_text(yaml.safe_dump({
         "datasets": {**{n: {"enabled": False} for n in default["datasets"]},

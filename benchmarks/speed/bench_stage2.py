@@ -38,7 +38,7 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     from rescu.extension import backbone as B
     from rescu.extension import proposals as PR
-    from rescu.extension.features import compute_stage2_features, get_backbone
+    from rescu.extension.proposal_features import compute_stage2_features, get_backbone
     from rescu.extension.params import Stage2Params
     from rescu.extension.predict import predict_stage2
     from rescu.extension.train import train_heads

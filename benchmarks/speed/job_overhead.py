@@ -53,7 +53,7 @@ STEP_IMPORTS = {
     "stage I": "from rescu import pipeline; from rescu.discovery import stage1",
     "GRASP": "from rescu import pipeline; from rescu.discovery import grasp",
     "stage II (torch)": ("from rescu import pipeline; "
-                         "from rescu.extension import features, backbone; import torch"),
+                         "from rescu.extension import proposal_features, backbone; import torch"),
     "scene": "from rescu import pipeline; from rescu.scene import analyse, completion",
     "caption": "from rescu import pipeline; from rescu.captions import caption",
     "overlay": "from rescu import pipeline, visualize",

@@ -10,7 +10,7 @@ read as YAML; checked by :class:`rescu.completion.CompletionParams`). The result
 beside a ``params.json`` of the settings; a folder made with other settings is refused,
 an image already there is not recomputed; rectified views are not kept). Then prints,
 for the run's ``scene/`` and the variant on the same images: matched GT RPs, exact-count
-rate and count MAE (:func:`rescu.evaluation.counting_table`), the instances completion
+rate and count MAE (:func:`rescu.evaluation.count_table.counting_table`), the instances completion
 added, and where the dataset has the truth, translation symmetry at the config's
 tolerance (TPR on equally spaced GT rows, FPR on the others; :func:`rescu.evaluation.ts_sweep`)
 and the image VP's success at 5 degrees (:func:`rescu.evaluation.vp_frame`). Asserts
@@ -53,7 +53,7 @@ def _one(job: tuple[str, str, str, str, dict[str, Any]]) -> tuple[str, str]:
 def scores(data: Path, preds: dict[str, Path], images: list[str], ts_t: float
            ) -> list[dict[str, Any]]:
     """One row per method: counting, completion, TS and VP figures on ``images``."""
-    from rescu.evaluation.counting import counting_table
+    from rescu.evaluation.count_table import counting_table
     from rescu.evaluation.core import load_predictions
     from rescu.evaluation.ts import ts_frame, ts_sweep
     from rescu.evaluation.vpd import vp_frame

@@ -4,7 +4,7 @@ For each ground-truth RP whose count is wrong (the counting table's exact-count 
 counts it as a miss), lists the GT instances the counting RP missed and the detected
 instances that match none (with their source: stage1 / stage2 / completion), with the
 synthetic benchmark's truth (row, column, occluded fraction, blur, equal spacing) where
-the dataset has it (:func:`rescu.evaluation.count_errors`). Prints; asserts nothing.
+the dataset has it (:func:`_diagnostics.count_errors`). Prints; asserts nothing.
 
 Usage (after ``snakemake --cores 2``, from the repository root)::
 
@@ -13,8 +13,8 @@ Usage (after ``snakemake --cores 2``, from the repository root)::
     python benchmarks/studies/count_errors.py results --dataset cmp_facade --all
 
 ``--method`` is the per-image JSON folder under ``<results>/<dataset>/`` (final,
-rescu-ii, rescu-i, grasp, scene). The dataset folder comes from ``config/config.yaml``
-(or ``--config``), as in the run.
+rescu-ii, rescu-i, grasp, scene). The dataset folder comes from the
+configuration (the defaults, or ``--config`` merged over them), as in the run.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     from _cli import inputs_present, print_rows, run_dataset, run_parser
 
-    from rescu.evaluation.diagnostics import count_errors
-    from rescu.evaluation.counting import counting_table
+    from _diagnostics import count_errors
+    from rescu.evaluation.count_table import counting_table
 
     ap = run_parser(__doc__)
     ap.add_argument("--method", default="final", help="per-image JSON folder to evaluate")

@@ -5,7 +5,7 @@ map on the prepared picture (``<results>/<dataset>/prepared/``) and all its cand
 groups of recurring blobs (:func:`rescu.extension.dense.dense_candidates`: before the
 plane-tiling test and the ``max_patterns`` cut), and scores each group's instance
 precision against its best ground-truth RP
-(:func:`rescu.evaluation.diagnostics.rp_precisions`; "good" = 0.5 or more, what the
+(:func:`_diagnostics.rp_precisions`; "good" = 0.5 or more, what the
 paper's RP metric accepts). Then prints, per dataset, the paper's instance precision /
 recall (mean over images, undefined values left out, as in the RP table) of
 
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
     from rescu.evaluation.core import write_tsv
-    from rescu.evaluation.diagnostics import rp_precisions
+    from _diagnostics import rp_precisions
     from rescu.evaluation.metrics import score_image
     from rescu.extension.backbone import FrozenBackbone
     from rescu.extension.dense import (DenseParams, dense_candidates, dense_map, objectness_for,

@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from _cli import inputs_present, run_dataset, run_parser
 
-    from rescu.evaluation.diagnostics import merge_pair_rows
+    from _diagnostics import merge_pair_rows
     from rescu.io import load_coco_rps, read_h5, read_result
     from rescu.extension.merge import compared_features
     from rescu.extension.params import Stage2Params

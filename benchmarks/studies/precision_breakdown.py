@@ -4,11 +4,11 @@ For each image of the dataset, each detected instance is credited by the paper's
 (``assigned``), on an object of another GT RP (``other_rp``), a second detection on an
 already matched GT box (``duplicate``) or on no GT box at all (``background``); and the
 detected RPs whose every instance is background are counted
-(:func:`rescu.evaluation.diagnostics.detection_breakdown`). Prints the totals over the
+(:func:`_diagnostics.detection_breakdown`). Prints the totals over the
 images and each share of the detected instances; with ``--images`` also one row per image,
 and with ``--by-category`` one row per GT category: its GT boxes, the detections lying
 on them (each on the smallest GT box it covers) and how many of those are duplicates
-(:func:`rescu.evaluation.diagnostics.category_breakdown`). Asserts nothing.
+(:func:`_diagnostics.category_breakdown`). Asserts nothing.
 
 Usage (after a run, from the repository root)::
 
@@ -32,7 +32,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
 def main(argv: list[str] | None = None) -> int:
     from _cli import inputs_present, print_rows, run_dataset, run_parser
 
-    from rescu.evaluation.diagnostics import (BREAKDOWN_COLUMNS, category_breakdown,
+    from _diagnostics import (BREAKDOWN_COLUMNS, category_breakdown,
                                               precision_breakdown)
 
     ap = run_parser(__doc__)

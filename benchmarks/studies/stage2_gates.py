@@ -82,7 +82,7 @@ def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
     ``{stage: count}`` for :data:`STAGES`, each count <= the one before
     """
     from rescu.evaluation.metrics import iod_matrix
-    from rescu.extension.boxes import size_gate
+    from rescu.boxes import size_gate
     from rescu.extension.predict import proposal_gates
 
     out = dict.fromkeys(STAGES, 0)

@@ -46,7 +46,7 @@ CAUSES = ("rp not found", "no lattice window", "window p < 0.8", "window p 0.8 -
 def _occluded(truth: dict[str, Any], box: Any) -> float | None:
     """Occluded fraction of the synthetic truth instance centred in ``box`` (None: no
     truth record there)."""
-    from rescu.evaluation.diagnostics import truth_instance_at
+    from _diagnostics import truth_instance_at
 
     for p in truth.get("patterns") or []:
         t = truth_instance_at(p.get("instances") or [], box)

@@ -107,7 +107,7 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
                 or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
         epochs = None
         if params.get("finetune") and fail is None:
-            from rescu.extension.features import finetune_record
+            from rescu.extension.proposal_features import finetune_record
 
             feats, _ = io.read_h5(h5)
             epochs = (finetune_record(feats) or {}).get("epochs")

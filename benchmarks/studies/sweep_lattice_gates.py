@@ -16,7 +16,8 @@ Usage (after ``snakemake --cores 2``)::
     python benchmarks/studies/sweep_lattice_gates.py results --datasets synthetic cmp_facade \\
         --ratios 1.0 1.25 1.5 --thresholds 0.99 0.97 0.95 0.9 --scene
 
-The dataset folders are read from ``config/config.yaml`` (synthetic:
+The dataset folders are read from the configuration (``config/config.yaml`` merged over
+the defaults; synthetic:
 ``<results>/data/synthetic``; relative paths from the current folder, as snakemake
 reads them: run it from the repository root).
 """
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.extension.train import load_checkpoint
     from rescu.config import load_config
     from rescu.data.datasets import dataset_root
-    from rescu.evaluation.counting import count_frame
+    from rescu.evaluation.count_table import count_frame
     from rescu.evaluation.core import evaluate_rp_dataset
 
     ap = argparse.ArgumentParser(description=__doc__,

@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--deg", nargs="+", type=float, default=[2.0, 5.0])
     ap.add_argument("--lsd", action="store_true", help="also the LSD-line baseline")
     ap.add_argument("--config", type=Path, default=None,
-                    help="config file (default config/config.yaml)")
+                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
     a = ap.parse_args(argv)
     if min(a.budgets) < 1 or a.seeds < 1:
         ap.error("--budgets and --seeds must be at least 1")

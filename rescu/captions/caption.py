@@ -77,6 +77,10 @@ class CaptionMissing(KeyError):
 
 
 # ----------------------------------------------------------------------------- params
+CAPTIONERS: tuple[str, ...] = ("template", "transformers", "csv")
+"""The captioners ``caption.captioner`` may name."""
+
+
 @dataclass(frozen=True)
 @config_section("caption")
 class CaptionParams:
@@ -85,7 +89,8 @@ class CaptionParams:
     Attributes
     ----------
     captioner : str
-        ``"template"`` (offline), ``"transformers"`` (image-to-text model) or ``"csv"``.
+        One of :data:`CAPTIONERS`: ``"template"`` (offline), ``"transformers"``
+        (image-to-text model) or ``"csv"``.
     model : str
         Local folder or hub name of the ``transformers`` image-to-text model.
     csv_path : str
@@ -110,9 +115,9 @@ class CaptionParams:
     seed: int
 
     def __post_init__(self) -> None:
-        if self.captioner not in ("template", "transformers", "csv"):
-            raise ValueError(f"CaptionParams.captioner must be 'template', 'transformers' "
-                             f"or 'csv', got {self.captioner!r}")
+        if self.captioner not in CAPTIONERS:
+            raise ValueError(f"CaptionParams.captioner must be one of {CAPTIONERS}, got "
+                             f"{self.captioner!r}")
         if not 0.0 <= float(self.grounding_coverage) <= 1.0:
             raise ValueError(f"CaptionParams.grounding_coverage must be in [0, 1], got "
                              f"{self.grounding_coverage}")

@@ -94,7 +94,7 @@ class SynthParams:
 
     Ranges (:data:`IntRange`, :data:`FloatRange`) are ``(min, max)`` pairs, drawn
     uniformly per image / pattern / instance. The defaults, and what each field means,
-    are the ``synthetic`` section of the shipped configuration (``config/config.yaml``).
+    are the ``synthetic`` section of the shipped configuration (``rescu/defaults/config.yaml``).
     """
 
     n_images: int

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..boxes import iou_matrix_xyxy
 from ..params import config_section
 from .urp import AffinityParams, AffinityParts, Gates, objective_omega, pairs, urp_affinity
 
@@ -145,16 +146,6 @@ def _median(a: np.ndarray) -> np.ndarray:
     if k % 2:
         return srt[k // 2]
     return (srt[k // 2 - 1] + srt[k // 2]) / 2.0
-
-
-def _iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a = a.reshape(-1, 4)
-    b = b.reshape(-1, 4)
-    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = w * h
-    area = lambda z: np.maximum(z[:, 2] - z[:, 0], 1.0) * np.maximum(z[:, 3] - z[:, 1], 1.0)  # noqa: E731
-    return inter / (area(a)[:, None] + area(b)[None, :] - inter)
 
 
 def _nanmedian(a: np.ndarray, axis: int) -> np.ndarray:
@@ -340,7 +331,7 @@ def add_columns(ctx: SearchContext, omega: np.ndarray, available: np.ndarray,
             pb = ctx.xy[col[col >= 0]]
             box = np.array([pb[:, 0].min(), pb[:, 1].min(), pb[:, 0].max(), pb[:, 1].max()])
             allb = np.vstack([boxes] + ([np.array(new_boxes)] if new_boxes else []))
-            if _iou_xyxy(box, allb).max() > ctx.search.max_overlap:
+            if iou_matrix_xyxy(box, allb).max() > ctx.search.max_overlap:
                 continue
             new_cols.append(col)
             new_boxes.append(box)

@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, failure_record
 
@@ -23,7 +23,7 @@ MODES = ("both", "dense", "objects")
 @dataclass(frozen=True)
 @config_section("dense")
 class DenseParams:
-    """Config section ``dense`` (see ``config/config.yaml`` for each key's meaning).
+    """Config section ``dense`` (see ``rescu/defaults/config.yaml`` for each key's meaning).
 
     Attributes
     ----------

@@ -61,12 +61,12 @@ from scipy.spatial import cKDTree
 from ..params import config_section, params_from_dict
 from ..io import read_h5, write_h5
 from ..layout import registered_centres
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix
 from .search import (SearchContext, SearchParams, matrix_objective, objective_parts, prune,
                      search)
 from ..types import Features, Instance, Pattern, RPMatrix
-from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift, urp_affinity,
-                  urp_terms)
+from .urp import (ORIENTATION_MODES, AffinityMatchGroups, Gates, match_candidates, root_sift,
+                  urp_affinity, urp_terms)
 
 ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
 
@@ -182,9 +182,9 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
         if bad:
             raise ValueError(f"Stage1Params.adaptive: unknown name(s) {bad}; "
                              f"allowed {list(ADAPTIVE_NAMES)}")
-        if self.orientation_mode not in ("wrapped", "relative", "paper"):
-            raise ValueError("Stage1Params.orientation_mode must be 'wrapped', 'relative' "
-                             f"or 'paper', got {self.orientation_mode!r}")
+        if self.orientation_mode not in ORIENTATION_MODES:
+            raise ValueError(f"Stage1Params.orientation_mode must be one of "
+                             f"{ORIENTATION_MODES}, got {self.orientation_mode!r}")
         if self.min_instances < 2 or self.min_words < 2:
             raise ValueError("Stage1Params: min_instances and min_words must be >= 2")
         if not 0 < self.max_nested_cover <= 1:

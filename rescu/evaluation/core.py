@@ -1,4 +1,5 @@
-"""Evaluation over whole datasets: parameters, loading, RP tables, significance, writers.
+"""Evaluation over whole datasets: loading, RP tables, significance, writers (its
+parameters, :class:`EvaluationParams`, live in :mod:`rescu.params`).
 
 Builds on :mod:`rescu.evaluation.metrics` (IOD protocol documented there). Inputs:
 
@@ -19,7 +20,7 @@ over the images where both values are defined (finite), all through
 Markdown the best mean is bold and a method whose difference to the best is *not*
 significant (p >= alpha) is in italics, as in the paper.
 
-The other tables build on this module: :mod:`rescu.evaluation.counting`,
+The other tables build on this module: :mod:`rescu.evaluation.count_table`,
 :mod:`rescu.evaluation.vpd` (vanishing points), :mod:`rescu.evaluation.ts`
 (translation symmetry), :mod:`rescu.evaluation.failures`; their figures are in
 :mod:`rescu.evaluation.plots`.
@@ -35,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from ..io import GroundTruthRP, InputError, atomic_path, load_coco_rps, read_json, read_result
-from ..params import checked_mapping, config_section
+from ..params import EvaluationParams
 from ..types import ImageResult
 from .metrics import IOD_H, METRICS, MIN_RP_PRECISION, score_image
 
@@ -56,82 +57,6 @@ RP_TABLE_NOTE = (
     "detected instances against all ground-truth instances of the image, whichever RP they "
     "belong to (the figure of earlier versions of these tables); see "
     "`rescu/evaluation/metrics.py`.")
-
-
-# ----------------------------------------------------------------------------- params
-@dataclass(frozen=True)
-@config_section("evaluation")
-class EvaluationParams:
-    """Parameters of the evaluation.
-
-    Attributes
-    ----------
-    iod_h : float
-        IOD threshold h of an acceptable detection, (0, 1).
-    min_rp_precision : float
-        Precision a detected RP needs against its GT RP to be accepted, [0, 1].
-    h_curve : tuple of float
-        IOD thresholds of the metric-vs-h curves.
-    significance_alpha : float
-        Significance level of the Wilcoxon tests (italics in Markdown).
-    vp_px_thresholds : tuple of float
-        Point-error thresholds of the VPD success rate, pixels.
-    vp_deg_thresholds : tuple of float
-        Angle-error thresholds of the VPD success rate, degrees.
-    vp_aa_thresholds : tuple of float
-        Thresholds t of the VPD angular accuracy AA@t (area under the angle-accuracy
-        curve from 0 to t degrees, divided by t), degrees.
-    ts_t_fine, ts_t_coarse : tuple of float
-        Cross-ratio tolerances t of the SR_ts sweeps over (0, 0.15] and (0, 1].
-    ts_which : str
-        ``"any"`` pattern or the ``"dominant"`` one decides an image's TS.
-    decimals : int
-        Decimals in Markdown tables.
-    """
-
-    iod_h: float
-    min_rp_precision: float
-    h_curve: tuple[float, ...]
-    significance_alpha: float
-    vp_px_thresholds: tuple[float, ...]
-    vp_deg_thresholds: tuple[float, ...]
-    vp_aa_thresholds: tuple[float, ...]
-    ts_t_fine: tuple[float, ...]
-    ts_t_coarse: tuple[float, ...]
-    ts_which: str
-    decimals: int
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.iod_h < 1.0:
-            raise ValueError(f"EvaluationParams.iod_h must be in (0, 1), got {self.iod_h}")
-        if not 0.0 <= self.min_rp_precision <= 1.0:
-            raise ValueError("EvaluationParams.min_rp_precision must be in [0, 1], got "
-                             f"{self.min_rp_precision}")
-        if not 0.0 < self.significance_alpha < 1.0:
-            raise ValueError("EvaluationParams.significance_alpha must be in (0, 1), got "
-                             f"{self.significance_alpha}")
-        if self.ts_which not in ("any", "dominant"):
-            raise ValueError("EvaluationParams.ts_which must be 'any' or 'dominant', got "
-                             f"{self.ts_which!r}")
-        for name in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "vp_aa_thresholds",
-                     "ts_t_fine", "ts_t_coarse"):
-            v = getattr(self, name)
-            if len(v) == 0 or any(not (float(x) > 0) for x in v):
-                raise ValueError(f"EvaluationParams.{name} must be a non-empty list of "
-                                 f"positive numbers, got {v!r}")
-        if any(float(x) >= 1 for x in self.h_curve):
-            raise ValueError(f"EvaluationParams.h_curve values must be in (0, 1), got "
-                             f"{self.h_curve!r}")
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> "EvaluationParams":
-        """Build from a config mapping; unknown keys raise ValueError naming them."""
-        d = checked_mapping(cls, d, "evaluation parameter")
-        for k in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "ts_t_fine",
-                  "ts_t_coarse"):
-            if k in d:
-                d[k] = tuple(float(x) for x in d[k])
-        return cls(**d)
 
 
 # ----------------------------------------------------------------------------- loading

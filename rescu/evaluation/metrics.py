@@ -41,65 +41,17 @@ from typing import Sequence
 
 import numpy as np
 
+from ..boxes import cover_matrix, iod_matrix, iou_matrix
 from ..params import config_defaults
 from ..types import BBox
+
+__all__ = ["iod_matrix", "iou_matrix", "cover_matrix", "match_boxes", "ImageScores",
+           "score_image", "summarise", "METRICS", "ANY_RP_METRICS", "TABLE_METRICS", "IOD_H",
+           "MIN_RP_PRECISION"]   # the overlap matrices live in rescu.boxes
 
 _E = config_defaults("evaluation")
 IOD_H: float = _E["iod_h"]                        # default IOD threshold h
 MIN_RP_PRECISION: float = _E["min_rp_precision"]  # default least precision of an accepted RP
-
-
-def iod_matrix(det: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """IOD between every detected and ground-truth box.
-
-    Parameters
-    ----------
-    det : (D, 4) float
-        Detected boxes ``[x, y, w, h]``, pixels.
-    gt : (G, 4) float
-        Ground-truth boxes ``[x, y, w, h]``, pixels.
-
-    Returns
-    -------
-    (D, G) float
-        area(det ∩ gt) / area(det); 0 for a detection of zero area.
-    """
-    det = np.asarray(det, float).reshape(-1, 4)
-    gt = np.asarray(gt, float).reshape(-1, 4)
-    inter = _intersection(det, gt)
-    area = (det[:, 2] * det[:, 3])[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.where(area > 0, inter / np.where(area > 0, area, 1.0), 0.0)
-    return out
-
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU between every box of ``a`` (A, 4) and ``b`` (B, 4), ``[x, y, w, h]``."""
-    a = np.asarray(a, float).reshape(-1, 4)
-    b = np.asarray(b, float).reshape(-1, 4)
-    inter = _intersection(a, b)
-    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None, :] - inter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-
-
-def cover_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Intersection over the smaller box's area between every box of ``a`` (A, 4) and
-    ``b`` (B, 4), ``[x, y, w, h]``: 1 when one box lies inside the other; (A, B)."""
-    a = np.asarray(a, float).reshape(-1, 4)
-    b = np.asarray(b, float).reshape(-1, 4)
-    inter = _intersection(a, b)
-    m = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(m > 0, inter / np.where(m > 0, m, 1.0), 0.0)
-
-
-def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 0] + a[:, None, 2], b[None, :, 0] + b[None, :, 2])
-    y1 = np.minimum(a[:, None, 1] + a[:, None, 3], b[None, :, 1] + b[None, :, 3])
-    return np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
 
 
 def match_boxes(det: np.ndarray, gt: np.ndarray, h: float = IOD_H) -> list[tuple[int, int]]:

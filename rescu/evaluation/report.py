@@ -12,7 +12,6 @@ and compact tables) are built by :mod:`rescu.evaluation.report_tables`.
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import os
@@ -27,39 +26,13 @@ from typing import Any, Iterable, Mapping, Sequence
 import pandas as pd
 
 from ..io import atomic_path
+from ..pages import img_tag
 from .report_tables import (_num, counting_compact, found_headline, human_name, md_inline,
                             plain_table, read_tsv, rp_headline, summary_cells, ts_compact,
                             vp_compact, vp_headline)
 
 
 # ----------------------------------------------------------------------------- pictures
-def _img_tag(path: str | Path, width: int | None = None, height: int | None = None,
-             alt: str | None = None) -> str:
-    """An <img> with the picture embedded as a JPEG at twice the shown size (sharp on
-    high-density screens, small enough to keep the report portable), shown ``width``
-    wide or ``height`` high; the tag states both sizes, so the layout does not wait for
-    the picture."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    name = html.escape(alt or Path(path).name)
-    if img is None:
-        return f"<p><em>(unreadable picture {name})</em></p>"
-    h0, w0 = img.shape[:2]
-    if height:
-        w, h = max(1, round(w0 * height / h0)), height
-    elif width:
-        w, h = width, max(1, round(h0 * width / w0))
-    else:
-        w, h = w0, h0
-    if w0 > 2 * w:
-        img = cv2.resize(img, (2 * w, max(1, round(h0 * 2 * w / w0))),
-                         interpolation=cv2.INTER_AREA)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
-    data = base64.b64encode(buf.tobytes()).decode("ascii")
-    return f'<img src="data:image/jpeg;base64,{data}" width="{w}" height="{h}" alt="{name}">'
-
-
 def _plural(n: Any, word: str) -> str:
     """``"1 image"``, ``"3 images"``."""
     return f"{_num(n)} {word}{'' if _num(n) == '1' else 's'}"
@@ -208,7 +181,7 @@ def _tsv_link(path: Path, out_html: Path, label: str | None = None) -> str:
 
 def _figure(path: Path, width: int, caption: str = "") -> str:
     cap = f"<figcaption class='note'>{caption}</figcaption>" if caption else ""
-    return f"<figure>{_img_tag(path, width=width)}{cap}</figure>"
+    return f"<figure>{img_tag(path, width=width)}{cap}</figure>"
 
 
 def _datasets(samples: Sequence[Sample], *frames: pd.DataFrame | None,
@@ -310,7 +283,7 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
                    if p.caption and p.caption != p.summary else "")
             cls = " class='failed'" if p.failed or not p.found else ""
             cards.append(
-                f"<figure>{_full_link(p, out_html, _img_tag(p.overlay, width=420, alt=p.image))}"
+                f"<figure>{_full_link(p, out_html, img_tag(p.overlay, width=420, alt=p.image))}"
                 f"<figcaption><span class='name'>{html.escape(Path(p.image).name)}</span> "
                 f"<span class='sub'>({html.escape(p.dataset)})</span><div{cls}>"
                 f"{html.escape(p.summary)}</div>{cap}</figcaption></figure>")
@@ -338,7 +311,7 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
         th = []
         for s in by_ds.get(ds, [])[:thumbs]:
             th.append(f"<figure><a href='#{s.anchor}'>"
-                      f"{_img_tag(s.overlay, height=165, alt=Path(s.image).name)}</a>"
+                      f"{img_tag(s.overlay, height=165, alt=Path(s.image).name)}</a>"
                       f"<figcaption title='{html.escape(s.caption)}'>"
                       f"{html.escape(Path(s.image).stem)}: {html.escape(s.summary)}"
                       "</figcaption></figure>")
@@ -420,12 +393,12 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
                 continue
             parts.append(f"<h3>{html.escape(ds)}</h3><div class='gallery'>")
             for s in by_ds[ds]:
-                rect = "".join(_img_tag(r, height=48) for r in s.rectified[:6])
+                rect = "".join(img_tag(r, height=48) for r in s.rectified[:6])
                 cap = (f"<div class='cap'>{html.escape(s.caption)}</div>"
                        if s.caption and s.caption != s.summary else "")
                 parts.append(
                     f"<figure id='{s.anchor}'>"
-                    f"{_full_link(s, out_html, _img_tag(s.overlay, width=316, alt=s.image))}"
+                    f"{_full_link(s, out_html, img_tag(s.overlay, width=316, alt=s.image))}"
                     f"<figcaption><b>{html.escape(s.image)}</b>: {html.escape(s.summary)}"
                     + cap + (f"<div class='rect'>{rect}</div>" if rect else "")
                     + "</figcaption></figure>")

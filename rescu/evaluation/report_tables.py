@@ -16,6 +16,8 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from ..names import METHOD_LABELS, METHODS
+
 # ----------------------------------------------------------------------------- names
 #: Column name of the pipeline's tables -> what a reader sees as the column header.
 HUMAN_NAMES: dict[str, str] = {
@@ -54,7 +56,7 @@ _ACRONYMS = {"rp": "RP", "rps": "RPs", "vp": "VP", "vps": "VPs", "ts": "TS", "ma
              "tpr": "TPR", "fpr": "FPR", "px": "px", "gt": "GT", "iod": "IOD", "sr": "SR"}
 
 #: Order of the methods in the headline tables (others follow in table order).
-HEADLINE_METHODS = ("RESCU-II", "RESCU-I", "GRASP")
+HEADLINE_METHODS = tuple(METHOD_LABELS[m] for m in METHODS)
 RP_METRICS = ("instance_precision", "instance_recall", "rp_precision", "rp_recall")
 _SHORT_METRICS = {"instance_precision": "Instance P", "instance_recall": "Instance R",
                   "rp_precision": "RP P", "rp_recall": "RP R"}

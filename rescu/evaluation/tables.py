@@ -1,5 +1,5 @@
 """The paper's tables and curves over all datasets of a run (built on
-:mod:`rescu.evaluation.core`, ``counting``, ``vpd``, ``ts`` and ``plots``), written as TSV
+:mod:`rescu.evaluation.core`, ``count_table``, ``vpd``, ``ts`` and ``plots``), written as TSV
 (numbers) and Markdown (people).
 
 Each ``*_tables`` function takes the datasets to evaluate as ``{name: DatasetRef}`` and
@@ -16,11 +16,12 @@ from typing import Any, Mapping, Sequence
 import pandas as pd
 
 from . import core as E
-from . import counting as EC
+from . import count_table as EC
 from . import plots as EP
 from . import ts as ET
 from . import vpd as EV
 from ..io import atomic_path, read_result
+from ..names import METHOD_LABELS, METHODS
 from .metrics import TABLE_METRICS
 
 # Table label -> folder of per-image predictions under <results>/<dataset>/.
@@ -28,7 +29,7 @@ NO_RP_TRUTH = ("_no ground truth: no dataset of this run has recurring-pattern a
                "(annotations.json)_\n")
 NO_VP_TRUTH = ("_no ground truth: no dataset of this run has vanishing-point annotations "
                "(vanishing_points.json, or vp_truth)_\n")
-RP_METHODS = {"GRASP": "grasp", "RESCU-I": "rescu-i", "RESCU-II": "rescu-ii"}
+RP_METHODS = {METHOD_LABELS[m]: m for m in reversed(METHODS)}  # GRASP first, as in the paper
 VP_METHODS = {"RESCU (AC)": "scene", "RESCU (no AC)": "scene-noac", "LSD lines": "vp-lsd",
               "RESCU joint": "scene-joint", "RESCU joint (true focal)": "scene-joint-f",
               "lu-vp-detect (true focal)": "vp-lu"}

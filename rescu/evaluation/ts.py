@@ -16,6 +16,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import pandas as pd
 
 from ..io import GroundTruthRP
+from ..params import TS_WHICH
 from ..scene.symmetry import CR_EQUAL_SPACING
 from .core import EvaluationParams, _boxes, _Dataset, _dominant_index, _image_info, _load
 from .metrics import IOD_H, MIN_RP_PRECISION, score_image
@@ -84,8 +85,8 @@ def ts_sweep(frame: pd.DataFrame, t_values: Sequence[float] = EvaluationParams.t
         where undefined) plus ``sr_ts_flag`` (share of images whose method flagged TS,
         independent of t).
     """
-    if which not in ("any", "dominant"):
-        raise ValueError(f"which must be 'any' or 'dominant', got {which!r}")
+    if which not in TS_WHICH:
+        raise ValueError(f"which must be one of {TS_WHICH}, got {which!r}")
     rows = []
     for (dsn, method), g in frame.groupby(["dataset", "method"], sort=False):
         images = list(dict.fromkeys(g["image"]))

@@ -5,8 +5,8 @@ Stage I misses instances (blur, occlusion, few SIFT features). Stage II learns, 
 stage I's own output and nothing else, what an instance of each RP looks like and finds
 the missing ones. Three per-image steps (three pipeline rules):
 
-1. :func:`features.compute_stage2_features` — region proposals (EdgeBoxes and/or windows at the
-   RP's instance scale, :mod:`rescu.extension.proposals`) and frozen ImageNet features
+1. :func:`proposal_features.compute_stage2_features` — region proposals (EdgeBoxes and/or
+   windows at the RP's instance scale, :mod:`rescu.extension.proposals`) and frozen ImageNet features
    (:mod:`rescu.extension.backbone`) of the proposals, of the stage-I instances, of geometrically
    deformed instance boxes and of hard negatives, in the image and in ``n_augment``
    globally transformed copies of it.
@@ -51,8 +51,9 @@ Departures from the paper (documented, environment-driven):
 Modules: ``params`` (:class:`params.Stage2Params`, the prediction-only keys), ``proposals``
 (region proposals), ``backbone`` (frozen CNN features of boxes), ``finetune`` (optional
 backbone fine-tuning), ``augment`` (image copies, occluders, box jitter, hard negatives),
-``features`` (step 1), ``boxes`` (box geometry, suppression), ``examples`` (DBSCAN centres,
-positives and negatives), ``head`` (the classifier head and the deterministic torch
+``proposal_features`` (step 1), ``examples`` (DBSCAN centres, positives and negatives),
+``head`` (the classifier head and the deterministic torch
 context), ``optim`` (Adam without TorchDynamo), ``train`` (step 2), ``predict`` (step 3)
-and ``merge`` (joining RPs of one pattern). Nothing is imported here.
+and ``merge`` (joining RPs of one pattern); box geometry and suppression are
+:mod:`rescu.boxes`. Nothing is imported here.
 """

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .boxes import box_iou
+from ..boxes import iou_matrix
 from .params import Stage2Params
 
 
@@ -129,5 +129,5 @@ def hard_negatives(inst: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     inside = (b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 0] + b[:, 2] <= W) & (b[:, 1] + b[:, 3] <= H)
     b = b[inside]
     if len(b) and len(inst):
-        b = b[box_iou(b, inst).max(1) < 0.4]
+        b = b[iou_matrix(b, inst).max(1) < 0.4]
     return b

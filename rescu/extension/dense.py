@@ -47,7 +47,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..discovery.sources import DenseParams
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix
 from ..types import Instance, Pattern
 from .objects import box_cells, integral_map, touching_sides
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .boxes import box_iou, size_gate
+from ..boxes import iou_matrix, size_gate
 from .params import Stage2Params
 
 
@@ -111,7 +111,7 @@ def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2P
     Parameters
     ----------
     feats : dict
-        Output of :func:`rescu.extension.features.compute_stage2_features`.
+        Output of :func:`rescu.extension.proposal_features.compute_stage2_features`.
     params : Stage2Params
 
     Returns
@@ -138,7 +138,7 @@ def select_examples(feats: dict[str, np.ndarray], params: Stage2Params = Stage2P
     if P == 0 or R == 0:
         return {"proposal_label": label, "n_centres": n_cent, "n_positive": n_pos,
                 "n_negative": 0, "distance": dist, "radius": radii}
-    iou = box_iou(boxes, inst) if len(inst) else np.zeros((P, 0))
+    iou = iou_matrix(boxes, inst) if len(inst) else np.zeros((P, 0))
     cap = max(1, int(np.floor(params.examples.max_positive_fraction * P - 1e-9)))
     total_pos = 0
     for k in range(R):

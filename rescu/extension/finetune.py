@@ -2,7 +2,7 @@
 
 The paper trains "the backbone + 3 dense layers" per image. The default pipeline keeps
 the backbone frozen and trains only the dense head on RoI-pooled features of one shared
-feature map per image (far cheaper on a CPU; see :mod:`rescu.extension.features`). With
+feature map per image (far cheaper on a CPU; see :mod:`rescu.extension.proposal_features`). With
 ``finetune: true`` the backbone is trained too, on the same labelled boxes (stage-I
 instances, their deformed copies and the positive proposals of each RP; hard negatives
 and far proposals as background):

@@ -5,7 +5,7 @@ foreshortening the SIFT descriptors change along a row, so the unit-recurring-pa
 search builds one URP per part of the row. Stage II already has what is needed to see
 that the parts are one pattern: the frozen ImageNet features of every stage-I instance
 (``instance_features`` / ``instance_rp`` / ``instance_boxes`` of
-:func:`rescu.extension.features.compute_stage2_features`). Two RPs A and B are *one* pattern when
+:func:`rescu.extension.proposal_features.compute_stage2_features`). Two RPs A and B are *one* pattern when
 
 * appearance: B continues A. Along a foreshortened row the appearance drifts, so the
   far ends of the two parts differ while the instances where they meet look alike, as
@@ -60,7 +60,7 @@ from typing import Any
 import numpy as np
 
 from ..discovery.extent import unrefined_boxes
-from ..evaluation.metrics import cover_matrix, iou_matrix
+from ..boxes import cover_matrix, iou_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Instance, Pattern
 

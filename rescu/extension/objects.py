@@ -41,7 +41,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..evaluation.metrics import cover_matrix
+from ..boxes import cover_matrix, nms
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -87,7 +87,7 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "box_nms", "without_parts", "box_cells"]
+           "pattern_confidence", "without_parts", "box_cells"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -122,35 +122,6 @@ def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
         acc += m * p[c]
         norm += m * m
     return acc / (np.sqrt(norm) + 1e-9)
-
-
-def box_nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> np.ndarray:
-    """Indices of the boxes kept by greedy non-maximum suppression, best score first.
-
-    Parameters
-    ----------
-    boxes : (n, 4) ``[x, y, w, h]``
-    scores : (n,)
-    iou : a box overlapping a kept one by more than this IoU is dropped
-
-    >>> box_nms(np.array([[0, 0, 10, 10], [1, 0, 10, 10], [30, 0, 10, 10]]),
-    ...         np.array([0.5, 0.9, 0.1]), 0.3).tolist()
-    [1, 2]
-    """
-    from ..evaluation.metrics import iou_matrix
-
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    order = np.argsort(-np.asarray(scores, float), kind="stable")
-    if not len(b):
-        return np.zeros(0, int)
-    ov = iou_matrix(b, b)
-    alive = np.ones(len(b), bool)
-    keep = []
-    for i in order:
-        if alive[i]:
-            keep.append(int(i))
-            alive &= ov[i] <= iou
-    return np.array(keep, int)
 
 
 def box_cells(box: Sequence[float], cell_px: float, h: int, w: int
@@ -241,7 +212,7 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     sims = sim[ys, xs].astype(float)
     out = np.c_[(xs + 0.5) * cell_px - bw / 2, (ys + 0.5) * cell_px - bh / 2,
                 np.full(len(xs), bw), np.full(len(xs), bh)]
-    keep = box_nms(out, sims, 0.2)
+    keep = nms(out, sims, 0.2)
     order = keep[np.argsort(-sims[keep], kind="stable")]
     return out[order].reshape(-1, 4), sims[order], tau, sim
 
@@ -452,7 +423,7 @@ def suppress_parts(ranked: Sequence[np.ndarray], cover: float, min_instances: in
     that do not hold parts of a better one's objects.
 
     A box *overlaps* a kept RP when it lies inside one of its boxes, or one of them inside
-    it, by more than ``cover`` of the smaller (:func:`rescu.evaluation.metrics.cover_matrix`).
+    it, by more than ``cover`` of the smaller (:func:`rescu.boxes.cover_matrix`).
     A set whose boxes mostly overlap is dropped; otherwise its overlapping boxes are
     removed, and it is kept when ``min_instances`` remain.
 
@@ -522,7 +493,7 @@ def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
       gaps between objects and patches of texture do not.
 
     >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5), 3)
-    0.829
+    0.827
     >>> pattern_confidence(-0.1, 12, 2.0, 0.15, 3.0, 0.5)
     0.0
     """
@@ -569,7 +540,7 @@ def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
             b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
                                  params.extent_shifts, integrals)
             # two instances on one object (two parts) become one box at the object's extent
-            b = b[np.sort(box_nms(b, colour_contrast(integrals, b), 0.5))]
+            b = b[np.sort(nms(b, colour_contrast(integrals, b), 0.5))]
         boxes = b * s
         if len(boxes) < params.min_instances:
             continue

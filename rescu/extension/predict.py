@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from ..types import ImageResult, Instance
-from .boxes import size_gate, suppress
+from ..boxes import size_gate, suppress
 from .examples import select_examples
-from .features import to_str
+from .proposal_features import to_str
 from .head import make_head
 from .params import METHOD, Stage2Params
 
@@ -162,7 +162,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     Parameters
     ----------
     feats : dict
-        Output of :func:`rescu.extension.features.compute_stage2_features`.
+        Output of :func:`rescu.extension.proposal_features.compute_stage2_features`.
     ckpt : dict
         Output of :func:`rescu.extension.train.train_heads` /
         :func:`rescu.extension.train.load_checkpoint`.

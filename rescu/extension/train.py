@@ -12,7 +12,7 @@ import numpy as np
 from ..io import atomic_path
 from ..types import ImageResult
 from .examples import select_examples
-from .features import to_str
+from .proposal_features import to_str
 from .head import deterministic, make_head
 from .params import Stage2Params
 
@@ -81,7 +81,7 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     Parameters
     ----------
     feats : dict
-        Output of :func:`rescu.extension.features.compute_stage2_features` (or its HDF5
+        Output of :func:`rescu.extension.proposal_features.compute_stage2_features` (or its HDF5
         round trip).
     stage1 : ImageResult
         Stage-I result (only checked for consistency with ``feats``).

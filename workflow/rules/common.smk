@@ -8,6 +8,7 @@ from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.discovery.ablation import SOURCE_ROWS
 from rescu.imports import step_dependencies
+from rescu.names import METHODS
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
@@ -23,7 +24,7 @@ BASEDIR = Path(workflow.basedir)
 wildcard_constraints:
     dataset=r"[A-Za-z0-9_\-]+",
     image=r"[^/]+",
-    method=r"grasp|rescu-i|rescu-ii",
+    method="|".join(METHODS),
 
 
 # dataset name -> {"root": folder with images/ (+ ground truth), "images": {stem: path},

@@ -2,9 +2,9 @@
 instance a box is, where instance precision goes, how precise each RP is on its own, and
 whether stage II's split-RP merge is right on an image.
 
-They live in the library (not beside ``benchmarks/``) so that a benchmark script imports
-them as ``rescu.evaluation.diagnostics`` from wherever it lies, without a path of its
-own; the evaluation tables never import this module.
+Only the benchmark scripts use them, so they live beside them (``benchmarks/`` is on a
+script's path, as for ``_cli.py``: ``from _diagnostics import count_errors``); the
+library and its tables never import this module.
 """
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from ..io import GroundTruthRP
-from ..types import ImageResult
-from .core import _load
-from .counting import _score_counting
-from .metrics import IOD_H, MIN_RP_PRECISION, iod_matrix, match_boxes, score_image
+from rescu.io import GroundTruthRP
+from rescu.types import ImageResult
+from rescu.evaluation.core import _load
+from rescu.evaluation.count_table import _score_counting
+from rescu.evaluation.metrics import IOD_H, MIN_RP_PRECISION, iod_matrix, match_boxes, score_image
 
 if TYPE_CHECKING:     # imported where used: the evaluation rules never read stage II's code
-    from ..extension.merge import MergeParams
+    from rescu.extension.merge import MergeParams
 
 
 def truth_instance_at(instances: Iterable[Mapping[str, Any]], box: Sequence[float]
@@ -298,7 +298,7 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
     """
-    from ..extension.merge import MergeParams, pair_evidence
+    from rescu.extension.merge import MergeParams, pair_evidence
 
     params = params if params is not None else MergeParams()
     f = np.asarray(inst_feats, np.float64)
@@ -306,7 +306,7 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     if f.ndim != 2 or len(f) != len(irp):
         raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
                          f"got {f.shape}")
-    from ..discovery.extent import unrefined_boxes
+    from rescu.discovery.extent import unrefined_boxes
 
     boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
              for pi in rp_index]

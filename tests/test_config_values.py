@@ -1,0 +1,89 @@
+"""Allowed values written once: each enumeration of the configuration's JSON Schema (which
+cannot import Python) equals the one constant the code checks against."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = yaml.safe_load((REPO / "rescu" / "defaults" / "config.schema.yaml").read_text())
+
+
+def schema_at(*path: str):
+    """The subschema at ``path``: each key names a property, else a plain key (``$defs``,
+    ``items``); ``$ref`` is followed."""
+    node = SCHEMA
+    for key in path:
+        while "$ref" in node:
+            node = _ref(node["$ref"])
+        node = node["properties"][key] if key in node.get("properties", {}) else node[key]
+    while "$ref" in node:
+        node = _ref(node["$ref"])
+    return node
+
+
+def _ref(ref: str):
+    node = SCHEMA
+    for part in ref.lstrip("#/").split("/"):
+        node = node[part]
+    return node
+
+
+def _constants():
+    from rescu.captions.caption import CAPTIONERS
+    from rescu.discovery.sources import MODES
+    from rescu.discovery.stage1 import ADAPTIVE_NAMES
+    from rescu.discovery.urp import ORIENTATION_MODES
+    from rescu.extension.backbone import BACKBONES
+    from rescu.extension.proposals import PROPOSAL_METHODS
+    from rescu.names import DRAW_MODES
+    from rescu.params import TS_WHICH
+
+    return [
+        (("stage1", "orientation_mode"), ORIENTATION_MODES),
+        (("grasp", "orientation_mode"), ORIENTATION_MODES),
+        (("$defs", "affinity", "orientation_mode"), ORIENTATION_MODES),
+        (("ablation", "variants"), None),          # checked below (oneOf)
+        (("dense", "mode"), MODES),
+        (("dense", "backbone"), BACKBONES),
+        (("stage2", "backbone", "name"), BACKBONES),
+        (("stage2", "proposals", "method"), PROPOSAL_METHODS),
+        (("report", "overlay"), DRAW_MODES),
+        (("evaluation", "ts_which"), TS_WHICH),
+        (("caption", "captioner"), CAPTIONERS),
+        (("$defs", "adaptive_list", "items"), ADAPTIVE_NAMES),
+    ]
+
+
+@pytest.mark.parametrize("path,constant", [c for c in _constants() if c[1] is not None],
+                         ids=lambda v: ".".join(v) if isinstance(v[0], str) else "")
+def test_schema_enum_is_the_constant(path, constant):
+    assert schema_at(*path)["enum"] == list(constant), path
+
+
+def test_ablation_variant_orientation_modes_and_scene_source():
+    from rescu.discovery.urp import ORIENTATION_MODES
+    from rescu.names import METHODS
+
+    variant = schema_at("ablation", "variants")["additionalProperties"]["oneOf"][1]
+    mode = variant["properties"]["orientation_mode"]
+    assert _ref(mode["$ref"])["enum"] == list(ORIENTATION_MODES)
+    assert set(schema_at("scene", "source")["enum"]) <= set(METHODS)
+
+
+def test_command_line_choices_are_the_constants():
+    from rescu.cli import build_parser
+    from rescu.names import METHODS, OVERLAY_MODES
+
+    sub = next(a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction")
+    discover = sub.choices["discover"]
+    opts = {a.dest: a for a in discover._actions}
+    assert tuple(opts["method"].choices) == METHODS and opts["method"].default == METHODS[0]
+    assert tuple(opts["overlay"].choices) == OVERLAY_MODES
+
+
+def test_orientation_modes_are_written_once_in_the_code():
+    hits = [p for p in (REPO / "rescu").rglob("*.py")
+            if '"wrapped", "relative", "paper"' in p.read_text()]
+    assert [p.relative_to(REPO).as_posix() for p in hits] == ["rescu/discovery/urp.py"]
