@@ -339,14 +339,23 @@ def _gray(rgb: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- stage II
-def stage2_features(prep: Prepared, s1: ImageResult, params: dict[str, Any]) -> dict[str, Any]:
-    """Proposals and pooled backbone features of one image (section ``stage2``), as
+def stage2_features(prep: Prepared, s1: ImageResult, params: Any) -> dict[str, Any]:
+    """Proposals and pooled backbone features of one image (section ``stage2``, a mapping
+    or :class:`~rescu.extension.params.Stage2Params`), as
     stored: ``{name: array | {name: array}}`` (:func:`as_stored`)."""
     from .extension.proposal_features import compute_stage2_features
-    from .extension.params import Stage2Params
 
     return as_stored(compute_stage2_features(prep.rgb, prep.scale_factor, s1,
-                                             Stage2Params.from_dict(params)))
+                                             _stage2(params)))
+
+
+def _stage2(params: Any) -> Any:
+    """Section ``stage2`` as :class:`rescu.extension.params.Stage2Params` (a mapping is
+    checked and converted; parameters already built, e.g. an ablation variant's, are
+    used as they are)."""
+    from .extension.params import Stage2Params
+
+    return params if isinstance(params, Stage2Params) else Stage2Params.from_dict(params)
 
 
 def as_stored(arrays: dict[str, Any]) -> dict[str, Any]:
@@ -362,25 +371,22 @@ def as_stored(arrays: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def stage2_train(feats2: dict[str, Any], s1: ImageResult,
-                 params: dict[str, Any]) -> dict[str, Any]:
+def stage2_train(feats2: dict[str, Any], s1: ImageResult, params: Any) -> dict[str, Any]:
     """The per-image head trained on cached features: the checkpoint
     ``{"head": state, "info": training record}``."""
-    from .extension.params import Stage2Params
     from .extension.train import train_heads
 
-    head, info = train_heads(feats2, s1, Stage2Params.from_dict(params))
+    head, info = train_heads(feats2, s1, _stage2(params))
     return {"head": head, "info": info}
 
 
 def stage2_predict(feats2: dict[str, Any], ckpt: dict[str, Any], s1: ImageResult,
-                   params: dict[str, Any], method: str = "rescu-ii") -> ImageResult:
+                   params: Any, method: str = "rescu-ii") -> ImageResult:
     """RESCU-II instances: stage-I instances plus the head's positive proposals; the
     head's training record and prediction's own in ``extra["stage2"]``."""
-    from .extension.params import Stage2Params
     from .extension.predict import predict_stage2
 
-    res = predict_stage2(feats2, ckpt["head"], s1, Stage2Params.from_dict(params))
+    res = predict_stage2(feats2, ckpt["head"], s1, _stage2(params))
     res.method = method
     res.extra["stage2"] = {**ckpt.get("info", {}), "prediction": res.extra.get("stage2", {})}
     return res

@@ -140,3 +140,18 @@ def test_discover_writes_no_work_folder(tmp_path, monkeypatch):
     work = sorted(p.name for p in (out / ".work" / "shelf").iterdir())
     assert work == ["features.h5", "final.json", "image.png", "joint.json", "meta.json",
                     "rescu-i.json", "rescu-i.rp.h5", "scene.json"]
+
+
+def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
+    """torch.save named the archive inside head.pt after the random temporary file, so
+    two runs wrote different bytes for the same head."""
+    import torch
+
+    from rescu.extension.train import load_checkpoint, save_checkpoint
+
+    ckpt = {"head": {"w": torch.arange(6.0).reshape(2, 3)}, "info": {"status": "ok"}}
+    save_checkpoint(tmp_path / "a.pt", ckpt)
+    (tmp_path / "b").mkdir()
+    save_checkpoint(tmp_path / "b" / "c.pt", ckpt)
+    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "b" / "c.pt").read_bytes()
+    assert torch.equal(load_checkpoint(tmp_path / "a.pt")["head"]["w"], ckpt["head"]["w"])

@@ -174,11 +174,16 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
 
 
 def save_checkpoint(path: str | os.PathLike[str], ckpt: dict[str, Any]) -> None:
-    """Write a checkpoint with ``torch.save`` atomically (temp file + rename)."""
+    """Write a checkpoint with ``torch.save`` atomically (temp file + rename).
+
+    Saved through an open file, not a path: ``torch.save`` names the archive inside the
+    file after a path it is given, which here is a random temporary name, so the same
+    checkpoint written twice would differ in its bytes.
+    """
     import torch
 
-    with atomic_path(path) as tmp:
-        torch.save(ckpt, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(ckpt, f)
 
 
 def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
