@@ -381,3 +381,29 @@ def test_blob_probe_split_extension_and_refusal(tmp_path, capsys):
         # so one may stay out; none of another kind comes in
         assert set(got[:3]) <= set(kind) and set(got) <= set(kind) and len(got) >= 8
     assert bp.crossfit_extend(emb, [np.arange(3)], 1.0)[0].tolist() == [0, 1, 2]
+
+
+def test_compare_runs_tells_run_specific_parts_from_changes(tmp_path, capsys):
+    sys.path.insert(0, str(BENCH))
+    import compare_runs as CR
+
+    from rescu import io
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for root in (a, b):
+        (root / "d" / "prepared").mkdir(parents=True)
+        (root / "d" / "final").mkdir()
+        (root / "logs").mkdir()
+        io.write_json(root / "d" / "prepared" / "x.meta.json", {"image": "x", "source": str(root)})
+        io.write_h5(root / "d" / "x.rp.h5", {"rp": [1, 2]}, attrs={"timings": str(root)})
+        (root / "logs" / "x.log").write_text(str(root))
+    io.write_json(a / "d" / "final" / "x.json", {"patterns": [1]})
+    io.write_json(b / "d" / "final" / "x.json", {"patterns": [1]})
+    assert CR.main([str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "3 files in both runs: 1 byte-identical, 2 with equal content" in out
+    io.write_json(b / "d" / "final" / "x.json", {"patterns": [2]})
+    (b / "d" / "final" / "y.json").write_text("{}")
+    assert CR.main([str(a), str(b)]) == 1
+    out = capsys.readouterr().out
+    assert "different: d/final/x.json" in out and "in one run only: d/final/y.json" in out
