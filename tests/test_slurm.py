@@ -122,8 +122,8 @@ def test_profile_on_slurm_equals_local_run(slurm_env, tmp_path):
     jobs = re.findall(r"^\s*total\s+(\d+)", text, re.M)
     assert submitted and jobs, text[-3000:]
     local_jobs = re.findall(r"^localrule (\w+):", text, re.M)
-    assert "result_tables" in local_jobs and "code_stamp" in local_jobs, text[-3000:]
-    # every job of the plan but its local rules (localrules: code stamps, tables) went
+    assert "result_tables" in local_jobs, text[-3000:]
+    # every job of the plan but its local rules (localrules: the tables) went
     # through sbatch: counted from the run's own output, not a constant
     assert len(set(submitted)) == int(jobs[0]) - len(local_jobs), (submitted, jobs, local_jobs)
     assert "Falling back to 'sacct'" not in text  # job states came from squeue

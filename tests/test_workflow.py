@@ -148,10 +148,11 @@ def test_parameter_change_reruns_only_dependants(finished_run):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene change: {jobs}"
 
 
-def test_code_change_reruns_its_steps_only(finished_run):
+def test_code_change_reruns_its_steps_only(finished_run, tmp_path):
     """A rule's code input is one stamp per workflow script listing the library files the
-    script runs with their SHA-256 (rule code_stamp remakes it when one of them changes).
-    A changed stamp reruns the steps that read it, nothing upstream."""
+    script runs with their SHA-256, rewritten while the workflow is read when one of them
+    changes (no job). An edit of one library file reruns the steps that run it, nothing
+    upstream (the edit made in a copy of the checkout, whose Snakefile then runs)."""
     import os
 
     work, _ = finished_run
@@ -159,16 +160,32 @@ def test_code_change_reruns_its_steps_only(finished_run):
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
     stamp = work / "results" / ".code" / "scene.txt"
     listed = stamp.read_text()
-    assert "rescu/scene/symmetry.py" in listed and "rescu/discovery/" not in listed
+    assert "rescu/scene/completion.py" in listed and "rescu/discovery/" not in listed
     times = (stamp.stat().st_atime, stamp.stat().st_mtime)
-    stamp.write_text(listed.replace("rescu/scene/symmetry.py", "rescu/scene/symmetry.py*"))
+    copy = tmp_path / "edited"  # the checkout with one library file edited
+    copy.mkdir()
+    for part in ("Snakefile", "workflow", "config", "rescu"):
+        if (REPO / part).is_dir():
+            shutil.copytree(REPO / part, copy / part,
+                            ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(REPO / part, copy / part)
+    edited = copy / "rescu" / "scene" / "completion.py"  # run by the scene step alone
+    edited.write_text(edited.read_text() + "\n# an edit\n")
+    cmd = [str(SNAKEMAKE), "-s", str(copy / "Snakefile"), "--directory", str(work),
+           "--configfile", str(cfg), "--cores", "2", "-n"]
     try:
-        jobs = planned_jobs(snakemake(work, cfg, "-n"))
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        rewritten = stamp.read_text()
     finally:
         stamp.write_text(listed)
         os.utime(stamp, times)  # as it was: the later tests see a finished run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = planned_jobs(proc)
     assert jobs.get("scene") == 3 and jobs.get("caption") == 3, jobs
-    for upstream in ("code_stamp", "prepare", "features", "rescu_i", "grasp",
+    changed = set(rewritten.splitlines()) ^ set(listed.splitlines())
+    assert {line.split()[1] for line in changed} == {"rescu/scene/completion.py"}, changed
+    for upstream in ("prepare", "features", "rescu_i", "grasp",
                      "stage2_features", "stage2_train", "stage2_predict",
                      "generate_synthetic", "line_vp"):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene code edit: {jobs}"

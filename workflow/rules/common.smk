@@ -7,7 +7,7 @@ from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
 from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.discovery.ablation import SOURCE_ROWS
-from rescu.imports import step_dependencies
+from rescu.imports import PACKAGE_DIR, step_dependencies
 from rescu.names import METHODS
 
 RESULTS = config["results_dir"]
@@ -33,46 +33,37 @@ DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m,
 
 
 CODE_DIR = f"{RESULTS}/.code"
-_STEP_CODE = {}  # workflow script name -> the rescu/ files it runs
 
 
 def step_code(script):
-    """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file
-    standing for every rescu/ source file the script runs (the script's imports and those
-    inside the pipeline functions it calls, closed over the package's imports:
-    :func:`rescu.imports.step_dependencies`). Editing one of them reruns the stamp rule
-    below and then the rules that read the stamp. One stamp instead of the files
-    themselves keeps Snakemake from checking a dozen source files for every waiting job
-    whenever it schedules."""
+    """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file,
+    ``<results>/.code/<script>.txt``, listing with their SHA-256 every rescu/ source file
+    the script runs (the script's imports and those inside the step functions it calls,
+    closed over the package's imports: :func:`rescu.imports.step_dependencies`).
+
+    The stamp is written here, while the workflow is read, and only when its text
+    changes: editing one of those files gives the stamp a new time, which reruns the
+    rules that read it; anything else leaves it alone. (It used to be a rule's output:
+    a job per script, each reading the whole workflow again in its own process, about
+    3 s each on an idle 2-core machine and 17 of them in a fresh default run.) One stamp
+    instead of the files themselves keeps Snakemake from checking a dozen source files
+    for every waiting job whenever it schedules."""
+    import hashlib
+    import os
+
     path = BASEDIR / "workflow" / "scripts" / f"{script}.py"
     if not path.is_file():
         raise ValueError(f"step_code: no workflow script {path}")
-    _STEP_CODE[script] = [str(p) for p in step_dependencies(path)]
-    return [f"{CODE_DIR}/{script}.txt"]
-
-
-rule code_stamp:
-    # the library files one workflow script runs, with their SHA-256 (regenerated when
-    # any of them changes; cheap, so it runs in the main process)
-    input:
-        lambda wildcards: _STEP_CODE[wildcards.script],
-    output:
-        f"{CODE_DIR}/{{script}}.txt",
-    wildcard_constraints:
-        script=r"[a-z0-9_]+",
-    run:
-        import hashlib
-        import os
-
-        lines = [f"{hashlib.sha256(Path(f).read_bytes()).hexdigest()}  "
-                 f"{os.path.relpath(f, BASEDIR)}\n" for f in input]
-        tmp = output[0] + ".tmp"
-        Path(tmp).write_text("".join(lines))
-        os.replace(tmp, output[0])
-
-
-localrules:
-    code_stamp,
+    text = "".join(f"{hashlib.sha256(f.read_bytes()).hexdigest()}  "  # rescu/<module>.py,
+                   f"{f.relative_to(PACKAGE_DIR.parent).as_posix()}\n"  # wherever installed
+                   for f in step_dependencies(path))
+    stamp = Path(CODE_DIR) / f"{script}.txt"
+    if not stamp.is_file() or stamp.read_text() != text:
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        tmp = stamp.with_name(f".{stamp.name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, stamp)  # whole or not at all, also when two readers race
+    return [str(stamp)]
 
 
 def stage2_upstream():
