@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rescu.scene import completion as CO
+from rescu.scene import lattice as LA
 from rescu.types import ImageResult, Instance, Pattern
 
 SIDE = 40  # object side, pixels (canvas)
@@ -98,9 +99,9 @@ def test_complete_row_of_equal_row_adds_nothing() -> None:
 def test_projective_model_and_hypotheses() -> None:
     abc = np.array([50.0, 10.0, 0.05])
     k = np.array([0, 1, 3, 4, 5])
-    got, rms = CO.fit_projective_row(k, CO.row_model(abc, k))
+    got, rms = LA.fit_projective_row(k, LA.row_model(abc, k))
     assert rms < 1e-9 and np.allclose(got, abc)
-    hyps = CO.gap_hypotheses(3, 2)
+    hyps = LA.gap_hypotheses(3, 2)
     assert [h.tolist() for h in hyps] == [[0, 2, 3], [0, 1, 3], [0, 3, 4], [0, 2, 4],
                                           [0, 1, 4]]
 
@@ -174,21 +175,21 @@ def test_grid_cell_completed() -> None:
 
 def test_grid_missing_cells_and_lattice_fit() -> None:
     # row B one short: its columns are known up to a shift, so both ends are candidates
-    assert CO.grid_missing_cells(np.array([0, 1, 2, 3]), np.array([0, 1, 2]), 2) == [
+    assert LA.grid_missing_cells(np.array([0, 1, 2, 3]), np.array([0, 1, 2]), 2) == [
         (-1, 1), (3, 1)]
-    assert CO.grid_missing_cells(np.array([0, 1, 2]), np.array([5, 6, 7]), 2) == []
-    assert CO.grid_missing_cells(np.array([0, 1, 2, 3, 4]), np.array([0, 1]), 2) == []
+    assert LA.grid_missing_cells(np.array([0, 1, 2]), np.array([5, 6, 7]), 2) == []
+    assert LA.grid_missing_cells(np.array([0, 1, 2, 3, 4]), np.array([0, 1]), 2) == []
     # exact projective lattice; row B has an empty cell between found instances
     Hm = np.array([[60.0, 8.0, 50.0], [2.0, 70.0, 40.0], [0.02, 0.001, 1.0]])
-    ca = CO._lattice_map(Hm, np.array([[u, 0.0] for u in (0, 1, 2, 3)]))
-    cb = CO._lattice_map(Hm, np.array([[u, 1.0] for u in (0, 2, 3)]))
+    ca = LA.lattice_map(Hm, np.array([[u, 0.0] for u in (0, 1, 2, 3)]))
+    cb = LA.lattice_map(Hm, np.array([[u, 1.0] for u in (0, 2, 3)]))
     tol = np.full(4, 3.0)
-    fit = CO.lattice_pair_fit(ca, cb, tol, tol[:3])
+    fit = LA.lattice_pair_fit(ca, cb, tol, tol[:3])
     assert fit is not None
     _, ua, ub = fit
     assert np.diff(ua).tolist() == [1, 1, 1] and np.diff(ub).tolist() == [2, 1]
     assert ub[0] - ua[0] in (0, -1, 1)  # aligned up to a shift
     # two points per row fit any lattice: no fit
-    assert CO.lattice_pair_fit(ca[:2], cb[:2], tol[:2], tol[:2]) is None
+    assert LA.lattice_pair_fit(ca[:2], cb[:2], tol[:2], tol[:2]) is None
     with pytest.raises(ValueError, match="grid_tolerance"):
         CO.CompletionParams(grid_tolerance=0.6)

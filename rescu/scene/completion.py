@@ -43,17 +43,17 @@ Grids
 -----
 After the rows, an RP of two or more rows (:func:`rescu.layout.pattern_rows` with rows of
 two or more instances, ordered across) is completed as a grid, one pair of neighbouring
-rows at a time: :func:`lattice_pair_fit` finds the projective lattice (a homography
-from integer cells (u, v), v = 0 / 1 for the two rows) that puts most instances on
-cells, allowing empty cells between found instances and limiting the perspective by
-``max_step_ratio``; :func:`grid_missing_cells` lists the empty cells of the rectangle
-the two rows span (the column alignment of two rows is known up to a shift; the shifts
-leaving fewest empty cells are tried). Each empty cell, at most ``grid_max_missing``
-per row pair, gets a box of the row's median size scaled by the local lattice step and
-is verified by NCC as above. The lattice assumes rows and columns equally spaced in 3D
-(found instances may leave empty cells between them, up to ``max_gaps``); grids with
-unequal spacing get no fit and are left as they are. Instance positions are registered
-by their features (:func:`rescu.layout.registered_centres`).
+rows at a time: :func:`rescu.scene.lattice.lattice_pair_fit` finds the projective
+lattice (a homography from integer cells (u, v), v = 0 / 1 for the two rows) that puts
+most instances on cells, allowing empty cells between found instances and limiting the
+perspective by ``max_step_ratio``; :func:`rescu.scene.lattice.grid_missing_cells` lists
+the empty cells of the rectangle the two rows span (the column alignment of two rows is
+known up to a shift; the shifts leaving fewest empty cells are tried). Each empty cell,
+at most ``grid_max_missing`` per row pair, gets a box of the row's median size scaled
+by the local lattice step and is verified by NCC as above. The lattice assumes rows and
+columns equally spaced in 3D (found instances may leave empty cells between them, up to
+``max_gaps``); grids with unequal spacing get no fit and are left as they are. Instance
+positions are registered by their features (:func:`rescu.layout.registered_centres`).
 
 Accepted candidates become instances with ``source = "completion"`` and ``score`` = their
 median NCC. They are appended after the existing instances (the columns of
@@ -68,7 +68,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import itertools
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,6 +76,9 @@ import numpy as np
 
 from .. import layout as L
 from . import symmetry as S
+from .lattice import (OFF_LATTICE, cell_wh, fit_projective_row, gap_hypotheses,
+                      grid_missing_cells, lattice_map, lattice_pair_fit, lattice_step,
+                      row_model, steps_ok)
 from .vp.params import VPParams
 from ..params import config_section, params_from_dict
 from ..types import ImageResult, Instance, Pattern
@@ -177,76 +179,6 @@ class CompletionParams:
     def from_dict(cls, d: dict[str, Any] | None) -> "CompletionParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""
         return params_from_dict(cls, d)
-
-
-# ----------------------------------------------------------------------------- model
-def fit_projective_row(k: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares 1D projective row ``t = (a k + b) / (c k + 1)``.
-
-    Parameters
-    ----------
-    k : (K,) float
-        Lattice indices (K >= 3).
-    t : (K,) float
-        Positions along the row, pixels.
-
-    Returns
-    -------
-    abc : (3,) float
-        ``(a, b, c)``.
-    rms : float
-        RMS residual of ``t``, pixels (inf when the model is singular at some k).
-    """
-    k = np.asarray(k, float).reshape(-1)
-    t = np.asarray(t, float).reshape(-1)
-    if k.shape != t.shape or len(k) < 3:
-        raise ValueError(f"k and t must have the same shape (K,), K >= 3; got {k.shape}, "
-                         f"{t.shape}")
-    # a k + b - c k t = t  (linear in a, b, c)
-    A = np.stack([k, np.ones_like(k), -k * t], axis=1)
-    abc = np.linalg.lstsq(A, t, rcond=None)[0]
-    den = abc[2] * k + 1
-    if np.any(np.abs(den) < 1e-9):
-        return abc, float("inf")
-    return abc, float(np.sqrt(np.mean((row_model(abc, k) - t) ** 2)))
-
-
-def row_model(abc: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Positions ``(a k + b) / (c k + 1)`` of lattice indices k (pixels)."""
-    a, b, c = abc
-    k = np.asarray(k, float)
-    return (a * k + b) / (c * k + 1)
-
-
-def gap_hypotheses(n: int, max_gaps: int) -> list[np.ndarray]:
-    """Lattice indices of n found instances with 1..max_gaps interior integers skipped.
-
-    Returns
-    -------
-    list of (n,) int arrays
-        ``k`` with ``k[0] = 0``, increasing; fewer gaps first, then lexicographic.
-    """
-    out = []
-    for g in range(1, max_gaps + 1):
-        for combo in itertools.combinations_with_replacement(range(n - 1), g):
-            steps = np.ones(n - 1, int)
-            for j in combo:
-                steps[j] += 1
-            out.append(np.concatenate([[0], np.cumsum(steps)]))
-    return out
-
-
-def _steps_ok(abc: np.ndarray, k_lo: int, k_hi: int, max_step_ratio: float) -> bool:
-    """The row model is defined, increasing, and its image steps between lattice indices
-    k_lo..k_hi are within a factor ``max_step_ratio`` of each other."""
-    ks = np.arange(k_lo, k_hi + 1, dtype=float)
-    den = abc[2] * ks + 1
-    if np.any(den <= 1e-9):
-        return False
-    st = np.diff(row_model(abc, ks))
-    if np.any(st <= 0):
-        return False
-    return bool(st.max() / st.min() <= max_step_ratio)
 
 
 # ----------------------------------------------------------------------------- image
@@ -418,7 +350,7 @@ def _complete_row(r: np.ndarray, c: np.ndarray, boxes: np.ndarray, fp: np.ndarra
         abc, rms = fit_projective_row(k, t)
         if len(r) >= 4 and rms > params.fit_tolerance * size:
             continue
-        if not np.isfinite(rms) or not _steps_ok(abc, 0, int(k[-1]), params.max_step_ratio):
+        if not np.isfinite(rms) or not steps_ok(abc, 0, int(k[-1]), params.max_step_ratio):
             continue
         missing = np.setdiff1d(np.arange(k[-1] + 1), k)
         cands = []
@@ -503,7 +435,7 @@ def _extend_ends(r: np.ndarray, pts: np.ndarray, t: np.ndarray, perp: np.ndarray
         j0, j1 = (0, 1) if side < 0 else (n - 1, n - 2)
         for m in range(1, params.end_instances + 1):
             km = -m if side < 0 else n - 1 + m
-            if not _steps_ok(abc, min(km, 0), max(km, n - 1), params.max_step_ratio):
+            if not steps_ok(abc, min(km, 0), max(km, n - 1), params.max_step_ratio):
                 break
             tm = float(row_model(abc, [km])[0])
             lam = (tm - t[j0]) / (t[j1] - t[j0])  # < 0: beyond the end
@@ -538,167 +470,6 @@ def _extend_ends(r: np.ndarray, pts: np.ndarray, t: np.ndarray, perp: np.ndarray
 
 
 # ----------------------------------------------------------------------------- grids
-def lattice_pair_fit(ca: np.ndarray, cb: np.ndarray, tol_a: np.ndarray, tol_b: np.ndarray,
-                     max_step: int = 2, max_step_ratio: float = 1.5
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Projective lattice through two neighbouring rows of instance centres.
-
-    Every choice of two consecutive instances in row A and two in row B hypothesises the
-    homography ``H`` sending lattice points (0, 0), (ga, 0), (0, 1), (gb, 1) to them
-    (``ga, gb`` in 1..``max_step``: an empty cell may lie between two found instances);
-    an instance is an inlier when the image position of its nearest lattice point on its
-    row (v = 0 for A, 1 for B) is within its tolerance. The hypothesis with most inliers
-    (ties: fewer empty cells between the instances of each row, i.e. the coarsest
-    lattice, then smaller RMS) is refitted by least squares on its inliers.
-
-    Parameters
-    ----------
-    ca : (NA, 2) float
-        Centres of row A ordered along the row, pixels (NA >= 2).
-    cb : (NB, 2) float
-        Centres of row B, the same direction, pixels (NB >= 2).
-    tol_a, tol_b : (NA,), (NB,) float
-        Inlier tolerances, pixels.
-    max_step : int
-        Largest lattice step between two consecutive found instances of a row.
-    max_step_ratio : float
-        Perspective limit: the image lengths of the lattice steps over the rectangle of
-        both rows are within this factor of each other (a lattice whose rows differ
-        more is a sheared mislabelling).
-
-    Returns
-    -------
-    (H, ua, ub) or None
-        ``H`` (3, 3) lattice -> pixels; ``ua`` (NA,), ``ub`` (NB,) int lattice columns of
-        the instances, ``INT_MIN`` for outliers. None when no hypothesis has at least two
-        inliers in each row, five inliers in all (four points fit any lattice exactly)
-        and three quarters of all instances as inliers.
-    """
-    ca, cb = np.asarray(ca, float), np.asarray(cb, float)
-    na, nb = len(ca), len(cb)
-    if na < 2 or nb < 2:
-        return None
-    best = None
-    for ga, gb in itertools.product(range(1, max_step + 1), repeat=2):
-        src = np.array([[0, 0], [ga, 0], [0, 1], [gb, 1]], np.float32)
-        for k in range(na - 1):
-            for m in range(nb - 1):
-                dst = np.array([ca[k], ca[k + 1], cb[m], cb[m + 1]], np.float32)
-                Hm = cv2.getPerspectiveTransform(src, dst)
-                got = _lattice_labels(Hm, ca, cb, tol_a, tol_b, max_step_ratio)
-                if got is not None and (best is None or got[0] > best[0]):
-                    best = got
-    if best is None:
-        return None
-    _, Hm, ua, ub = best
-    ok_a, ok_b = ua != _OUT, ub != _OUT
-    if ok_a.sum() + ok_b.sum() > 4:  # refit on all inliers (overdetermined)
-        lat = np.concatenate([np.stack([ua[ok_a], np.zeros(ok_a.sum())], 1),
-                              np.stack([ub[ok_b], np.ones(ok_b.sum())], 1)]).astype(np.float32)
-        img = np.concatenate([ca[ok_a], cb[ok_b]]).astype(np.float32)
-        H2, _ = cv2.findHomography(lat, img, 0)
-        if H2 is not None:
-            got = _lattice_labels(H2, ca, cb, tol_a, tol_b, max_step_ratio)
-            if got is not None and got[0] >= best[0]:
-                _, Hm, ua, ub = got
-    return Hm, ua, ub
-
-
-_OUT = np.iinfo(np.int64).min
-
-
-def _lattice_map(Hm: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Lattice points (P, 2) -> pixels (P, 2); NaN where behind the horizon (w <= 0)."""
-    q = np.c_[np.asarray(uv, float), np.ones(len(uv))] @ np.asarray(Hm, float).T
-    w = q[:, 2:]
-    return np.where(w > 1e-9, q[:, :2] / np.where(w > 1e-9, w, 1.0), np.nan)
-
-
-def _lattice_labels(Hm: np.ndarray, ca: np.ndarray, cb: np.ndarray, tol_a: np.ndarray,
-                    tol_b: np.ndarray, max_step_ratio: float
-                    ) -> tuple[tuple[int, int, float], np.ndarray, np.ndarray, np.ndarray] | None:
-    """((inliers, -empty cells, -rms), H, ua, ub) of one lattice hypothesis, or None
-    when invalid."""
-    try:
-        Hi = np.linalg.inv(np.asarray(Hm, float))
-    except np.linalg.LinAlgError:
-        return None
-    out = []
-    err2 = []
-    for c, v, tol in ((ca, 0.0, tol_a), (cb, 1.0, tol_b)):
-        uv = _lattice_map(Hi, c)
-        if not np.all(np.isfinite(uv)):
-            return None
-        u = np.round(uv[:, 0])
-        pred = _lattice_map(Hm, np.c_[u, np.full(len(u), v)])
-        e = np.linalg.norm(pred - c, axis=1)
-        ok = np.isfinite(e) & (e <= tol)
-        lab = np.where(ok, u, 0).astype(np.int64)
-        lab[~ok] = _OUT
-        if ok.sum() < 2 or len(set(lab[ok].tolist())) < ok.sum():  # two on one cell
-            return None
-        out.append(lab)
-        err2.extend((e[ok] ** 2).tolist())
-    n_in = int(sum((lab != _OUT).sum() for lab in out))
-    if n_in < max(5, 0.75 * (len(ca) + len(cb))):  # 4 points fit any lattice exactly
-        return None
-    # perspective limit: the steps over the lattice rectangle of both rows are within a
-    # factor max_step_ratio of each other (as for one row: _steps_ok)
-    lo = int(min(lab[lab != _OUT].min() for lab in out))
-    hi = int(max(lab[lab != _OUT].max() for lab in out))
-    st = np.array([[_lattice_step(Hm, u, v) for u in range(lo, hi + 1)] for v in (0.0, 1.0)])
-    if not np.all(np.isfinite(st)) or np.any(st <= 0) or st.max() > max_step_ratio * st.min():
-        return None
-    empty = sum(int(lab[lab != _OUT].max() - lab[lab != _OUT].min() + 1 - (lab != _OUT).sum())
-                for lab in out)
-    return (n_in, -empty, -float(np.sqrt(np.mean(err2)))), Hm, out[0], out[1]
-
-
-def grid_missing_cells(ua: np.ndarray, ub: np.ndarray, max_missing: int
-                       ) -> list[tuple[int, int]]:
-    """Empty cells of the lattice rectangle spanned by two rows' columns.
-
-    The lattice of two rows is known up to a shift ``s`` of row B's columns against row
-    A's (a sheared labelling is an equally good lattice). For each shift with at least
-    two shared columns the rectangle spanned by both rows has empty cells; the shifts
-    with fewest empty cells (the rows most aligned, as in a rectangular grid) are kept,
-    and the union of their empty cells is returned (each is verified on the image
-    afterwards, so a wrong shift only costs a rejected candidate).
-
-    Parameters
-    ----------
-    ua, ub : int arrays
-        Lattice columns of the inlier instances of row A (v = 0) and row B (v = 1).
-    max_missing : int
-        Shifts with more empty cells than this are ignored.
-
-    Returns
-    -------
-    list of (u, v)
-        Empty cells in the lattice of ``ua``/``ub`` (v = 0 row A, 1 row B), sorted.
-    """
-    A, B = set(int(x) for x in ua), set(int(x) for x in ub)
-    if len(A) < 2 or len(B) < 2:
-        return []
-    best: tuple[int, set[tuple[int, int]]] | None = None
-    for s in range(min(A) - max(B), max(A) - min(B) + 1):
-        Bs = {b + s for b in B}
-        if len(A & Bs) < 2:
-            continue
-        lo, hi = min(A | Bs), max(A | Bs)
-        cells = {(u, 0) for u in range(lo, hi + 1) if u not in A}
-        cells |= {(u - s, 1) for u in range(lo, hi + 1) if u not in Bs}
-        if not cells:
-            return []  # a complete rectangle under some alignment: nothing to fill
-        if len(cells) > max_missing:
-            continue
-        if best is None or len(cells) < best[0]:
-            best = (len(cells), set(cells))
-        elif len(cells) == best[0]:
-            best[1].update(cells)
-    return sorted(best[1]) if best else []
-
-
 def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: float,
                    vp_params: VPParams) -> list[Instance]:
     """Instances for the empty cells of grids of two or more rows (module docstring)."""
@@ -735,21 +506,22 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
         if fit is None:
             continue
         Hm, ua, ub = fit
-        cells = grid_missing_cells(ua[ua != _OUT], ub[ub != _OUT], params.grid_max_missing)
+        cells = grid_missing_cells(ua[ua != OFF_LATTICE], ub[ub != OFF_LATTICE],
+                                   params.grid_max_missing)
         if not cells:
             continue
-        inl = [(i, int(u), 0) for i, u in zip(ra, ua) if u != _OUT]
-        inl += [(i, int(u), 1) for i, u in zip(rb, ub) if u != _OUT]
+        inl = [(i, int(u), 0) for i, u in zip(ra, ua) if u != OFF_LATTICE]
+        inl += [(i, int(u), 1) for i, u in zip(rb, ub) if u != OFF_LATTICE]
         # box size per cell: the row's median box, scaled by the local lattice step
         # (stage-I boxes of partial instances are smaller than the object)
         wh_step = []  # per row: median box (w, h) and median lattice step, pixels
         for v in (0, 1):
             iv = [(i, u) for i, u, vv in inl if vv == v]
             wh_step.append((np.median(boxes[[i for i, _ in iv], 2:], axis=0),
-                            float(np.median([_lattice_step(Hm, u, v) for _, u in iv]))))
+                            float(np.median([lattice_step(Hm, u, v) for _, u in iv]))))
         tmpl = []
         for i, u, v in inl:
-            w, h = _cell_wh(Hm, wh_step[v], u, v)
+            w, h = cell_wh(Hm, wh_step[v], u, v)
             q = _crop(gray, c[i, 0] * sf, c[i, 1] * sf, w * sf, h * sf, params.patch_size)
             if q is not None:
                 tmpl.append(q)
@@ -758,18 +530,18 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
             continue
         thr, mean_t = gate
         for u, v in cells:
-            xy = _lattice_map(Hm, np.array([[u, v]], float))[0]
+            xy = lattice_map(Hm, np.array([[u, v]], float))[0]
             if not np.all(np.isfinite(xy)):
                 continue
-            w, h = _cell_wh(Hm, wh_step[v], u, v)
+            w, h = cell_wh(Hm, wh_step[v], u, v)
             if not np.isfinite(w * h):
                 continue
             # perspective limit: the cell's step within max_step_ratio of the row's steps
-            st = [_lattice_step(Hm, u, v)] + [_lattice_step(Hm, t[1], v) for t in inl
+            st = [lattice_step(Hm, u, v)] + [lattice_step(Hm, t[1], v) for t in inl
                                                if t[2] == v]
             if max(st) > params.max_step_ratio * min(st):
                 continue
-            near = 0.5 * _lattice_step(Hm, u, v)  # instances do not overlap
+            near = 0.5 * lattice_step(Hm, u, v)  # instances do not overlap
             if min(w, h) < 2 or min(np.min(np.linalg.norm(np.array(cen) - xy, axis=1)),
                                     np.min(np.linalg.norm(cb0 - xy, axis=1))) < near:
                 continue  # an instance (of any row) is already there
@@ -782,17 +554,3 @@ def _complete_grid(p: Pattern, gray: np.ndarray, params: CompletionParams, sf: f
                                 source=SOURCE))
             cen.append(q)
     return new
-
-
-def _lattice_step(Hm: np.ndarray, u: float, v: float) -> float:
-    """Image length (pixels) of one lattice step along the row at column u of row v."""
-    a, b = _lattice_map(Hm, np.array([[u - 0.5, v], [u + 0.5, v]], float))
-    return float(np.linalg.norm(b - a))
-
-
-def _cell_wh(Hm: np.ndarray, wh_step: tuple[np.ndarray, float], u: float, v: float
-             ) -> np.ndarray:
-    """Box (w, h) of cell (u, v), pixels: the row's median box scaled by the lattice step
-    there relative to the row's median step."""
-    wh, step = wh_step
-    return wh * (_lattice_step(Hm, u, v) / step)
