@@ -207,7 +207,7 @@ def test_runs_on_a_real_facade():
 
 
 def test_layout_spread_rejects_collinear_instances():
-    from rescu.discovery.stage1 import layout_spread
+    from rescu.discovery.instances import layout_spread
     # two instances whose words all lie on one horizontal line (pieces of an edge)
     xy = np.array([[0, 0], [10, 0], [20, 0], [30, 0], [40, 0], [50, 0]], float)
     om = np.array([[0, 3], [1, 4], [2, 5]])
@@ -220,7 +220,7 @@ def test_layout_spread_rejects_collinear_instances():
 
 
 def test_instance_extents_reach_half_the_spacing():
-    from rescu.discovery.stage1 import instance_boxes, instance_extents
+    from rescu.discovery.instances import instance_boxes, instance_extents
     # three instances 100 px apart, each a 20 x 20 feature hull with keypoint size 4
     base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]
     xy = np.vstack([base + [100 * j, 0] for j in range(3)]).astype(np.float32)
@@ -238,7 +238,7 @@ def test_instance_extents_reach_half_the_spacing():
 
 
 def test_drop_duplicate_instances_keeps_one_instance_per_object():
-    from rescu.discovery.stage1 import drop_duplicate_instances
+    from rescu.discovery.instances import drop_duplicate_instances
     # instances 0 and 2: 20 x 20 hulls 100 px apart; instance 1: words 0 and 1 again on
     # object 0 (a part of it found as a second instance), fewer words
     base = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float) + [40, 40]

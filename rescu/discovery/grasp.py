@@ -267,7 +267,7 @@ def discover_grasp(features: Features, params: GraspParams | None = None) -> Sta
     rng = np.random.default_rng(p.seed)
     avail = np.ones(len(features), bool)
     rps: list[RPMatrix] = []
-    from .stage1 import instance_boxes
+    from .instances import instance_boxes
     for _ in range(p.max_patterns):
         best: tuple[float, np.ndarray] | None = None
         for _ in range(p.iterations):
