@@ -145,12 +145,12 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
 def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
          out_dir: str | Path | None, stem: str, keep_work: bool, overlay: str) -> ImageResult:
     """:func:`discover`'s computation (:func:`rescu.core.run_image`, in memory); with
-    ``out_dir``, the result set made under ``staged`` (the overlay picture drawn in mode
-    ``overlay``, none for ``"none"``) and committed."""
-    ran = core.run_image(image, cfg, method, name=image.name, validated=True,
-                         keep=keep_work and out_dir is not None)
+    ``out_dir`` (and its staging folder ``staged``; both None: nothing is written), the
+    result set made under ``staged`` (the overlay picture drawn in mode ``overlay``, none
+    for ``"none"``) and committed."""
+    ran = core.run_image(image, cfg, method, name=image.name, validated=True, keep=keep_work)
     result = ran.result
-    if out_dir is None or staged is None:
+    if out_dir is None or staged is None:  # both None together (discover)
         return result
     if keep_work:
         _write_work(Path(out_dir) / ".work" / stem, ran)

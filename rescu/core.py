@@ -176,8 +176,7 @@ def attempt(stage: str, step: Callable[[], T]) -> tuple[T | None, Failure | None
 def as_written(res: ImageResult) -> ImageResult:
     """``res`` as a later step reads it back from its JSON file (plain floats, lists):
     what makes an in-memory run and the file pipeline compute the same numbers."""
-    return ImageResult.from_json(json.loads(json.dumps(res.to_json(), default=io._jsonable,
-                                                       allow_nan=False)))
+    return ImageResult.from_json(json.loads(io.json_text(res)))
 
 
 # --------------------------------------------------------------------------- prepare

@@ -81,11 +81,17 @@ def _jsonable(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def write_json(path: str | os.PathLike[str], obj: Any) -> None:
-    """Write ``obj`` as JSON (sorted keys, 1-space indent, deterministic) atomically."""
+def json_text(obj: Any) -> str:
+    """``obj`` (an :class:`ImageResult` or plain data with NumPy values) as the JSON text
+    :func:`write_json` writes: sorted keys, 1-space indent, deterministic; NaN refused."""
     if isinstance(obj, ImageResult):
         obj = obj.to_json()
-    text = json.dumps(obj, indent=1, sort_keys=True, default=_jsonable, allow_nan=False)
+    return json.dumps(obj, indent=1, sort_keys=True, default=_jsonable, allow_nan=False)
+
+
+def write_json(path: str | os.PathLike[str], obj: Any) -> None:
+    """Write ``obj`` as JSON (:func:`json_text`) atomically."""
+    text = json_text(obj)
     with atomic_path(path) as tmp:
         tmp.write_text(text + "\n")
 

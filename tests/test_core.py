@@ -39,7 +39,7 @@ def _file_chain(photo: Path, work: Path, cfg: dict, method: str) -> dict:
 
 
 def _text(res: rescu.ImageResult) -> str:
-    return json.dumps(res.to_json(), indent=1, sort_keys=True, default=io._jsonable)
+    return io.json_text(res)
 
 
 @pytest.mark.parametrize("method", ["rescu-i", "rescu-ii"])

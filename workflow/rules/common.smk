@@ -44,8 +44,7 @@ def step_code(script):
     The stamp is written here, while the workflow is read, and only when its text
     changes: editing one of those files gives the stamp a new time, which reruns the
     rules that read it; anything else leaves it alone. (It used to be a rule's output:
-    a job per script, each reading the whole workflow again in its own process, about
-    3 s each on an idle 2-core machine and 17 of them in a fresh default run.) One stamp
+    a job per script, each reading the whole workflow again in its own process.) One stamp
     instead of the files themselves keeps Snakemake from checking a dozen source files
     for every waiting job whenever it schedules."""
     import hashlib
