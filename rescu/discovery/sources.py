@@ -94,6 +94,12 @@ class DenseParams:
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
         the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
+    part_area, part_reach : float
+        Mode ``objects``: a dense RP holds parts of a stage-I RP's objects when at least
+        ``part_cover`` of its boxes have their centre in a stage-I box grown
+        ``part_reach`` times and at most ``part_area`` of its area (:func:`parts_of`);
+        such a dense RP is dropped and the stage-I RP of whole objects stays
+        (:func:`combine_sources`).
     confidence_gap_scale, confidence_n_scale, confidence_contrast_scale : float
         Scales of :func:`rescu.extension.objects.pattern_confidence`.
     min_confidence : float
@@ -128,6 +134,8 @@ class DenseParams:
     extent_aspects: tuple[float, ...]
     extent_shifts: tuple[float, ...]
     part_cover: float
+    part_area: float
+    part_reach: float
     confidence_gap_scale: float
     confidence_n_scale: float
     confidence_contrast_scale: float
@@ -171,6 +179,10 @@ class DenseParams:
                              "positive numbers, extent_shifts a non-empty list")
         if not 0.0 < self.part_cover <= 1.0:
             raise ValueError(f"dense.part_cover must be in (0, 1], got {self.part_cover}")
+        if not 0.0 < self.part_area <= 1.0:
+            raise ValueError(f"dense.part_area must be in (0, 1], got {self.part_area}")
+        if self.part_reach < 1.0:
+            raise ValueError(f"dense.part_reach must be >= 1, got {self.part_reach}")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ValueError(f"dense.min_confidence must be in [0, 1], got {self.min_confidence}")
         if min(self.confidence_gap_scale, self.confidence_n_scale,
@@ -202,17 +214,46 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
     ``"objects"``: the dense RPs (whole objects) first, then each stage-I RP without its
     instances that overlap a dense instance the same way (a keypoint RP on parts of the
-    objects is absorbed by them), kept when ``params.min_instances`` remain.
+    objects is absorbed by them), kept when ``params.min_instances`` remain. Before that,
+    a dense RP that holds parts of a stage-I RP's objects (:func:`parts_of`: objects
+    larger than the dense source's blobs, found whole by stage I) is dropped: the whole
+    objects stay, not their parts.
     """
     if params.mode == "dense":
         out = list(dense)
     elif params.mode == "objects":
+        dense = [d for d in dense if not any(parts_of(d, s, params) for s in sparse)]
         out = list(dense) + _without_overlap(sparse, dense, params)
     else:
         out = list(sparse) + _without_overlap(dense, sparse, params)
     for k, p in enumerate(out):
         p.id = k
     return out
+
+
+def parts_of(part: Pattern, whole: Pattern, params: DenseParams) -> bool:
+    """Whether the RP ``part`` holds parts of the objects of the RP ``whole``: at least
+    ``params.part_cover`` of its boxes have their centre inside a box of ``whole`` grown
+    ``params.part_reach`` times about its centre (stage I's boxes hug the keypoints, so
+    an object's corners stick out of them) and at most ``params.part_area`` of its area.
+
+    >>> from rescu.types import Instance, Pattern
+    >>> rp = lambda boxes: Pattern(id=0, score=1.0, instances=[
+    ...     Instance(bbox=b, score=1.0, source="stage1") for b in boxes])
+    >>> whole = rp([(0, 0, 40, 40), (60, 0, 40, 40)])
+    >>> corners = rp([(-4, -4, 8, 8), (36, 36, 8, 8), (62, 2, 8, 8), (200, 0, 8, 8)])
+    >>> p = DenseParams.from_dict(None)
+    >>> parts_of(corners, whole, p), parts_of(whole, corners, p), parts_of(whole, whole, p)
+    (True, False, False)
+    """
+    a = np.array([i.bbox for i in part.instances], float).reshape(-1, 4)
+    b = np.array([i.bbox for i in whole.instances], float).reshape(-1, 4)
+    if not len(a) or not len(b):
+        return False
+    d = np.abs((a[:, None, :2] + a[:, None, 2:] / 2) - (b[None, :, :2] + b[None, :, 2:] / 2))
+    near = (d <= params.part_reach / 2 * b[None, :, 2:]).all(2)
+    smaller = (a[:, 2] * a[:, 3])[:, None] <= params.part_area * (b[:, 2] * b[:, 3])[None, :]
+    return bool((near & smaller).any(1).mean() >= params.part_cover)
 
 
 def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: DenseParams
@@ -236,19 +277,49 @@ def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: Dens
     return out
 
 
-def split_by_confidence(res: ImageResult, min_confidence: float) -> None:
-    """Move the RPs of ``res`` whose ``extra["confidence"]`` is below ``min_confidence``
-    out of ``res.patterns`` into ``res.extra["candidate_patterns"]`` (their JSON, for
-    experts; not analysed further), in place; ids of both lists renumbered 0.. . An RP
-    without a confidence stays. ``res.extra["n_candidate_patterns"]`` counts them."""
-    kept, dropped = [], []
-    for p in res.patterns:
+def split_by_confidence(res: ImageResult, min_confidence: float,
+                        parts: DenseParams | None = None) -> None:
+    """Report the confident RPs of ``res``, most confident first; the others go to
+    ``res.extra["candidate_patterns"]`` (their JSON, for experts, with ``"dropped"``
+    saying why; not analysed further), in place; ids of both lists renumbered 0.. .
+
+    An RP whose ``extra["confidence"]`` is below ``min_confidence`` is dropped
+    (``"low confidence"``); with ``parts``, so is an RP that holds parts of the objects
+    of a more confident reported one (:func:`parts_of` with those parameters:
+    ``"parts"``), e.g. the rims and gaps around coins found whole. An RP without a
+    confidence is reported, after those with one. ``res.extra["n_candidate_patterns"]``
+    counts the dropped ones.
+
+    >>> from rescu.types import Instance, Pattern
+    >>> rp = lambda c, boxes: Pattern(id=0, score=1.0, extra={"confidence": c},
+    ...     instances=[Instance(bbox=b, score=1.0, source="stage1") for b in boxes])
+    >>> coins = [(0, 0, 40, 40), (60, 0, 40, 40), (120, 0, 40, 40)]
+    >>> rims = [(x + 15, -4, 10, 8) for x, _, _, _ in coins]
+    >>> r = ImageResult(image="x", width=160, height=40, method="rescu-i",
+    ...                 patterns=[rp(0.5, rims), rp(0.2, coins[:2]), rp(0.9, coins)])
+    >>> split_by_confidence(r, 0.3, DenseParams.from_dict(None))
+    >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
+    ([3], ['parts', 'low confidence'])
+    """
+    order = sorted(range(len(res.patterns)), key=lambda k: (
+        "confidence" not in res.patterns[k].extra,
+        -float(res.patterns[k].extra.get("confidence", 0.0)), k))
+    kept: list[Pattern] = []
+    dropped: list[tuple[Pattern, str]] = []
+    for k in order:
+        p = res.patterns[k]
         c = p.extra.get("confidence")
-        (dropped if c is not None and float(c) < min_confidence else kept).append(p)
+        if c is not None and float(c) < min_confidence:
+            dropped.append((p, "low confidence"))
+        elif parts is not None and any(parts_of(p, q, parts) for q in kept):
+            dropped.append((p, "parts"))
+        else:
+            kept.append(p)
     for k, p in enumerate(kept):
         p.id = k
     res.patterns = kept
-    res.extra["candidate_patterns"] = [dict(p.to_json(), id=k) for k, p in enumerate(dropped)]
+    res.extra["candidate_patterns"] = [dict(p.to_json(), id=k, dropped=why)
+                                       for k, (p, why) in enumerate(dropped)]
     res.extra["n_candidate_patterns"] = len(dropped)
 
 

@@ -473,7 +473,8 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
     (:func:`rescu.extension.objects.score_patterns` on the map of :func:`dense_map`, one
     backbone pass, only when a pattern needs it), and those below
-    ``dense.min_confidence`` move to ``candidate_patterns``
+    ``dense.min_confidence`` or holding parts of a more confident RP's objects move to
+    ``candidate_patterns``, the others reported most confident first
     (:func:`rescu.discovery.sources.split_by_confidence`), in place. Nothing in the other
     modes or after a failed dense step (``found``'s failure).
 
@@ -495,5 +496,5 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     if any("confidence" not in p.extra for p in res.patterns):
         f, s = dense_map(rgb, dp, backbone)
         score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, f, s)
-    split_by_confidence(res, dp.min_confidence)
+    split_by_confidence(res, dp.min_confidence, dp)
     res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)

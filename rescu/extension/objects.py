@@ -381,7 +381,8 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
 
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
-                  integrals: tuple[np.ndarray, np.ndarray], params: Any) -> dict[str, float]:
+                  integrals: tuple[np.ndarray, np.ndarray], params: Any,
+                  objects: bool = True) -> dict[str, float]:
     """The confidence of any RP (from any source) from its instance boxes.
 
     The instances' mean features over their boxes give the prototype; the similarity map
@@ -396,10 +397,19 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     boxes : (n, 4) ``[x, y, w, h]``, pixels of the image of ``integrals``
     integrals : :func:`colour_integrals` of that image
     params : :class:`rescu.discovery.sources.DenseParams` (``confidence_*`` scales)
+    objects : whether the boxes have the extent of objects (the dense RPs). False for
+        stage I's keypoint boxes (:func:`score_patterns`): the colour contrast is
+        reported but not counted, and the confidence is multiplied by the *resolution*
+        ``min(1, side / (2 cell_px))**2``, ``side`` the boxes' median side in
+        backbone-input pixels: the map's coarser half has a stride of two cells, so it
+        cannot tell whether boxes smaller than that look alike (their gap is measured on
+        the boxes themselves, where a dense RP's was measured on its blobs, at least
+        that size, before its extent was refined)
 
     Returns
     -------
-    ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``
+    ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``, and
+    ``"resolution"`` when not ``objects``
     """
     b = np.asarray(boxes, float).reshape(-1, 4) * s
     if len(b) < 2:
@@ -411,9 +421,15 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
             max(1, int(round(float(np.median(b[:, 3])) / cell_px))))
     gap = distinctiveness(similarity_map(f, proto, side), emb @ proto, b, cell_px)
     con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
-    conf = pattern_confidence(gap, len(b), con, params.confidence_gap_scale,
-                              params.confidence_n_scale, params.confidence_contrast_scale)
-    return {"confidence": round(conf, 4), "gap": round(gap, 4), "contrast": round(con, 4)}
+    conf = pattern_confidence(gap, len(b), con if objects else None,
+                              params.confidence_gap_scale, params.confidence_n_scale,
+                              params.confidence_contrast_scale)
+    out = {"gap": round(gap, 4), "contrast": round(con, 4)}
+    if not objects:
+        side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
+        out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
+        conf *= out["resolution"]
+    return {"confidence": round(conf, 4), **out}
 
 
 # ------------------------------------------------------------------------- selection
@@ -477,7 +493,7 @@ def without_parts(boxes: np.ndarray, taken: np.ndarray, cover: float, min_instan
     return b if len(b) >= min_instances else None
 
 
-def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
+def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: float,
                        n_scale: float, contrast_scale: float) -> float:
     """How clearly an RP recurs, in [0, 1], without ground truth.
 
@@ -490,16 +506,19 @@ def pattern_confidence(gap: float, n: int, contrast: float, gap_scale: float,
       ten a clear one;
     * the instances' median colour *contrast* with their surroundings
       (:func:`colour_contrast`): objects stand out from what surrounds them, the
-      gaps between objects and patches of texture do not.
+      gaps between objects and patches of texture do not. ``None``: not counted (the
+      boxes are keypoint patches, not objects).
 
     >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5), 3)
     0.827
     >>> pattern_confidence(-0.1, 12, 2.0, 0.15, 3.0, 0.5)
     0.0
+    >>> round(pattern_confidence(0.3, 12, None, 0.15, 3.0, 0.5), 3)
+    0.843
     """
     g = 1.0 - np.exp(-max(float(gap), 0.0) / gap_scale)
     k = 1.0 - np.exp(-max(int(n) - 1, 0) / n_scale)
-    c = 1.0 - np.exp(-max(float(contrast), 0.0) / contrast_scale)
+    c = 1.0 if contrast is None else 1.0 - np.exp(-max(float(contrast), 0.0) / contrast_scale)
     return float(g * k * c)
 
 
@@ -575,7 +594,13 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
     For the RPs of stage I (the dense source's RPs carry theirs): the frozen backbone's
     map of the prepared image (:func:`rescu.extension.dense.dense_map`) and each RP's
     instance boxes; ``extra["confidence"]`` and
-    ``extra["gap"]``, ``extra["contrast"]`` are set.
+    ``extra["gap"]``, ``extra["contrast"]``, ``extra["resolution"]`` are set. Their
+    confidence counts the gap, the number of instances and the map's resolution at
+    their size (:func:`rp_confidence` with ``objects=False``), not the colour contrast:
+    stage I's boxes are keypoint patches, often on a part of an object, whose colour
+    hardly differs from the rest of the object around them (a textured object's does not
+    at any extent), and the URP search has already checked that they recur in a
+    consistent layout.
 
     Parameters
     ----------
@@ -592,4 +617,4 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
     integrals = colour_integrals(rgb)
     for p in todo:
         b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
-        p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params))
+        p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params, objects=False))
