@@ -325,13 +325,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override one parameter, e.g. --set stage1.max_patterns=2 (repeatable)")
     dense = d.add_mutually_exclusive_group()
     dense.add_argument("--dense", action="store_true",
-                       help="also find whole objects that recur in the CNN feature map (coins, "
-                            "cars from above, chess pieces), before stage I's RPs, and score "
-                            "every RP's confidence, hiding those below dense.min_confidence; "
-                            "same as --set dense.enabled=true")
+                       help="whole objects that recur in the CNN feature map (coins, cars from "
+                            "above, chess pieces) beside stage I's RPs, every RP's confidence "
+                            "scored, those below dense.min_confidence or on parts of a more "
+                            "confident RP's objects hidden (the default; "
+                            "--set dense.enabled=true)")
     dense.add_argument("--no-dense", action="store_true",
-                       help="stage I's keypoint RPs alone (the default; "
-                            "--set dense.enabled=false)")
+                       help="stage I's keypoint RPs alone, not scored, as in the paper "
+                            "(--set dense.enabled=false)")
     d.add_argument("--objects", action="store_true",
                    help="photos of small or smooth objects (cars from above, chess pieces, "
                         "products): RPs from the CNN feature map only, extended by stage II "

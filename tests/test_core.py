@@ -22,8 +22,12 @@ def _file_chain(photo: Path, work: Path, cfg: dict, method: str) -> dict:
     pipeline.prepare(str(photo), w("p.png"), w("m.json"), image_name=photo.name,
                      **{k: cfg["image"][k] for k in ("max_side", "min_side", "max_pixels")})
     pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])
+    dense = None
+    if cfg["dense"]["enabled"]:
+        dense = w("d.json")
+        pipeline.dense(w("p.png"), w("m.json"), dense, cfg["dense"])
     pipeline.stage1(w("f.h5"), w("m.json"), w("s1.json"), w("s1.h5"), cfg["stage1"],
-                    png=w("p.png"), dense_params=cfg["dense"])
+                    png=w("p.png"), dense_json=dense, dense_params=cfg["dense"])
     src = w("s1.json")
     if method == "rescu-ii":
         pipeline.stage2_features(w("p.png"), w("m.json"), src, w("s2.h5"), cfg["stage2"])
@@ -58,7 +62,8 @@ def test_run_in_memory_equals_the_file_pipeline(tmp_path, method):
 def test_run_keeps_what_it_made(tmp_path):
     photo = shelf_photo(tmp_path / "shelf.png")
     ran = core.run_image(photo, method="rescu-i", keep=True)
-    assert set(ran.intermediate) == {"features", "stage1", "rp_matrices", "scene", "joint"}
+    assert set(ran.intermediate) == {"features", "dense", "stage1", "rp_matrices", "scene",
+                                     "joint"}
     assert ran.prepared.rgb.shape == (300, 520, 3) and ran.result is not None
     assert core.run_image(photo, method="rescu-i").intermediate == {}
 
@@ -138,8 +143,8 @@ def test_discover_writes_no_work_folder(tmp_path, monkeypatch):
     assert list(tmp.iterdir()) == []
     rescu.discover(photo, out, method="rescu-i", keep_work=True)
     work = sorted(p.name for p in (out / ".work" / "shelf").iterdir())
-    assert work == ["features.h5", "final.json", "image.png", "joint.json", "meta.json",
-                    "rescu-i.json", "rescu-i.rp.h5", "scene.json"]
+    assert work == ["dense.json", "features.h5", "final.json", "image.png", "joint.json",
+                    "meta.json", "rescu-i.json", "rescu-i.rp.h5", "scene.json"]
 
 
 def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):

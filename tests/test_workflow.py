@@ -259,19 +259,21 @@ def test_default_run_has_no_ablation_and_paper_run_has_every_table(tmp_path):
     for name in ("ablation", "stage2_ablation", "scene_no_ac", "ablation_tables",
                  "stage2_ablation_tables", "summary"):
         assert jobs.get(name), (name, jobs)
-    # ablation.sources: the source rows need the dense step on each ablation image
-    assert jobs.get("dense") == jobs["ablation"], jobs
+    # the dense step runs once per image (the default's whole objects; the ablation's
+    # source rows read the same result)
+    assert jobs.get("dense") == jobs["rescu_i"] >= jobs["ablation"], jobs
     assert re.search(r"output: [^\n]*ablation/sparse\+dense/\S+\.json", proc.stdout)
     assert_outputs_under(proc, "results/paper/")
 
 
 def test_dense_source_adds_its_step_before_rescu_i_and_a_table_row(tmp_path):
-    """dense.enabled: one `dense` job per image, RESCU-I reads it (its params change only
-    then), and the RP table gets the dense source's own row; off (the default): none."""
-    cfg = tiny_config(tmp_path)
-    cfg.write_text(cfg.read_text().replace("paper: true", "paper: false"))
-    assert "dense" not in planned_jobs(snakemake(tmp_path, cfg, "-n"))
-    on = tiny_config(tmp_path, **{"dense.enabled": True})
+    """dense.enabled (the default): one `dense` job per image, RESCU-I reads it (its
+    params change only then), and the RP table gets the dense source's own row; off:
+    none."""
+    off = tiny_config(tmp_path, **{"dense.enabled": False})
+    off.write_text(off.read_text().replace("paper: true", "paper: false"))
+    assert "dense" not in planned_jobs(snakemake(tmp_path, off, "-n"))
+    on = tiny_config(tmp_path)
     on.write_text(on.read_text().replace("paper: true", "paper: false"))
     proc = snakemake(tmp_path, on, "-n", "--", "results/tables/rp_discovery.md")
     jobs = planned_jobs(proc)
