@@ -179,6 +179,64 @@ def test_objects_mode_puts_whole_objects_first_and_absorbs_parts():
         .extra == {}                         # two instances off the objects stay above
 
 
+def test_objects_mode_keeps_stage_ones_whole_objects_over_dense_parts():
+    """Objects larger than the dense blobs: stage I found them whole, the dense source
+    found their corners (sticking out of stage I's keypoint-hugging boxes). The corners
+    are dropped, the whole objects stay."""
+    whole = _pat([[10, 10, 30, 30], [80, 10, 30, 30], [150, 10, 30, 30]])
+    corners = _pat([[x + dx, y + dy, 10, 10] for x, y, _, _ in whole_boxes(whole)
+                     for dx, dy in ((-5, -5), (25, -5), (-5, 25), (25, 25))], source="dense")
+    elsewhere = _pat([[0, 200, 20, 20], [60, 200, 20, 20], [120, 200, 20, 20]],
+                     source="dense")
+    out = combine_sources([whole], [corners, elsewhere], _params(mode="objects"))
+    assert [len(q.instances) for q in out] == [3, 3]
+    assert out[0].instances[0].bbox == (0.0, 200.0, 20.0, 20.0) and out[1].extra == {}
+
+
+def whole_boxes(p):
+    return [i.bbox for i in p.instances]
+
+
+def test_a_stage_one_rp_is_scored_without_colour_contrast_and_with_the_maps_resolution():
+    """Stage I's keypoint boxes on textured objects: their colour does not stand out from
+    a ring around them, yet they recur clearly; boxes smaller than the map's coarse
+    stride (two cells) lose confidence with their area."""
+    rng = np.random.default_rng(5)
+    f = 0.05 * rng.normal(size=(8, 40, 60))
+    f[0] += 1
+    at = [(5, 5), (5, 25), (5, 45), (25, 15), (25, 35)]
+    for y, x in at:
+        f[3, y:y + 4, x:x + 4] += 2
+    f = (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32)
+    boxes = np.array([[x * 8, y * 8, 32, 32] for y, x in at], float)
+    flat = colour_integrals(np.full((320, 480, 3), 90, np.uint8))   # no colour contrast
+    p = _params()
+    dense = rp_confidence(f, 8.0, 1.0, boxes, flat, p)
+    kp = rp_confidence(f, 8.0, 1.0, boxes, flat, p, objects=False)
+    assert dense["confidence"] < 0.05 < 0.5 < kp["confidence"], (dense, kp)
+    assert kp["resolution"] == 1.0 and kp["gap"] == dense["gap"]
+    small = boxes + [12, 12, -24, -24]                       # 8 px: half the stride
+    tiny = rp_confidence(f, 8.0, 1.0, small, flat, p, objects=False)
+    assert tiny["resolution"] == 0.25 and tiny["confidence"] <= 0.25
+
+
+def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
+    coins = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40], [180, 0, 40, 40]],
+                 confidence=0.9, source="dense")
+    rims = _pat([[x + 12, 36, 16, 8] for x, _, _, _ in whole_boxes(coins)], confidence=0.5,
+                source="dense")
+    other = _pat([[0, 100, 40, 40], [60, 100, 40, 40], [120, 100, 40, 40]], confidence=0.6)
+    res = ImageResult(image="x", width=240, height=160, method="rescu-i",
+                      patterns=[rims, other, coins])
+    split_by_confidence(res, 0.3, _params())
+    assert [p.extra["confidence"] for p in res.patterns] == [0.9, 0.6]   # most confident first
+    assert [(c["confidence"], c["dropped"]) for c in res.extra["candidate_patterns"]] == \
+        [(0.5, "parts")]
+    res.patterns.append(rims)
+    split_by_confidence(res, 0.3)                                        # no parts check
+    assert len(res.patterns) == 3
+
+
 def test_split_by_confidence_keeps_the_rest_for_experts():
     res = ImageResult(image="x", width=10, height=10, method="rescu-i", patterns=[
         _pat([[0, 0, 1, 1]] * 2, confidence=0.2), _pat([[0, 0, 1, 1]] * 3, confidence=0.9),
@@ -193,6 +251,7 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
 
 @pytest.mark.parametrize("key,value", [("mode", "everything"), ("max_candidates", 1),
                                        ("part_cover", 0.0), ("min_confidence", 1.5),
+                                       ("part_area", 0.0), ("part_reach", 0.5),
                                        ("extent_scales", []), ("confidence_gap_scale", 0)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
