@@ -41,6 +41,8 @@ precision.
 
 from __future__ import annotations
 
+import hashlib
+
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -380,9 +382,17 @@ def objectness_for(rgb: np.ndarray, s: float, params: DenseParams, backbone: Any
     return lambda boxes: objectness(backbone, rgb, np.asarray(boxes, float) / s, params)
 
 
+_LAST_MAP: dict[tuple[Any, ...], tuple[np.ndarray, float]] = {}
+
+
 def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
               ) -> tuple[np.ndarray, float]:
     """The feature map the dense source works on, and the scale it was taken at.
+
+    The last map made on CPU is kept (one entry, keyed by the image's bytes, the backbone
+    and the sizes), so that the dense step and the scoring of stage I's RPs that follows
+    it in the same process (:func:`rescu.core.run`) pass the backbone over the image
+    once; the returned map is read-only.
 
     Parameters
     ----------
@@ -404,6 +414,12 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
                          f"dtype {rgb.dtype}")
+    name = params.backbone if backbone is None else getattr(backbone, "name", None)
+    cpu = backbone is None or str(getattr(backbone, "device", "")) == "cpu"
+    key = (hashlib.sha1(np.ascontiguousarray(rgb).data).hexdigest(), rgb.shape, name,
+           params.max_side, params.min_side)
+    if cpu and key in _LAST_MAP:
+        return _LAST_MAP[key]
     if backbone is None:
         backbone = FrozenBackbone(params.backbone, feature_stride=16)
     longer = max(rgb.shape[:2])
@@ -411,7 +427,12 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
         else params.min_side / longer
     im = rgb if s == 1 else cv2.resize(
         rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-    return hypercolumn(backbone, im), float(s)
+    out = (hypercolumn(backbone, im), float(s))
+    out[0].setflags(write=False)
+    if cpu:
+        _LAST_MAP.clear()
+        _LAST_MAP[key] = out
+    return out
 
 
 def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
