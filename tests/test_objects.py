@@ -161,22 +161,43 @@ def _pat(boxes, **extra):
                    instances=[Instance(bbox=tuple(map(float, b))) for b in boxes])
 
 
-def test_objects_mode_puts_whole_objects_first_and_absorbs_parts():
-    objs = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], source="dense")
+def test_objects_mode_gives_the_objects_to_the_more_confident_rp():
+    """Mode objects lists the dense RPs, then stage I's as they are; once scored, going
+    down the confidences an RP loses its instances on a more confident RP's objects
+    (feature points follow), and is dropped when too few remain."""
+    objs = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], source="dense",
+                confidence=0.9)
     parts = _pat([[5, 5, 10, 10], [65, 5, 10, 10], [125, 5, 10, 10], [5, 200, 10, 10],
-                  [60, 200, 10, 10]])
+                  [60, 200, 10, 10]], confidence=0.5)
     parts.feature_points = np.arange(2 * 5 * 2, dtype=float).reshape(2, 5, 2)
-    other = _pat([[0, 100, 30, 30], [50, 100, 30, 30], [100, 100, 30, 30]])
+    other = _pat([[0, 100, 30, 30], [50, 100, 30, 30], [100, 100, 30, 30]], confidence=0.6)
     p = _params(mode="objects", min_instances=3)
     out = combine_sources([parts, other], [objs], p)
-    assert [len(q.instances) for q in out] == [3, 3]     # the parts are absorbed
-    assert out[0].extra["source"] == "dense" and [q.id for q in out] == [0, 1]
-    out = combine_sources([parts], [objs], _params(mode="objects", min_instances=2))
-    assert len(out[1].instances) == 2 and out[1].feature_points.shape == (2, 2, 2)
-    assert np.array_equal(out[1].feature_points, parts.feature_points[:, 3:])
+    assert [len(q.instances) for q in out] == [3, 5, 3] and [q.id for q in out] == [0, 1, 2]
+    assert out[0].extra["source"] == "dense"
+    res = ImageResult(image="x", width=200, height=220, method="rescu-i", patterns=out)
+    split_by_confidence(res, 0.3, p)
+    assert [q.extra["confidence"] for q in res.patterns] == [0.9, 0.6]
+    assert res.extra["candidate_patterns"][0]["dropped"] == "overlap"
+    p2 = _params(mode="objects", min_instances=2)
+    res = ImageResult(image="x", width=200, height=220, method="rescu-i",
+                      patterns=combine_sources([parts, other], [objs], p2))
+    split_by_confidence(res, 0.3, p2)
+    kept = res.patterns[2]
+    assert len(kept.instances) == 2 and kept.feature_points.shape == (2, 2, 2)
+    assert np.array_equal(kept.feature_points, parts.feature_points[:, 3:])
+    assert len(parts.instances) == 5                     # the input is not changed
+    # the more confident RP keeps the objects whatever its source
+    whole = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], confidence=0.95)
+    halves = _pat([[x + dx, 0, 20, 40] for x in (0, 60, 120) for dx in (0, 20)],
+                  source="dense", confidence=0.8)
+    res = ImageResult(image="x", width=200, height=40, method="rescu-i",
+                      patterns=combine_sources([whole], [halves], p))
+    split_by_confidence(res, 0.3, p)
+    assert [(q.count, q.extra.get("source")) for q in res.patterns] == [(3, None)]
     # mode both: stage I first, as before
     assert combine_sources([other], [objs], _params(mode="both", min_instances=2))[0] \
-        .extra == {}                         # two instances off the objects stay above
+        .extra == {"confidence": 0.6}
 
 
 def test_objects_mode_keeps_stage_ones_whole_objects_over_dense_parts():

@@ -212,18 +212,17 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     ``params.mode == "dense"``: the dense RPs only. ``"both"``: stage I's RPs first, then
     each dense RP without its instances that overlap a stage-I instance (IOD above
     ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
-    ``"objects"``: the dense RPs (whole objects) first, then each stage-I RP without its
-    instances that overlap a dense instance the same way (a keypoint RP on parts of the
-    objects is absorbed by them), kept when ``params.min_instances`` remain. Before that,
-    a dense RP that holds parts of a stage-I RP's objects (:func:`parts_of`: objects
-    larger than the dense source's blobs, found whole by stage I) is dropped: the whole
-    objects stay, not their parts.
+    ``"objects"``: the dense RPs (whole objects), less those that hold parts of a
+    stage-I RP's objects (:func:`parts_of`: objects larger than the dense source's
+    blobs, found whole by stage I), then stage I's RPs as they are: which of two
+    overlapping RPs keeps the objects is decided by their confidence, once they are
+    scored (:func:`split_by_confidence`).
     """
     if params.mode == "dense":
         out = list(dense)
     elif params.mode == "objects":
-        dense = [d for d in dense if not any(parts_of(d, s, params) for s in sparse)]
-        out = list(dense) + _without_overlap(sparse, dense, params)
+        out = [d for d in dense if not any(parts_of(d, s, params) for s in sparse)]
+        out += list(sparse)
     else:
         out = list(sparse) + _without_overlap(dense, sparse, params)
     for k, p in enumerate(out):
@@ -262,44 +261,54 @@ def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: Dens
     above ``params.overlap_iod`` either way), those with ``params.min_instances`` left;
     feature points follow their instances."""
     taken = np.array([i.bbox for p in first for i in p.instances], float).reshape(-1, 4)
-    out = []
-    for p in patterns:
-        b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
-        ok = (np.ones(len(b), bool) if not len(taken)
-              else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
-        if ok.sum() < params.min_instances:
-            continue
-        fp = p.feature_points
-        if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
-            fp = np.asarray(fp)[:, ok]
-        out.append(Pattern(id=0, score=p.score, feature_points=fp, extra=dict(p.extra),
-                           instances=[i for i, k in zip(p.instances, ok) if k]))
-    return out
+    out = [_less_overlap(p, taken, params) for p in patterns]
+    return [p for p in out if p is not None]
+
+
+def _less_overlap(p: Pattern, taken: np.ndarray, params: DenseParams) -> Pattern | None:
+    """``p`` less its instances that overlap a box of ``taken`` (IOD above
+    ``params.overlap_iod`` either way; feature points follow their instances), or None
+    when fewer than ``params.min_instances`` remain."""
+    b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+    ok = (np.ones(len(b), bool) if not len(taken)
+          else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
+    if ok.sum() < params.min_instances:
+        return None
+    if ok.all():
+        return p
+    fp = p.feature_points
+    if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
+        fp = np.asarray(fp)[:, ok]
+    return Pattern(id=p.id, score=p.score, feature_points=fp, extra=dict(p.extra),
+                   instances=[i for i, k in zip(p.instances, ok) if k])
 
 
 def split_by_confidence(res: ImageResult, min_confidence: float,
-                        parts: DenseParams | None = None) -> None:
+                        params: DenseParams | None = None) -> None:
     """Report the confident RPs of ``res``, most confident first; the others go to
     ``res.extra["candidate_patterns"]`` (their JSON, for experts, with ``"dropped"``
     saying why; not analysed further), in place; ids of both lists renumbered 0.. .
 
     An RP whose ``extra["confidence"]`` is below ``min_confidence`` is dropped
-    (``"low confidence"``); with ``parts``, so is an RP that holds parts of the objects
-    of a more confident reported one (:func:`parts_of` with those parameters:
-    ``"parts"``), e.g. the rims and gaps around coins found whole. An RP without a
-    confidence is reported, after those with one. ``res.extra["n_candidate_patterns"]``
-    counts the dropped ones.
+    (``"low confidence"``). With ``params`` (:class:`DenseParams`), the more confident
+    of two overlapping RPs keeps the objects: going down the confidences, an RP loses its
+    instances that overlap a reported RP's (IOD above ``params.overlap_iod`` either way)
+    and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``), or
+    when it holds parts of a reported RP's objects (:func:`parts_of`: ``"parts"``, e.g.
+    the rims and gaps around coins found whole). An RP without a confidence is reported,
+    after those with one. ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
 
     >>> from rescu.types import Instance, Pattern
     >>> rp = lambda c, boxes: Pattern(id=0, score=1.0, extra={"confidence": c},
     ...     instances=[Instance(bbox=b, score=1.0, source="stage1") for b in boxes])
     >>> coins = [(0, 0, 40, 40), (60, 0, 40, 40), (120, 0, 40, 40)]
     >>> rims = [(x + 15, -4, 10, 8) for x, _, _, _ in coins]
-    >>> r = ImageResult(image="x", width=160, height=40, method="rescu-i",
-    ...                 patterns=[rp(0.5, rims), rp(0.2, coins[:2]), rp(0.9, coins)])
+    >>> halves = [(x + dx, 0, 20, 40) for x, _, _, _ in coins for dx in (0, 20)]
+    >>> r = ImageResult(image="x", width=160, height=40, method="rescu-i", patterns=[
+    ...     rp(0.5, rims), rp(0.2, coins[:2]), rp(0.8, halves), rp(0.9, coins)])
     >>> split_by_confidence(r, 0.3, DenseParams.from_dict(None))
     >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
-    ([3], ['parts', 'low confidence'])
+    ([3], ['overlap', 'parts', 'low confidence'])
     """
     order = sorted(range(len(res.patterns)), key=lambda k: (
         "confidence" not in res.patterns[k].extra,
@@ -307,14 +316,23 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     kept: list[Pattern] = []
     dropped: list[tuple[Pattern, str]] = []
     for k in order:
-        p = res.patterns[k]
+        p: Pattern | None = res.patterns[k]
         c = p.extra.get("confidence")
         if c is not None and float(c) < min_confidence:
             dropped.append((p, "low confidence"))
-        elif parts is not None and any(parts_of(p, q, parts) for q in kept):
-            dropped.append((p, "parts"))
-        else:
-            kept.append(p)
+            continue
+        if params is not None and c is not None:
+            taken = np.array([i.bbox for q in kept for i in q.instances],
+                             float).reshape(-1, 4)
+            less = _less_overlap(p, taken, params)
+            if less is None:
+                dropped.append((p, "overlap"))
+                continue
+            if any(parts_of(less, q, params) for q in kept):
+                dropped.append((p, "parts"))
+                continue
+            p = less
+        kept.append(p)
     for k, p in enumerate(kept):
         p.id = k
     res.patterns = kept
