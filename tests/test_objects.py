@@ -252,7 +252,7 @@ def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
     split_by_confidence(res, 0.3, _params())
     assert [p.extra["confidence"] for p in res.patterns] == [0.9, 0.6]   # most confident first
     assert [(c["confidence"], c["dropped"]) for c in res.extra["candidate_patterns"]] == \
-        [(0.5, "parts")]
+        [(0.5, "same objects")]
     res.patterns.append(rims)
     split_by_confidence(res, 0.3)                                        # no parts check
     assert len(res.patterns) == 3

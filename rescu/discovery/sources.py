@@ -55,7 +55,8 @@ class DenseParams:
         (:func:`dense_patterns`).
     overlap_iod : float
         ``mode="both"``: a dense instance whose IOD with a stage-I instance (either way)
-        exceeds this is dropped.
+        exceeds this is dropped; ``mode="objects"``: the same for an RP's instance and a
+        more confident reported RP's (:func:`split_by_confidence`).
     max_touching : float
         A dense RP whose instances abut others of the RP on more than this many sides
         on average (of 4; :func:`rescu.extension.dense.touching_sides`) tiles the plane
@@ -230,11 +231,13 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     return out
 
 
-def parts_of(part: Pattern, whole: Pattern, params: DenseParams) -> bool:
+def parts_of(part: Pattern, whole: Pattern, params: DenseParams,
+             any_size: bool = False) -> bool:
     """Whether the RP ``part`` holds parts of the objects of the RP ``whole``: at least
     ``params.part_cover`` of its boxes have their centre inside a box of ``whole`` grown
     ``params.part_reach`` times about its centre (stage I's boxes hug the keypoints, so
-    an object's corners stick out of them) and at most ``params.part_area`` of its area.
+    an object's corners stick out of them) and at most ``params.part_area`` of its area
+    (``any_size``: of any area: the same objects, described again).
 
     >>> from rescu.types import Instance, Pattern
     >>> rp = lambda boxes: Pattern(id=0, score=1.0, instances=[
@@ -251,8 +254,9 @@ def parts_of(part: Pattern, whole: Pattern, params: DenseParams) -> bool:
         return False
     d = np.abs((a[:, None, :2] + a[:, None, 2:] / 2) - (b[None, :, :2] + b[None, :, 2:] / 2))
     near = (d <= params.part_reach / 2 * b[None, :, 2:]).all(2)
-    smaller = (a[:, 2] * a[:, 3])[:, None] <= params.part_area * (b[:, 2] * b[:, 3])[None, :]
-    return bool((near & smaller).any(1).mean() >= params.part_cover)
+    if not any_size:
+        near &= (a[:, 2] * a[:, 3])[:, None] <= params.part_area * (b[:, 2] * b[:, 3])[None, :]
+    return bool(near.any(1).mean() >= params.part_cover)
 
 
 def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: DenseParams
@@ -294,8 +298,9 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     of two overlapping RPs keeps the objects: going down the confidences, an RP loses its
     instances that overlap a reported RP's (IOD above ``params.overlap_iod`` either way)
     and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``), or
-    when it holds parts of a reported RP's objects (:func:`parts_of`: ``"parts"``, e.g.
-    the rims and gaps around coins found whole). An RP without a confidence is reported,
+    when its boxes sit on a reported RP's objects (:func:`parts_of` of any size:
+    ``"same objects"``; e.g. the rims and gaps around coins found whole, or the halves
+    of objects that stage I found whole): one RP per set of objects. An RP without a confidence is reported,
     after those with one. ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
 
     >>> from rescu.types import Instance, Pattern
@@ -308,7 +313,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     ...     rp(0.5, rims), rp(0.2, coins[:2]), rp(0.8, halves), rp(0.9, coins)])
     >>> split_by_confidence(r, 0.3, DenseParams.from_dict(None))
     >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
-    ([3], ['overlap', 'parts', 'low confidence'])
+    ([3], ['overlap', 'same objects', 'low confidence'])
     """
     order = sorted(range(len(res.patterns)), key=lambda k: (
         "confidence" not in res.patterns[k].extra,
@@ -328,8 +333,8 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             if less is None:
                 dropped.append((p, "overlap"))
                 continue
-            if any(parts_of(less, q, params) for q in kept):
-                dropped.append((p, "parts"))
+            if any(parts_of(less, q, params, any_size=True) for q in kept):
+                dropped.append((p, "same objects"))
                 continue
             p = less
         kept.append(p)

@@ -34,9 +34,9 @@ symmetry steps use their instance centres where they need points. Instances carr
 ``source="stage1"`` (found before stage II) and the pattern ``extra["source"] =
 "dense"``.
 
-Measured on every image of ``../shared/data`` in ``docs/results.md`` (section "Dense
-source"); off by default (config ``dense.enabled``) because on facades it costs
-precision.
+Measured on every image of ``../shared/data`` in ``docs/results.md`` (section "Whole
+objects"); on by default (config ``dense.enabled``), in mode ``objects`` with the whole
+objects of :mod:`rescu.extension.objects`.
 """
 
 from __future__ import annotations
