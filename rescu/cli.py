@@ -327,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     dense.add_argument("--dense", action="store_true",
                        help="whole objects that recur in the CNN feature map (coins, cars from "
                             "above, chess pieces) beside stage I's RPs, every RP's confidence "
-                            "scored, those below dense.min_confidence or on parts of a more "
+                            "scored, those below dense.min_confidence or sitting on a more "
                             "confident RP's objects hidden (the default; "
                             "--set dense.enabled=true)")
     dense.add_argument("--no-dense", action="store_true",

@@ -163,30 +163,38 @@ def _pat(boxes, **extra):
 
 def test_objects_mode_gives_the_objects_to_the_more_confident_rp():
     """Mode objects lists the dense RPs, then stage I's as they are; once scored, going
-    down the confidences an RP loses its instances on a more confident RP's objects
-    (feature points follow), and is dropped when too few remain."""
+    down the confidences an RP mostly on a more confident RP's objects is dropped, and
+    one partly on them loses those instances (feature points follow), and is dropped when
+    too few remain."""
     objs = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], source="dense",
                 confidence=0.9)
-    parts = _pat([[5, 5, 10, 10], [65, 5, 10, 10], [125, 5, 10, 10], [5, 200, 10, 10],
-                  [60, 200, 10, 10]], confidence=0.5)
-    parts.feature_points = np.arange(2 * 5 * 2, dtype=float).reshape(2, 5, 2)
+    mostly = _pat([[5, 5, 10, 10], [65, 5, 10, 10], [125, 5, 10, 10], [5, 200, 10, 10],
+                   [60, 200, 10, 10]], confidence=0.5)
+    partly = _pat([[5, 5, 10, 10], [65, 5, 10, 10], [5, 200, 10, 10], [60, 200, 10, 10],
+                   [120, 200, 10, 10]], confidence=0.5)
+    partly.feature_points = np.arange(2 * 5 * 2, dtype=float).reshape(2, 5, 2)
     other = _pat([[0, 100, 30, 30], [50, 100, 30, 30], [100, 100, 30, 30]], confidence=0.6)
     p = _params(mode="objects", min_instances=3)
-    out = combine_sources([parts, other], [objs], p)
+    out = combine_sources([mostly, other], [objs], p)
     assert [len(q.instances) for q in out] == [3, 5, 3] and [q.id for q in out] == [0, 1, 2]
     assert out[0].extra["source"] == "dense"
     res = ImageResult(image="x", width=200, height=220, method="rescu-i", patterns=out)
     split_by_confidence(res, 0.3, p)
     assert [q.extra["confidence"] for q in res.patterns] == [0.9, 0.6]
-    assert res.extra["candidate_patterns"][0]["dropped"] == "overlap"
-    p2 = _params(mode="objects", min_instances=2)
+    assert res.extra["candidate_patterns"][0]["dropped"] == "same objects"
     res = ImageResult(image="x", width=200, height=220, method="rescu-i",
-                      patterns=combine_sources([parts, other], [objs], p2))
-    split_by_confidence(res, 0.3, p2)
+                      patterns=combine_sources([partly, other], [objs], p))
+    split_by_confidence(res, 0.3, p)
     kept = res.patterns[2]
-    assert len(kept.instances) == 2 and kept.feature_points.shape == (2, 2, 2)
-    assert np.array_equal(kept.feature_points, parts.feature_points[:, 3:])
-    assert len(parts.instances) == 5                     # the input is not changed
+    assert len(kept.instances) == 3 and kept.feature_points.shape == (2, 3, 2)
+    assert np.array_equal(kept.feature_points, partly.feature_points[:, 2:])
+    assert len(partly.instances) == 5                    # the input is not changed
+    res = ImageResult(image="x", width=200, height=220, method="rescu-i",
+                      patterns=combine_sources([partly, other], [objs],
+                                               _params(mode="objects", min_instances=4)))
+    split_by_confidence(res, 0.3, _params(mode="objects", min_instances=4))
+    assert [(c["count"], c["dropped"]) for c in res.extra["candidate_patterns"]] == \
+        [(5, "overlap")]                # other keeps its 3: none of them was taken
     # the more confident RP keeps the objects whatever its source
     whole = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], confidence=0.95)
     halves = _pat([[x + dx, 0, 20, 40] for x in (0, 60, 120) for dx in (0, 20)],

@@ -271,15 +271,15 @@ def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: Dens
 
 def _less_overlap(p: Pattern, taken: np.ndarray, params: DenseParams) -> Pattern | None:
     """``p`` less its instances that overlap a box of ``taken`` (IOD above
-    ``params.overlap_iod`` either way; feature points follow their instances), or None
-    when fewer than ``params.min_instances`` remain."""
+    ``params.overlap_iod`` either way; feature points follow their instances): ``p``
+    itself when none does, None when fewer than ``params.min_instances`` remain."""
     b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
     ok = (np.ones(len(b), bool) if not len(taken)
           else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
-    if ok.sum() < params.min_instances:
-        return None
     if ok.all():
         return p
+    if ok.sum() < params.min_instances:
+        return None
     fp = p.feature_points
     if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
         fp = np.asarray(fp)[:, ok]
@@ -297,10 +297,10 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     (``"low confidence"``). With ``params`` (:class:`DenseParams`), the more confident
     of two overlapping RPs keeps the objects: going down the confidences, an RP loses its
     instances that overlap a reported RP's (IOD above ``params.overlap_iod`` either way)
-    and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``), or
-    when its boxes sit on a reported RP's objects (:func:`parts_of` of any size:
-    ``"same objects"``; e.g. the rims and gaps around coins found whole, or the halves
-    of objects that stage I found whole): one RP per set of objects. An RP without a confidence is reported,
+    and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``); before
+    that, it is dropped when its boxes sit on a reported RP's objects (:func:`parts_of`
+    of any size: ``"same objects"``; e.g. the rims and gaps around coins found whole, or
+    the halves of objects that stage I found whole): one RP per set of objects. An RP without a confidence is reported,
     after those with one. ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
 
     >>> from rescu.types import Instance, Pattern
@@ -313,7 +313,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     ...     rp(0.5, rims), rp(0.2, coins[:2]), rp(0.8, halves), rp(0.9, coins)])
     >>> split_by_confidence(r, 0.3, DenseParams.from_dict(None))
     >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
-    ([3], ['overlap', 'same objects', 'low confidence'])
+    ([3], ['same objects', 'same objects', 'low confidence'])
     """
     order = sorted(range(len(res.patterns)), key=lambda k: (
         "confidence" not in res.patterns[k].extra,
@@ -327,14 +327,14 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             dropped.append((p, "low confidence"))
             continue
         if params is not None and c is not None:
+            if any(parts_of(p, q, params, any_size=True) for q in kept):
+                dropped.append((p, "same objects"))
+                continue
             taken = np.array([i.bbox for q in kept for i in q.instances],
                              float).reshape(-1, 4)
             less = _less_overlap(p, taken, params)
             if less is None:
                 dropped.append((p, "overlap"))
-                continue
-            if any(parts_of(less, q, params, any_size=True) for q in kept):
-                dropped.append((p, "same objects"))
                 continue
             p = less
         kept.append(p)

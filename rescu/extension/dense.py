@@ -494,7 +494,8 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
     (:func:`rescu.extension.objects.score_patterns` on the map of :func:`dense_map`, one
     backbone pass, only when a pattern needs it), and those below
-    ``dense.min_confidence`` or holding parts of a more confident RP's objects move to
+    ``dense.min_confidence``, sitting on a more confident RP's objects or left with too few
+    instances by one move to
     ``candidate_patterns``, the others reported most confident first
     (:func:`rescu.discovery.sources.split_by_confidence`), in place. Nothing in the other
     modes or after a failed dense step (``found``'s failure).
