@@ -262,8 +262,9 @@ def parts_of(part: Pattern, whole: Pattern, params: DenseParams,
 def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: DenseParams
                      ) -> list[Pattern]:
     """Each of ``patterns`` less its instances that overlap an instance of ``first`` (IOD
-    above ``params.overlap_iod`` either way), those with ``params.min_instances`` left;
-    feature points follow their instances."""
+    above ``params.overlap_iod`` either way; :func:`_less_overlap`): those none of whose
+    instances overlap, and those with ``params.min_instances`` left; feature points
+    follow their instances."""
     taken = np.array([i.bbox for p in first for i in p.instances], float).reshape(-1, 4)
     out = [_less_overlap(p, taken, params) for p in patterns]
     return [p for p in out if p is not None]
@@ -300,8 +301,9 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``); before
     that, it is dropped when its boxes sit on a reported RP's objects (:func:`parts_of`
     of any size: ``"same objects"``; e.g. the rims and gaps around coins found whole, or
-    the halves of objects that stage I found whole): one RP per set of objects. An RP without a confidence is reported,
-    after those with one. ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
+    the halves of objects that stage I found whole): one RP per set of objects. An RP
+    without a confidence is reported, after those with one.
+    ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
 
     >>> from rescu.types import Instance, Pattern
     >>> rp = lambda c, boxes: Pattern(id=0, score=1.0, extra={"confidence": c},
@@ -321,7 +323,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     kept: list[Pattern] = []
     dropped: list[tuple[Pattern, str]] = []
     for k in order:
-        p: Pattern | None = res.patterns[k]
+        p = res.patterns[k]
         c = p.extra.get("confidence")
         if c is not None and float(c) < min_confidence:
             dropped.append((p, "low confidence"))

@@ -493,10 +493,9 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
                     meta: dict[str, Any], backbone: Any = None) -> None:
     """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
     (:func:`rescu.extension.objects.score_patterns` on the map of :func:`dense_map`, one
-    backbone pass, only when a pattern needs it), and those below
-    ``dense.min_confidence``, sitting on a more confident RP's objects or left with too few
-    instances by one move to
-    ``candidate_patterns``, the others reported most confident first
+    backbone pass, only when a pattern needs it); those below ``dense.min_confidence``,
+    sitting on a more confident RP's objects, or left with too few instances by one move
+    to ``candidate_patterns``, the others are reported most confident first
     (:func:`rescu.discovery.sources.split_by_confidence`), in place. Nothing in the other
     modes or after a failed dense step (``found``'s failure).
 
