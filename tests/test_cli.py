@@ -22,14 +22,22 @@ def rescu(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([str(RESCU), *args], capture_output=True, text=True, timeout=600)
 
 
-def shelf_photo(path: Path) -> Path:
-    """A photo from outside any dataset: five copies of one object on a shelf."""
+def shelf_photo(path: Path, tins: bool = False) -> Path:
+    """A photo from outside any dataset: five copies of one object on a shelf; with
+    ``tins``, six round tins (34 px) on the floor below it as well."""
+    import cv2
+
     rng = np.random.default_rng(7)
     img = np.full((300, 520, 3), (150, 120, 90), np.uint8)
     img += rng.integers(0, 12, img.shape, dtype=np.uint8)
     obj = rng.integers(0, 255, (10, 8, 3), dtype=np.uint8).repeat(7, 0).repeat(7, 1)
     for k in range(5):
         img[110:180, 30 + k * 95:86 + k * 95] = obj
+    if tins:
+        for k in range(6):
+            c = (50 + k * 84, 245)
+            cv2.circle(img, c, 17, (40, 60, 170), -1)
+            cv2.circle(img, c, 9, (220, 210, 60), -1)
     Image.fromarray(img).save(path)
     return path
 
@@ -65,7 +73,9 @@ def test_discover_on_own_photo_and_bad_file(tmp_path):
 
 
 def test_discover_dense_adds_the_dense_source(tmp_path):
-    photo = shelf_photo(tmp_path / "shelf.png")
+    # the five objects' random blocks give the dense source only sub-object specks (below
+    # dense.min_object_px); the tins are what it finds
+    photo = shelf_photo(tmp_path / "shelf.png", tins=True)
     # mode both: stage I's RPs first, every RP reported (mode objects, the default of
     # --dense, scores and may hide RPs: tests/test_objects.py)
     out = rescu("discover", str(photo), "--out", str(tmp_path / "out"), "--method", "rescu-i",
@@ -80,7 +90,7 @@ def test_discover_dense_adds_the_dense_source(tmp_path):
 
 def test_discover_objects_profile(tmp_path):
     # --objects: only the dense source's RPs (stage I's five-object RP is not used)
-    photo = shelf_photo(tmp_path / "shelf.png")
+    photo = shelf_photo(tmp_path / "shelf.png", tins=True)
     out = rescu("discover", str(photo), "--out", str(tmp_path / "out"), "--method", "rescu-i",
                 "--objects", "--quiet")
     assert out.returncode == 0, out.stderr

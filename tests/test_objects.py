@@ -98,6 +98,41 @@ def test_a_scene_with_nothing_repeated_reports_no_rp():
     assert res.patterns == [], [q.extra for q in res.patterns]
 
 
+def test_the_fine_map_finds_objects_too_small_for_the_coarse_one():
+    # 1600 px wide (not resized for the coarse map), discs 29 px across: under two
+    # stride-16 cells of the coarse map, three of the fine one (x1.5, capped at 2400 px)
+    img, truth = _discs(np.random.default_rng(4), rows=5, cols=9, r=14, gap=120,
+                        size=(1600, 900))
+    coarse = find_dense(img, _params(fine_scale=1.0))
+    assert all(q.extra["level"] == 0 for q in coarse)
+    assert not any((iou_matrix(np.array([i.bbox for i in q.instances]), truth).max(0) > 0.5)
+                   .sum() > len(truth) // 4 for q in coarse)
+    pats = find_dense(img, _params())
+    best = max(pats, key=lambda q: q.extra["confidence"])
+    iou = iou_matrix(np.array([i.bbox for i in best.instances]), truth)
+    assert best.extra["level"] == 1
+    assert (iou.max(0) > 0.5).sum() >= 0.9 * len(truth), (iou.max(0) > 0.5).sum()
+    assert (iou.max(1) > 0.5).mean() >= 0.9
+
+
+def test_specks_are_not_objects():
+    # a grid of 5-px bright specks on a noisy floor (highlights, dust): enlarged, the fine
+    # map would see them as blobs, but they are below min_object_px of the prepared image
+    import cv2
+
+    rng = np.random.default_rng(5)
+    img = np.clip(120 + rng.normal(0, 6, (480, 640, 3)), 0, 255)
+    centres = [(40 + 50 * j, 40 + 50 * i) for i in range(8) for j in range(12)]
+    for c in centres:
+        cv2.circle(img, c, 2, (250, 250, 240), -1)
+    img = img.astype(np.uint8)
+    for q in find_dense(img, _params()):
+        side = np.median([np.sqrt(i.bbox[2] * i.bbox[3]) for i in q.instances])
+        assert side >= _params().min_object_px / 1.0, (side, q.extra)
+    with_specks = find_dense(img, _params(min_object_px=0, min_map_px=0))
+    assert any(np.median([i.bbox[2] for i in q.instances]) < 12 for q in with_specks)
+
+
 def test_completion_finds_the_members_the_blobs_missed():
     rng = np.random.default_rng(2)
     f = 0.05 * rng.normal(size=(8, 40, 60))
@@ -281,7 +316,10 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
 @pytest.mark.parametrize("key,value", [("mode", "everything"), ("max_candidates", 1),
                                        ("part_cover", 0.0), ("min_confidence", 1.5),
                                        ("part_area", 0.0), ("part_reach", 0.5),
-                                       ("extent_scales", []), ("confidence_gap_scale", 0)])
+                                       ("extent_scales", []), ("confidence_gap_scale", 0),
+                                       ("fine_scale", 0.5), ("fine_max_side", 32),
+                                       ("fine_sizes", []), ("min_map_px", -1),
+                                       ("min_object_px", -2)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

@@ -49,15 +49,16 @@ def _image(png: Path, meta: Path, s1_json: Path, params: Any, backbone: Any
     pixels) for one image."""
     from rescu import io, pipeline
     from rescu.discovery.sources import combine_sources
-    from rescu.extension.dense import dense_map, find_dense
+    from rescu.extension.dense import dense_levels, find_dense
     from rescu.extension.objects import score_patterns
 
     rgb, m = pipeline.read_prepared(str(png), str(meta))
     sf = float(m["scale_factor"])
     sparse = io.read_result(s1_json).patterns
-    dense = find_dense(rgb, params, backbone, scale_factor=sf)
+    levels = dense_levels(rgb, params, backbone)
+    dense = find_dense(rgb, params, backbone, scale_factor=sf, levels=levels)
     both = combine_sources(copy.deepcopy(sparse), copy.deepcopy(dense), params)
-    score_patterns(rgb, both, sf, params, *dense_map(rgb, params, backbone))
+    score_patterns(rgb, both, sf, params, *levels[0])
     return sparse, dense, both
 
 

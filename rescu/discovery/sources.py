@@ -41,7 +41,20 @@ class DenseParams:
         in feature cells, so small photos would leave small objects under the smallest
         size); ``<= max_side``.
     sizes : tuple of int
-        Blob sides, feature cells (one cell = 8 backbone-input pixels).
+        Blob sides on the coarse map, feature cells (one cell = 8 backbone-input pixels).
+    fine_scale : float
+        The fine map (:func:`rescu.extension.dense.dense_levels`) is of the image
+        enlarged this many times more than the coarse one, for objects too small for the
+        coarse map; 1 leaves it out.
+    fine_max_side : int
+        Longer side of the fine map's input at most, pixels (bounds its cost).
+    fine_sizes : tuple of int
+        Blob sides on the fine map, feature cells.
+    min_map_px : float
+        A dense RP's instances must span this many pixels of its map's input (median box
+        side; two cells of the stride-16 half are 32).
+    min_object_px : float
+        ... and this many pixels of the prepared image.
     surround : int
         Side of the surround window / blob side (odd, >= 3).
     max_blobs : int
@@ -114,6 +127,11 @@ class DenseParams:
     max_side: int
     min_side: int
     sizes: tuple[int, ...]
+    fine_scale: float
+    fine_max_side: int
+    fine_sizes: tuple[int, ...]
+    min_map_px: float
+    min_object_px: float
     surround: int
     max_blobs: int
     min_similarity: float
@@ -147,6 +165,15 @@ class DenseParams:
             raise ValueError(f"dense.mode must be one of {MODES}, got {self.mode!r}")
         if not self.sizes or any(int(s) < 1 for s in self.sizes):
             raise ValueError(f"dense.sizes must be positive cell counts, got {self.sizes}")
+        if not self.fine_sizes or any(int(s) < 1 for s in self.fine_sizes):
+            raise ValueError("dense.fine_sizes must be positive cell counts, got "
+                             f"{self.fine_sizes}")
+        if self.fine_scale < 1 or self.fine_max_side < 64:
+            raise ValueError("dense.fine_scale must be >= 1 and fine_max_side >= 64, got "
+                             f"{self.fine_scale}, {self.fine_max_side}")
+        if self.min_map_px < 0 or self.min_object_px < 0:
+            raise ValueError("dense.min_map_px and min_object_px must be >= 0, got "
+                             f"{self.min_map_px}, {self.min_object_px}")
         if self.surround < 3 or self.surround % 2 == 0:
             raise ValueError(f"dense.surround must be odd and >= 3, got {self.surround}")
         if not 0.0 < self.min_similarity < 1.0:
@@ -198,8 +225,9 @@ class DenseParams:
     def from_dict(cls, d: Mapping[str, Any] | None) -> "DenseParams":
         """From the ``dense`` section (None: the defaults); unknown keys raise ValueError."""
         d = checked_mapping(cls, d, "dense parameter")
-        if "sizes" in d:
-            d["sizes"] = tuple(int(s) for s in d["sizes"])
+        for k in ("sizes", "fine_sizes"):
+            if k in d:
+                d[k] = tuple(int(s) for s in d[k])
         for k in ("extent_scales", "extent_aspects", "extent_shifts"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])

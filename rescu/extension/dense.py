@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import hashlib
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -56,7 +56,8 @@ from .objects import box_cells, integral_map, touching_sides
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
-           "objectness_for", "dense_map", "find_dense", "score_and_split"]
+           "objectness_for", "dense_map", "dense_levels", "level_candidates", "find_dense",
+           "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -207,16 +208,19 @@ class DenseCandidate:
         group's mean feature with the image's mean feature)
     touching : float, mean :func:`touching_sides` of the boxes (0..4)
     emb : (n, C) float32 or None, the blobs' unit mean features (row i of box i)
+    level : int, the map it was found on (index in :func:`dense_levels`; 0 the coarse
+        one), whose pixels ``boxes`` are in
     """
 
     boxes: np.ndarray
     score: float
     touching: float
     emb: np.ndarray | None = None
+    level: int = 0
 
 
-def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams,
+                   sizes: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The blobs the dense RPs are grouped from: :func:`feature_blobs`, strongest first,
     less each blob that overlaps a stronger one (cover > 0.5, any size: the same thing).
 
@@ -225,14 +229,16 @@ def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams
     f : (C, h, w) float32 (:func:`hypercolumn`)
     cell_px : backbone-input pixels per cell (8)
     params : DenseParams (``sizes``, ``surround``, ``max_blobs``)
+    sizes : blob sides, cells (None: ``params.sizes``)
 
     Returns
     -------
     boxes : (n, 4) float, ``[x, y, w, h]`` in backbone-input pixels
     emb : (n, C) float32, each blob's unit mean feature
     """
-    cells, _, emb = feature_blobs(f, params.sizes, params.surround, params.max_blobs)
-    boxes = blob_boxes(cells, params.sizes, cell_px)
+    sizes = params.sizes if sizes is None else tuple(sizes)
+    cells, _, emb = feature_blobs(f, sizes, params.surround, params.max_blobs)
+    boxes = blob_boxes(cells, sizes, cell_px)
     keep = np.ones(len(boxes), bool)
     ov = cover_matrix(boxes, boxes) if len(boxes) else np.zeros((0, 0))
     for i in range(len(boxes)):
@@ -241,7 +247,8 @@ def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams
     return boxes[keep], emb[keep]
 
 
-def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
+def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
+                     sizes: Sequence[int] | None = None, level: int = 0
                      ) -> list[DenseCandidate]:
     """Every group of ``params.min_instances`` or more recurring blobs of one feature map
     (step 3 of the module docstring before the selection), best score first.
@@ -252,6 +259,8 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
     cell_px : backbone-input pixels per cell (8)
     params : DenseParams (``sizes``, ``surround``, ``max_blobs``, ``min_similarity``,
         ``min_instances``, ``touch_tolerance``)
+    sizes : blob sides, cells (None: ``params.sizes``)
+    level : the map's index in :func:`dense_levels`, given to each candidate
 
     Returns
     -------
@@ -259,7 +268,7 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
     """
     from sklearn.cluster import AgglomerativeClustering
 
-    boxes, emb = distinct_blobs(f, cell_px, params)
+    boxes, emb = distinct_blobs(f, cell_px, params, sizes)
     if len(boxes) < params.min_instances:
         return []
     labels = AgglomerativeClustering(n_clusters=None, metric="cosine", linkage="average",
@@ -278,7 +287,7 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams
         out.append(DenseCandidate(
             boxes=boxes[m], score=float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity,
             touching=float(touching_sides(boxes[m], params.touch_tolerance).mean()),
-            emb=emb[m]))
+            emb=emb[m], level=level))
     out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
     return out
 
@@ -339,9 +348,8 @@ def rank_candidates(cands: Sequence[DenseCandidate],
         if top is not None and len(out) >= top and \
                 c.score < sorted(x.score for x in out)[-top]:
             break
-        out.append(c if objectness_of is None else DenseCandidate(
-            boxes=c.boxes, score=c.score * objectness_of(c.boxes), touching=c.touching,
-            emb=c.emb))
+        out.append(c if objectness_of is None else
+                   replace(c, score=c.score * objectness_of(c.boxes)))
     out.sort(key=key)
     return out if top is None else out[:top]
 
@@ -435,15 +443,84 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     return out
 
 
+def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
+                 ) -> list[tuple[np.ndarray, float]]:
+    """The maps the dense source looks for objects on: the coarse one (:func:`dense_map`)
+    and, with ``params.fine_scale > 1``, a fine one of the image enlarged ``fine_scale``
+    times more (its longer side at most ``params.fine_max_side``), for objects too small
+    to span two cells of the coarse map's stride-16 half.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8, the prepared image
+    params : DenseParams (``backbone``, ``max_side``, ``min_side``, ``fine_scale``,
+        ``fine_max_side``)
+    backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
+
+    Returns
+    -------
+    list of ``(f, s)``: the coarse level first; ``f`` (C, h, w) float32
+    (:func:`hypercolumn`) of ``rgb`` resized by ``s`` (backbone-input pixels per
+    prepared-image pixel). The fine level is left out when it would enlarge the coarse
+    one by less than 5 %.
+    """
+    import cv2
+
+    from .backbone import FrozenBackbone
+
+    if backbone is None:
+        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+    f, s = dense_map(rgb, params, backbone)
+    out = [(f, s)]
+    longer = max(rgb.shape[:2])
+    s_fine = min(s * params.fine_scale, params.fine_max_side / longer)
+    if s_fine > 1.05 * s:
+        im = cv2.resize(np.asarray(rgb), None, fx=s_fine, fy=s_fine,
+                        interpolation=cv2.INTER_AREA if s_fine < 1 else cv2.INTER_LINEAR)
+        out.append((hypercolumn(backbone, im), float(s_fine)))
+    return out
+
+
+def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray,
+                     params: DenseParams, backbone: Any = None) -> list[DenseCandidate]:
+    """The groups of recurring blobs of every level (:func:`dense_candidates`, the coarse
+    map with ``params.sizes``, the fine one with ``params.fine_sizes``) that do not tile
+    the plane, ranked together by contrast x rarity [x objectness], best first, at most
+    ``params.max_candidates``.
+
+    Parameters
+    ----------
+    levels : :func:`dense_levels`
+    rgb : (H, W, 3) uint8, the prepared image (objectness crops)
+    params : DenseParams
+    backbone : FrozenBackbone, for the objectness (None: no objectness)
+
+    Returns
+    -------
+    list of :class:`DenseCandidate` (``level`` set; boxes in its level's pixels)
+    """
+    ranked: list[DenseCandidate] = []
+    for k, (f, s) in enumerate(levels):
+        sizes = params.sizes if k == 0 else params.fine_sizes
+        cands = [c for c in dense_candidates(f, 8.0, params, sizes, level=k)
+                 if c.touching <= params.max_touching]
+        of = None if backbone is None else objectness_for(rgb, s, params, backbone)
+        ranked += rank_candidates(cands, of, params.max_candidates)
+    ranked.sort(key=lambda c: (-c.score, c.level, c.boxes[0, 1], c.boxes[0, 0]))
+    return ranked[:params.max_candidates]
+
+
 def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
-               scale_factor: float = 1.0) -> list[Pattern]:
+               scale_factor: float = 1.0,
+               levels: Sequence[tuple[np.ndarray, float]] | None = None) -> list[Pattern]:
     """The dense source on one prepared image.
 
-    Groups of recurring blobs (:func:`dense_candidates`) that do not tile the plane,
-    ranked by contrast x rarity [x objectness] (:func:`rank_candidates`); with
-    ``params.whole_objects`` each is turned into an RP of whole objects
-    (:func:`rescu.extension.objects.whole_objects`: completion by exemplar correlation,
-    extent, one RP per object, confidence), else the first ``params.max_patterns`` are
+    Groups of recurring blobs on each map of :func:`dense_levels` that do not tile the
+    plane, ranked together by contrast x rarity [x objectness]
+    (:func:`level_candidates`); with ``params.whole_objects`` each is turned into an RP
+    of whole objects on its own map (:func:`rescu.extension.objects.whole_objects`:
+    completion by exemplar correlation, extent, size checks, one RP per object,
+    confidence), else the first ``params.max_patterns`` of the coarse map's groups are
     kept as they are (the blobs' squares).
 
     Parameters
@@ -452,13 +529,15 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     params : DenseParams
     backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
     scale_factor : processed = original x scale_factor (the prepared image's meta)
+    levels : :func:`dense_levels` of ``rgb`` when already computed
 
     Returns
     -------
     list of Pattern (ids 0..; instances in **original** pixels, ``source="stage1"``;
     ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``, with
     ``whole_objects`` also ``"confidence"`` (:func:`rescu.extension.objects.pattern_confidence`),
-    ``"seeds"`` (blobs of the group), ``"gap"`` and ``"extent"`` (the box transform))
+    ``"seeds"`` (blobs of the group), ``"gap"``, ``"extent"`` (the box transform) and
+    ``"level"`` (the map: 0 coarse, 1 fine))
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
@@ -470,17 +549,22 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     if backbone is None:
         backbone = FrozenBackbone(params.backbone, feature_stride=16)
     rgb = np.asarray(rgb)
-    f, s = dense_map(rgb, params, backbone)
+    if levels is None:
+        levels = dense_levels(rgb, params, backbone) if params.whole_objects \
+            else [dense_map(rgb, params, backbone)]
     to_orig = 1.0 / float(scale_factor)
-    cands = [c for c in dense_candidates(f, 8.0, params) if c.touching <= params.max_touching]
-    objectness_of = objectness_for(rgb, s, params, backbone)
+    use = backbone if params.objectness_crops else None
     pats = []
     if params.whole_objects:
-        ranked = rank_candidates(cands, objectness_of, params.max_candidates)
-        found = whole_objects(f, 8.0, s, rgb, ranked, params)
+        ranked = level_candidates(levels, rgb, params, use)
+        found = whole_objects(levels, 8.0, rgb, ranked, params)
     else:
+        f, s = levels[0]
+        cands = [c for c in dense_candidates(f, 8.0, params)
+                 if c.touching <= params.max_touching]
         found = [(c.score, c.boxes / s, {}) for c in
-                 rank_candidates(cands, objectness_of, params.max_patterns)]
+                 rank_candidates(cands, objectness_for(rgb, s, params, backbone),
+                                 params.max_patterns)]
     for k, (score, boxes, info) in enumerate(found):
         b = np.asarray(boxes, float) * to_orig
         pats.append(Pattern(id=k, score=float(score), instances=[

@@ -522,33 +522,45 @@ def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: fl
     return float(g * k * c)
 
 
-def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
-                  ranked: Sequence[Any], params: Any
+def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
+                  rgb: np.ndarray, ranked: Sequence[Any], params: Any
                   ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """RPs of whole objects from the dense source's ranked groups (steps 1-4 of the
-    module docstring).
+    module docstring), each group on the map it was found on.
+
+    A group whose objects are too small to be judged is skipped: their median side must
+    span ``params.min_map_px`` pixels of its map's input (two cells of the stride-16
+    half: a map cannot tell whether smaller things look alike) and
+    ``params.min_object_px`` pixels of the prepared image (enlarging an image adds no
+    detail: a few pixels of highlight stay a few pixels). A group that sits on the objects
+    of an RP already kept (most of its boxes, :func:`without_parts`) replaces that RP when
+    it is more confident (:func:`rp_confidence`; typically the same objects seen whole on
+    the coarse map and in parts on the fine one), else it is skipped.
 
     Parameters
     ----------
-    f : (C, h, w) float32, the feature map of ``rgb`` resized by ``s``
-        (:func:`rescu.extension.dense.dense_map`)
+    levels : list of ``(f, s)`` (:func:`rescu.extension.dense.dense_levels`): ``f``
+        (C, h, w) float32, the feature map of ``rgb`` resized by ``s``
     cell_px : pixels of the backbone input per cell (8)
-    s : backbone-input pixels per pixel of ``rgb``
     rgb : (H, W, 3) uint8, the prepared image
-    ranked : :class:`rescu.extension.dense.DenseCandidate` list, best first (with ``emb``)
+    ranked : :class:`rescu.extension.dense.DenseCandidate` list, best first (with ``emb``
+        and ``level``)
     params : :class:`rescu.discovery.sources.DenseParams`
 
     Returns
     -------
     list of ``(score, boxes, info)``, best first, at most ``params.max_patterns``: boxes
     (n, 4) ``[x, y, w, h]`` in pixels of ``rgb``, n >= ``params.min_instances``; info
-    ``{"confidence", "gap", "seeds", "extent"}`` (:func:`pattern_confidence`, the
-    number of blobs the group started from, the transform of :func:`refine_extent`)
+    ``{"confidence", "gap", "contrast", "seeds", "extent", "level"}``
+    (:func:`pattern_confidence`, the number of blobs the group started from, the
+    transform of :func:`refine_extent`, the map)
     """
     integrals = colour_integrals(rgb)
     out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
     taken = np.zeros((0, 4))
     for c in ranked:
+        level = int(getattr(c, "level", 0))
+        f, s = levels[level]
         boxes = np.asarray(c.boxes, float)               # the group's blobs, map pixels
         if params.complete and len(boxes):
             boxes = complete_group(f, cell_px, boxes, params.completion_margin,
@@ -566,16 +578,30 @@ def whole_objects(f: np.ndarray, cell_px: float, s: float, rgb: np.ndarray,
         if float(touching_sides(boxes, params.touch_tolerance).mean()) > params.max_touching:
             continue
         b = _clip(boxes / s, rgb.shape[1], rgb.shape[0])
-        b = without_parts(b, taken, params.part_cover, params.min_instances)
-        if b is None:
+        side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
+        if side < params.min_object_px or side * s < params.min_map_px:
             continue
-        taken = np.vstack([taken, b])
-        info = rp_confidence(f, cell_px, s, b, integrals, params)
-        out.append((float(c.score), b, {**info,
-                                        "seeds": int(len(c.boxes)),
-                                        "extent": [float(v) for v in t]}))
+        extra = {"seeds": int(len(c.boxes)), "extent": [float(v) for v in t], "level": level}
+        rivals = [k for k, (_, kb, _) in enumerate(out)
+                  if without_parts(b, kb, params.part_cover, params.min_instances) is None]
+        if rivals:
+            # the same objects as a kept RP (often the other map's view of them: parts
+            # on the fine map, whole objects on the coarse one): the more confident wins
+            info = rp_confidence(f, cell_px, s, b, integrals, params)
+            if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
+                continue
+            out = [o for k, o in enumerate(out) if k not in rivals]
+            taken = np.vstack([o[1] for o in out] + [np.zeros((0, 4))])
+        kept = without_parts(b, taken, params.part_cover, params.min_instances)
+        if kept is None:
+            continue
+        if not rivals or len(kept) < len(b):
+            info = rp_confidence(f, cell_px, s, kept, integrals, params)
+        taken = np.vstack([taken, kept])
+        out.append((float(c.score), kept, {**info, **extra}))
         if len(out) >= params.max_patterns:
             break
+    out.sort(key=lambda o: -o[0])
     return out
 
 
