@@ -71,8 +71,9 @@ def hypercolumn(backbone: Any, rgb: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    (C, ceil(H / 8), ceil(W / 8)) float32: each half L2-normalised per location and
-    scaled by 1 / sqrt(2), so every location has unit norm.
+    (C, H // 8, W // 8) float32 (EfficientNet-Lite0's maps round down): each half
+    L2-normalised per location and scaled by 1 / sqrt(2), so every location has unit
+    norm.
     """
     import torch
     import torch.nn.functional as F
