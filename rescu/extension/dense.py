@@ -482,6 +482,14 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     return out
 
 
+def _flat_candidates(f: np.ndarray, params: DenseParams,
+                     sizes: Sequence[int] | None = None, level: int = 0
+                     ) -> list[DenseCandidate]:
+    """:func:`dense_candidates` of one map less the groups that tile the plane."""
+    return [c for c in dense_candidates(f, 8.0, params, sizes, level)
+            if c.touching <= params.max_touching]
+
+
 def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray,
                      params: DenseParams, backbone: Any = None) -> list[DenseCandidate]:
     """The groups of recurring blobs of every level (:func:`dense_candidates`, the coarse
@@ -493,8 +501,8 @@ def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray
     ----------
     levels : :func:`dense_levels`
     rgb : (H, W, 3) uint8, the prepared image (objectness crops)
-    params : DenseParams
-    backbone : FrozenBackbone, for the objectness (None: no objectness)
+    params : DenseParams (``objectness_crops`` 0: no objectness)
+    backbone : FrozenBackbone, for the objectness (needed when ``objectness_crops`` > 0)
 
     Returns
     -------
@@ -502,11 +510,9 @@ def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray
     """
     ranked: list[DenseCandidate] = []
     for k, (f, s) in enumerate(levels):
-        sizes = params.sizes if k == 0 else params.fine_sizes
-        cands = [c for c in dense_candidates(f, 8.0, params, sizes, level=k)
-                 if c.touching <= params.max_touching]
-        of = None if backbone is None else objectness_for(rgb, s, params, backbone)
-        ranked += rank_candidates(cands, of, params.max_candidates)
+        cands = _flat_candidates(f, params, params.sizes if k == 0 else params.fine_sizes, k)
+        ranked += rank_candidates(cands, objectness_for(rgb, s, params, backbone),
+                                  params.max_candidates)
     ranked.sort(key=lambda c: (-c.score, c.level, c.boxes[0, 1], c.boxes[0, 0]))
     return ranked[:params.max_candidates]
 
@@ -554,17 +560,15 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
         levels = dense_levels(rgb, params, backbone) if params.whole_objects \
             else [dense_map(rgb, params, backbone)]
     to_orig = 1.0 / float(scale_factor)
-    use = backbone if params.objectness_crops else None
     pats = []
     if params.whole_objects:
-        ranked = level_candidates(levels, rgb, params, use)
+        ranked = level_candidates(levels, rgb, params, backbone)
         found = whole_objects(levels, 8.0, rgb, ranked, params)
     else:
         f, s = levels[0]
-        cands = [c for c in dense_candidates(f, 8.0, params)
-                 if c.touching <= params.max_touching]
         found = [(c.score, c.boxes / s, {}) for c in
-                 rank_candidates(cands, objectness_for(rgb, s, params, backbone),
+                 rank_candidates(_flat_candidates(f, params),
+                                 objectness_for(rgb, s, params, backbone),
                                  params.max_patterns)]
     for k, (score, boxes, info) in enumerate(found):
         b = np.asarray(boxes, float) * to_orig

@@ -557,7 +557,6 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     """
     integrals = colour_integrals(rgb)
     out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
-    taken = np.zeros((0, 4))
     for c in ranked:
         level = int(getattr(c, "level", 0))
         f, s = levels[level]
@@ -591,13 +590,12 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
-            taken = np.vstack([o[1] for o in out] + [np.zeros((0, 4))])
+        taken = np.vstack([o[1] for o in out] + [np.zeros((0, 4))])    # the kept RPs' boxes
         kept = without_parts(b, taken, params.part_cover, params.min_instances)
         if kept is None:
             continue
         if not rivals or len(kept) < len(b):
             info = rp_confidence(f, cell_px, s, kept, integrals, params)
-        taken = np.vstack([taken, kept])
         out.append((float(c.score), kept, {**info, **extra}))
         if len(out) >= params.max_patterns:
             break
