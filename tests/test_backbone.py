@@ -99,3 +99,24 @@ def test_pool_boxes_does_not_import_torchvision():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+def test_early_blocks_on_strips_give_the_whole_image_map(lite0, monkeypatch):
+    """Large inputs pass the early blocks in strips (memory); the maps are those of one
+    whole pass up to float rounding, and the halo is what makes them so."""
+    import rescu.extension.backbone as B
+
+    img = np.random.default_rng(3).integers(0, 255, (700, 300, 3), dtype=np.uint8)
+    monkeypatch.setattr(B, "STRIP_PX", 1 << 40)
+    whole8, whole16 = lite0.multiscale_maps(img)
+    whole = lite0.feature_map(img)
+    monkeypatch.setattr(B, "STRIP_PX", 1 << 15)           # strips of about 100 rows
+    s8, s16 = lite0.multiscale_maps(img)
+    assert s8.shape == whole8.shape and s16.shape == whole16.shape
+    tol = 1e-5 * float(whole8.abs().max())
+    assert float((s8 - whole8).abs().max()) < tol
+    assert float((s16 - whole16).abs().max()) < 1e-5 * float(whole16.abs().max())
+    assert float((lite0.feature_map(img) - whole).abs().max()) < 1e-5 * float(whole.abs().max())
+    monkeypatch.setattr(B, "STRIP_HALO", 16)              # too little context: not the same
+    short8, _ = lite0.multiscale_maps(img)
+    assert float((short8 - whole8).abs().max()) > 100 * tol

@@ -29,6 +29,15 @@ import numpy as np
 
 BACKBONES = ("efficientnet-lite0", "densenet121")
 
+#: EfficientNet-Lite0's early blocks (:meth:`FrozenBackbone._early`) run on strips of
+#: about this many input pixels when the input is larger ...
+STRIP_PX = 1 << 19
+#: ... each with this many rows of context above and below (a multiple of 8, the blocks'
+#: output stride). Their receptive field, stem to the last stride-8 block (3x3 stride 2;
+#: 3x3; 3x3 stride 2; 3x3; 5x5 stride 2; 5x5), is 67 rows: an output row sees at most 34
+#: input rows on either side, and 40 is the next multiple of 8 (32 is measurably short).
+STRIP_HALO = 40
+
 
 class BackboneWeightsError(FileNotFoundError):
     """The pretrained weights of a backbone are not available locally."""
@@ -161,13 +170,48 @@ class FrozenBackbone:
         return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))[None].to(
             self.device)
 
+    def _early(self, x):
+        """EfficientNet-Lite0's stem and blocks up to the last stride-8 one on a normalised
+        (B, 3, H, W) tensor -> (B, 40, ceil(H/8), ceil(W/8)).
+
+        Without gradients and on inputs of more than :data:`STRIP_PX` pixels, it runs on
+        horizontal strips of the input, each with :data:`STRIP_HALO` rows of context on
+        both sides, and the strips' outputs are stacked. These layers see a few dozen
+        input rows around an output, and every conv pads statically, so the stacked map
+        is the whole-image one (up to float rounding, about 1e-6 of its range), while the
+        largest tensors held at once (the first blocks' 96- and 144-channel expansions at
+        stride 2 and 4) are a strip's, not the image's.
+        """
+        torch = _torch()
+        m = self.model
+
+        def run(t):
+            t = m._swish(m._bn0(m._conv_stem(t)))
+            for idx in range(self._last8 + 1):
+                t = m._blocks[idx](t, drop_connect_rate=None)
+            return t
+
+        h, w = int(x.shape[2]), int(x.shape[3])
+        rows = max(STRIP_HALO, STRIP_PX // max(w, 1) // 8 * 8)
+        if torch.is_grad_enabled() or h * w <= STRIP_PX or h <= rows:
+            return run(x)
+        parts = []
+        for a in range(0, h, rows):
+            b = min(a + rows, h)
+            lo, hi = max(a - STRIP_HALO, 0), min(b + STRIP_HALO, h)
+            y = run(x[:, :, lo:hi])
+            top = (a - lo) // 8
+            n = (b - a) // 8 if b < h else y.shape[2] - top
+            parts.append(y[:, :, top:top + n])
+        return torch.cat(parts, 2)
+
     def forward_tensor(self, x):
         """Feature map of a normalised (B, 3, H, W) tensor -> (B, C, H', W')."""
         m = self.model
         if self.name == "efficientnet-lite0":
-            x = m._swish(m._bn0(m._conv_stem(x)))
-            for idx, block in enumerate(m._blocks):
-                x = block(x, drop_connect_rate=None)
+            x = self._early(x)
+            for idx in range(self._last8 + 1, len(m._blocks)):
+                x = m._blocks[idx](x, drop_connect_rate=None)
                 if self.stride == 16 and idx == self._last16:
                     return x
             return m._swish(m._bn1(m._conv_head(x)))
@@ -201,14 +245,10 @@ class FrozenBackbone:
         m = self.model
         with torch.no_grad():
             if self.name == "efficientnet-lite0":
-                x = m._swish(m._bn0(m._conv_stem(x)))
-                f8 = None
-                for idx, block in enumerate(m._blocks):
-                    x = block(x, drop_connect_rate=None)
-                    if idx == self._last8:
-                        f8 = x
-                    if idx == self._last16:
-                        return f8, x
+                x = f8 = self._early(x)
+                for idx in range(self._last8 + 1, self._last16 + 1):
+                    x = m._blocks[idx](x, drop_connect_rate=None)
+                return f8, x
             f8 = None
             for name, layer in m.features.named_children():
                 x = layer(x)
