@@ -268,7 +268,9 @@ def find_dense(prep: Prepared, params: dict[str, Any]) -> ImageResult:
 def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, Any],
                       method: str = "rescu-i", rgb: np.ndarray | None = None,
                       dense: ImageResult | None = None,
-                      dense_params: dict[str, Any] | None = None) -> tuple[ImageResult, Any]:
+                      dense_params: dict[str, Any] | None = None,
+                      dense_map: tuple[np.ndarray, float] | None = None
+                      ) -> tuple[ImageResult, Any]:
     """RESCU-I (``method="rescu-i"``, section ``stage1``) or GRASP (``"grasp"``, section
     ``grasp``) on one image's features.
 
@@ -279,7 +281,9 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
     (:func:`rescu.discovery.sources.add_dense`, section ``dense``) and, with ``rgb``,
     scored (:func:`rescu.extension.dense.score_and_split`). With ``dense.mode: dense`` and
     a dense result that did not fail, the stage-I search is skipped
-    (``extra["chosen_by"] == "skipped"``).
+    (``extra["chosen_by"] == "skipped"``). ``dense_map``: the dense step's coarse map of
+    ``rgb`` (:func:`rescu.extension.dense.dense_map`) when it was kept; without it the
+    scoring makes its own (one backbone pass).
 
     Returns the result (``method`` set, instances in original pixels) and the search's
     :class:`rescu.discovery.stage1.Stage1Output` (its RP matrices).
@@ -309,7 +313,7 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
             if rgb is not None:
                 from .extension.dense import score_and_split
 
-                score_and_split(res, found, dense_params, rgb, meta)
+                score_and_split(res, found, dense_params, rgb, meta, fmap=dense_map)
     res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                      objective=out.objective, n_features=len(feats))
     return res, out

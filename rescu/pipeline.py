@@ -181,14 +181,17 @@ def features(png: str, meta_path: str, out_h5: str, params: dict[str, Any]) -> F
 def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
            params: dict[str, Any], method: str = "rescu-i",
            png: str | None = None, dense_json: str | None = None,
-           dense_params: dict[str, Any] | None = None) -> Failure | None:
+           dense_params: dict[str, Any] | None = None,
+           dense_map_h5: str | None = None) -> Failure | None:
     """RESCU-I (``method="rescu-i"``) or GRASP (``"grasp"``) on one image's features
     (:func:`rescu.core.discover_patterns`).
 
     Writes the per-image JSON (``method`` set, instances in original pixels) and the RP
     matrices (feature indices) to HDF5. ``png`` (the prepared image) is what box
     refinement and the dense source's scoring look at; ``dense_json`` the :func:`dense`
-    step's result. A failed dense step, or a dense result that cannot be read, leaves
+    step's result, ``dense_map_h5`` the coarse feature map it kept (scoring then needs no
+    backbone pass; a map made with other settings is made again). A failed dense step,
+    or a dense result that cannot be read, leaves
     stage I's RPs alone and is recorded as ``extra["dense_failure"]``. With
     ``dense.mode: dense`` and a dense result that did not fail, the stage-I search is
     not run at all: the RP matrices file holds no RP, and ``extra["chosen_by"]`` is
@@ -204,8 +207,16 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         feats = F.load_features(features_h5)
         found = None if dense_json is None or method == "grasp" else read_dense(dense_json)
         rgb = None if png is None else read_prepared(png, meta_path)[0]
+        fmap = None
+        if dense_map_h5 is not None and found is not None and dense_params is not None:
+            from .extension.dense import DenseParams, load_map
+
+            try:
+                fmap = load_map(dense_map_h5, DenseParams.from_dict(dense_params))
+            except io.InputError as e:  # a cache: made again below when needed
+                log.warning("%s; the scoring makes the map again", e)
         res, out = core.discover_patterns(feats, params, meta, method, rgb, found,
-                                          dense_params)
+                                          dense_params, fmap)
         S1.save_rps(out_h5, out)
         io.write_json(out_json, res)
 
@@ -219,17 +230,32 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
 
 
 
-def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
+def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any],
+          out_map: str | None = None) -> Failure | None:
     """The dense source (:func:`rescu.core.find_dense`) on one prepared image: its RPs
-    (instances in original pixels, ``method="dense"``) -> ``out_json``. A failed
-    upstream step or an error writes an empty result with the failure recorded."""
+    (instances in original pixels, ``method="dense"``) -> ``out_json``; with ``out_map``
+    its coarse feature map too (:func:`rescu.extension.dense.save_map`), which RESCU-I's
+    scoring reads instead of passing the backbone over the image again. A failed
+    upstream step or an error writes an empty result (and a map file without a map)
+    with the failure recorded."""
+    from .extension import dense as D
+
     meta = io.read_json(meta_path)
 
     def run() -> None:
-        io.write_json(out_json, core.find_dense(read_prepared_image(png, meta_path), params))
+        prep = read_prepared_image(png, meta_path)
+        res = core.find_dense(prep, params)
+        if out_map is not None:
+            dp = D.DenseParams.from_dict(params)
+            D.save_map(out_map, D.dense_map(prep.rgb, dp), dp)  # made above: no new pass
+        io.write_json(out_json, res)
 
-    return _guard("dense", _blocking(meta.get("failure")), run,
-                  lambda f: io.write_json(out_json, empty_result(meta, "dense", f)))
+    def empty(f: Failure) -> None:
+        if out_map is not None:
+            D.save_map(out_map, None, D.DenseParams.from_dict(params), json.dumps(f))
+        io.write_json(out_json, empty_result(meta, "dense", f))
+
+    return _guard("dense", _blocking(meta.get("failure")), run, empty)
 
 
 def _prepared_gray(png: str | None, meta_path: str) -> np.ndarray | None:

@@ -17,20 +17,36 @@ from test_cli import shelf_photo
 
 
 def _file_chain(photo: Path, work: Path, cfg: dict, method: str) -> dict:
-    """The pipeline's per-image steps, file to file, as the Snakemake rules run them."""
+    """The pipeline's per-image steps, file to file, as the Snakemake rules run them (with
+    the thread counts their adapters set: torch's float sums depend on them)."""
     w = lambda n: str(work / n)  # noqa: E731
+    backbone, head = cfg["threads"]["stage2_features"], cfg["threads"]["stage2_head"]
+    torch = pytest.importorskip("torch")
+    before = torch.get_num_threads()
+    try:
+        return _steps(photo, work, cfg, method, w, backbone, head)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _steps(photo: Path, work: Path, cfg: dict, method: str, w, backbone: int,
+           head: int) -> dict:
     pipeline.prepare(str(photo), w("p.png"), w("m.json"), image_name=photo.name,
                      **{k: cfg["image"][k] for k in ("max_side", "min_side", "max_pixels")})
     pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])
     dense = None
     if cfg["dense"]["enabled"]:
         dense = w("d.json")
-        pipeline.dense(w("p.png"), w("m.json"), dense, cfg["dense"])
+        pipeline.limit_threads(backbone, torch=True)
+        pipeline.dense(w("p.png"), w("m.json"), dense, cfg["dense"], w("d.h5"))
     pipeline.stage1(w("f.h5"), w("m.json"), w("s1.json"), w("s1.h5"), cfg["stage1"],
-                    png=w("p.png"), dense_json=dense, dense_params=cfg["dense"])
+                    png=w("p.png"), dense_json=dense, dense_params=cfg["dense"],
+                    dense_map_h5=w("d.h5") if dense else None)
     src = w("s1.json")
     if method == "rescu-ii":
+        pipeline.limit_threads(backbone, torch=True)
         pipeline.stage2_features(w("p.png"), w("m.json"), src, w("s2.h5"), cfg["stage2"])
+        pipeline.limit_threads(head, torch=True)
         pipeline.stage2_train(w("s2.h5"), src, w("head.pt"), cfg["stage2"])
         pipeline.stage2_predict(w("s2.h5"), w("head.pt"), src, w("s2.json"), w("m.json"),
                                 cfg["stage2"])

@@ -328,3 +328,53 @@ def test_find_dense_with_and_without_objectness():
     assert on and off and all(0 < q.score for q in on)
     # objectness is a probability: it can only lower a group's score
     assert max(q.score for q in on) <= max(q.score for q in off) + 1e-12
+
+
+def test_rescu_i_scores_on_the_map_the_dense_step_kept(tmp_path, monkeypatch):
+    """The dense step stores its coarse map; RESCU-I's scoring reads it instead of passing
+    the backbone over the image again, with the same result. A map made with other
+    settings, or one that cannot be read, is made again; a failed dense step keeps none."""
+    from rescu.config import load_config
+    from rescu.extension import dense as D
+
+    img, _ = _photo(np.random.default_rng(4))
+    cv2.imwrite(str(tmp_path / "floor.png"), img[:, :, ::-1])
+    w = lambda n: str(tmp_path / n)  # noqa: E731
+    cfg = load_config(stage2=False)
+    pipeline.prepare(w("floor.png"), w("p.png"), w("m.json"), image_name="floor.png",
+                     max_side=cfg["image"]["max_side"], min_side=cfg["image"]["min_side"])
+    pipeline.features(w("p.png"), w("m.json"), w("f.h5"), cfg["features"])
+    assert pipeline.dense(w("p.png"), w("m.json"), w("d.json"), cfg["dense"], w("d.h5")) is None
+    dp = DenseParams.from_dict(cfg["dense"])
+    f, s = D.load_map(w("d.h5"), dp)
+    rgb, _ = pipeline.read_prepared(w("p.png"), w("m.json"))
+    f0, s0 = D.dense_map(rgb, dp)
+    assert s == s0 and np.array_equal(f, f0)      # in memory = stored (half precision)
+
+    def run(name, **kw):
+        pipeline.stage1(w("f.h5"), w("m.json"), w(f"{name}.json"), w(f"{name}.h5"),
+                        cfg["stage1"], png=w("p.png"), dense_json=w("d.json"),
+                        dense_params=cfg["dense"], **kw)
+        res = io.read_json(w(f"{name}.json"))
+        return res["patterns"], res.get("candidate_patterns")
+
+    D._LAST_MAP.clear()
+    made = run("made")                            # no stored map: one backbone pass
+    assert any("confidence" in p and p.get("source") != "dense"
+               for p in made[0] + (made[1] or []))  # stage I's RPs were scored
+    D._LAST_MAP.clear()
+    passes = []
+    real = D.hypercolumn
+    monkeypatch.setattr(D, "hypercolumn", lambda *a: passes.append(1) or real(*a))
+    assert run("read", dense_map_h5=w("d.h5")) == made and passes == []
+    assert D.load_map(w("d.h5"), DenseParams.from_dict({**cfg["dense"], "max_side": 1200})) \
+        is None                                   # other settings: not this map
+    (tmp_path / "bad.h5").write_bytes(b"not hdf5")
+    with pytest.raises(io.InputError, match="bad.h5"):
+        D.load_map(w("bad.h5"), dp)
+    D._LAST_MAP.clear()
+    assert run("bad", dense_map_h5=w("bad.h5")) == made and passes == [1]
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    assert pipeline.dense(w("bad.png"), w("m.json"), w("d2.json"), cfg["dense"],
+                          w("d2.h5")) is not None
+    assert D.load_map(w("d2.h5"), dp) is None

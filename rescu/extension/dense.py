@@ -42,7 +42,7 @@ objects of :mod:`rescu.extension.objects`.
 from __future__ import annotations
 
 import hashlib
-
+import os
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Sequence
 
@@ -56,7 +56,7 @@ from .objects import box_cells, integral_map, touching_sides
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
-           "objectness_for", "dense_map", "dense_levels", "level_candidates", "find_dense",
+           "objectness_for", "dense_map", "save_map", "load_map", "dense_levels", "level_candidates", "find_dense",
            "score_and_split"]
 
 
@@ -436,12 +436,68 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
         else params.min_side / longer
     im = rgb if s == 1 else cv2.resize(
         rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-    out = (hypercolumn(backbone, im), float(s))
+    # half precision, as the dense step stores it for the scoring of stage I's RPs
+    # (:func:`save_map`): the map in memory and the one read back are the same
+    out = (hypercolumn(backbone, im).astype(np.float16).astype(np.float32), float(s))
     out[0].setflags(write=False)
     if cpu:
         _LAST_MAP.clear()
         _LAST_MAP[key] = out
     return out
+
+
+def _map_key(params: DenseParams) -> dict[str, Any]:
+    """What a stored map depends on besides the image (:func:`save_map`)."""
+    return {"backbone": str(params.backbone), "max_side": int(params.max_side),
+            "min_side": int(params.min_side)}
+
+
+def save_map(path: str | os.PathLike[str], fmap: tuple[np.ndarray, float] | None,
+             params: DenseParams, failure: str | None = None) -> None:
+    """Store :func:`dense_map`'s result so that a later step (the scoring of stage I's RPs,
+    :func:`score_and_split`) needs no backbone pass of its own.
+
+    HDF5 (atomic write): dataset ``map`` (C, h, w) float16, attributes ``scale`` (backbone
+    input px per prepared-image px) and what the map depends on (``backbone``,
+    ``max_side``, ``min_side``). ``fmap`` None (a failed dense step): no dataset, the
+    attribute ``failure`` says why.
+    """
+    import h5py
+
+    from ..io import atomic_path
+
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h:
+            for k, v in _map_key(params).items():
+                h.attrs[k] = v
+            if fmap is None:
+                h.attrs["failure"] = failure or "no map"
+            else:
+                h.attrs["scale"] = float(fmap[1])
+                h.create_dataset("map", data=np.asarray(fmap[0], np.float16),
+                                 track_times=False)
+
+
+def load_map(path: str | os.PathLike[str], params: DenseParams
+             ) -> tuple[np.ndarray, float] | None:
+    """A map stored by :func:`save_map`: ``(f (C, h, w) float32 read-only, s)``, or None
+    when it holds none (failed dense step) or was made with other ``backbone``,
+    ``max_side`` or ``min_side`` than ``params`` say. A file that cannot be read raises
+    :class:`rescu.io.InputError` naming it."""
+    import h5py
+
+    from ..io import InputError
+
+    try:
+        with h5py.File(path, "r") as h:
+            attrs = dict(h.attrs)
+            if "map" not in h or any(attrs.get(k) != v for k, v in _map_key(params).items()):
+                return None
+            f = h["map"][()].astype(np.float32)
+    except OSError as e:
+        raise InputError(f"{path}: unreadable feature map file ({e})") from None
+    f.setflags(write=False)
+    return f, float(attrs["scale"])
 
 
 def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
@@ -579,7 +635,8 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
 
 
 def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
-                    meta: dict[str, Any], backbone: Any = None) -> None:
+                    meta: dict[str, Any], backbone: Any = None,
+                    fmap: tuple[np.ndarray, float] | None = None) -> None:
     """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence
     (:func:`rescu.extension.objects.score_patterns` on the map of :func:`dense_map`, one
     backbone pass, only when a pattern needs it); those below ``dense.min_confidence``,
@@ -596,6 +653,8 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     rgb : (H, W, 3) uint8, the prepared image
     meta : its meta (``scale_factor``: processed = original x scale_factor)
     backbone : FrozenBackbone or None (None: ``dense.backbone``)
+    fmap : :func:`dense_map` of ``rgb`` when already made (e.g. stored by the dense step,
+        :func:`load_map`); None: made here when needed
     """
     from ..discovery.sources import split_by_confidence
     from .objects import score_patterns
@@ -604,7 +663,7 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     if dp.mode != "objects" or found.extra.get("failure"):
         return
     if any("confidence" not in p.extra for p in res.patterns):
-        f, s = dense_map(rgb, dp, backbone)
+        f, s = dense_map(rgb, dp, backbone) if fmap is None else fmap
         score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, f, s)
     split_by_confidence(res, dp.min_confidence, dp)
     res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)

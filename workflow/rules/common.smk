@@ -97,10 +97,12 @@ def per_image(pattern, datasets=None, **more):
 
 
 def dense_input(wildcards):
-    """RESCU-I's extra input when the dense source is on: the image's dense RPs."""
+    """RESCU-I's extra input when the dense source is on: the image's dense RPs and the
+    coarse feature map the dense step kept."""
     if not DENSE:
         return {}
-    return {"dense": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.json"}
+    return {"dense": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.json",
+            "dense_map": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.map.h5"}
 
 
 def rp_methods():

@@ -12,6 +12,8 @@ rule dense:
         code=step_code("dense"),
     output:
         json=f"{RESULTS}/{{dataset}}/dense/{{image}}.json",
+        # its coarse feature map (half precision), so that scoring in rescu_i needs no pass
+        map=f"{RESULTS}/{{dataset}}/dense/{{image}}.map.h5",
     params:
         dense=DENSE_STEP,
         threads=config["threads"]["stage2_features"],
