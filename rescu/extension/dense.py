@@ -267,14 +267,15 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
     -------
     list of :class:`DenseCandidate`, by descending score (ties: top-left first)
     """
-    from sklearn.cluster import AgglomerativeClustering
+    from scipy.cluster.hierarchy import fcluster, linkage
 
     boxes, emb = distinct_blobs(f, cell_px, params, sizes)
     if len(boxes) < params.min_instances:
         return []
-    labels = AgglomerativeClustering(n_clusters=None, metric="cosine", linkage="average",
-                                     distance_threshold=1.0 - params.min_similarity
-                                     ).fit(emb).labels_
+    # average-linkage clustering on cosine distance, cut at 1 - min_similarity (the same
+    # partition as scikit-learn's AgglomerativeClustering, without its 1-s import)
+    labels = fcluster(linkage(np.asarray(emb, np.float64), method="average", metric="cosine"),
+                      t=1.0 - params.min_similarity, criterion="distance")
     ii = integral_map(f)
     g = f.reshape(f.shape[0], -1).mean(1)
     g /= np.linalg.norm(g) + 1e-12
