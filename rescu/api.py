@@ -173,7 +173,7 @@ def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
 def _write_work(work: Path, ran: core.RunOutput) -> None:
     """``keep_work``: the intermediate records as the pipeline's per-image files
     (``image.png``, ``meta.json``, ``features.h5``, ``dense.json``, ``rescu-i.json`` or
-    ``grasp.json`` with its ``.rp.h5``, ``stage2.h5``, ``head.pt``, ``rescu-ii.json``,
+    ``grasp.json`` with its ``.rp.h5``, ``stage2.h5``, ``head.h5``, ``rescu-ii.json``,
     ``scene.json``, ``joint.json``, ``final.json``), those of the steps that ran."""
     from .discovery import features as F
     from .discovery import stage1 as S1
@@ -195,7 +195,7 @@ def _write_work(work: Path, ran: core.RunOutput) -> None:
     if "head" in kept:
         from .extension.train import save_checkpoint
 
-        save_checkpoint(work / "head.pt", kept["head"])
+        save_checkpoint(work / "head.h5", kept["head"])
     for name in ("rescu-ii", "scene", "joint"):
         if name in kept:
             io.write_json(work / f"{name}.json", kept[name])

@@ -47,8 +47,8 @@ def _steps(photo: Path, work: Path, cfg: dict, method: str, w, backbone: int,
         pipeline.limit_threads(backbone, torch=True)
         pipeline.stage2_features(w("p.png"), w("m.json"), src, w("s2.h5"), cfg["stage2"])
         pipeline.limit_threads(head, torch=True)
-        pipeline.stage2_train(w("s2.h5"), src, w("head.pt"), cfg["stage2"])
-        pipeline.stage2_predict(w("s2.h5"), w("head.pt"), src, w("s2.json"), w("m.json"),
+        pipeline.stage2_train(w("s2.h5"), src, w("head.h5"), cfg["stage2"])
+        pipeline.stage2_predict(w("s2.h5"), w("head.h5"), src, w("s2.json"), w("m.json"),
                                 cfg["stage2"])
         src = w("s2.json")
     pipeline.scene(w("p.png"), w("m.json"), src, w("sc.json"), w("rect"), cfg["scene"])
@@ -164,15 +164,27 @@ def test_discover_writes_no_work_folder(tmp_path, monkeypatch):
 
 
 def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
-    """torch.save named the archive inside head.pt after the random temporary file, so
-    two runs wrote different bytes for the same head."""
-    import torch
-
+    """The same head written twice (to other temporary names) gives the same bytes, and
+    reads back as written."""
     from rescu.extension.train import load_checkpoint, save_checkpoint
 
-    ckpt = {"head": {"w": torch.arange(6.0).reshape(2, 3)}, "info": {"status": "ok"}}
-    save_checkpoint(tmp_path / "a.pt", ckpt)
+    ckpt = {"head": {"state_dict": {"0.weight": np.arange(6.0, dtype=np.float32).reshape(2, 3)},
+                     "n_classes": 2, "rp_index": [0]},
+            "info": {"status": "ok", "train_loss": [0.5, 0.25]}}
+    save_checkpoint(tmp_path / "a.h5", ckpt)
     (tmp_path / "b").mkdir()
-    save_checkpoint(tmp_path / "b" / "c.pt", ckpt)
-    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "b" / "c.pt").read_bytes()
-    assert torch.equal(load_checkpoint(tmp_path / "a.pt")["head"]["w"], ckpt["head"]["w"])
+    save_checkpoint(tmp_path / "b" / "c.h5", ckpt)
+    assert (tmp_path / "a.h5").read_bytes() == (tmp_path / "b" / "c.h5").read_bytes()
+    back = load_checkpoint(tmp_path / "a.h5")
+    assert np.array_equal(back["head"]["state_dict"]["0.weight"],
+                          ckpt["head"]["state_dict"]["0.weight"])
+    assert back["info"] == ckpt["info"] and back["head"]["rp_index"] == [0]
+    save_checkpoint(tmp_path / "f.h5", {"failure": {"stage": "stage2-train", "message": "x"}})
+    assert load_checkpoint(tmp_path / "f.h5") == {"failure": {"stage": "stage2-train",
+                                                              "message": "x"}}
+    save_checkpoint(tmp_path / "e.h5", {"head": {"state_dict": {}, "n_classes": 1}})
+    assert load_checkpoint(tmp_path / "e.h5")["head"]["state_dict"] == {}
+    (tmp_path / "bad.h5").write_bytes(b"not hdf5")
+    for bad in ("bad.h5", "missing.h5"):
+        with pytest.raises(InputError, match=bad):
+            load_checkpoint(tmp_path / bad)

@@ -204,8 +204,8 @@ def _through_stage1(tmp_path, cfg, img=None):
 def _stage2(w, cfg):
     p = cfg["stage2"]
     pipeline.stage2_features(w("p.png"), w("m.json"), w("s.json"), w("s2.h5"), p)
-    pipeline.stage2_train(w("s2.h5"), w("s.json"), w("head.pt"), p)
-    return pipeline.stage2_predict(w("s2.h5"), w("head.pt"), w("s.json"), w("ii.json"),
+    pipeline.stage2_train(w("s2.h5"), w("s.json"), w("head.h5"), p)
+    return pipeline.stage2_predict(w("s2.h5"), w("head.h5"), w("s.json"), w("ii.json"),
                                    w("m.json"), p)
 
 
@@ -256,7 +256,7 @@ def test_stage2_variants_and_ablation_degrade_too(tmp_path, monkeypatch):
     monkeypatch.setattr(features, "compute_stage2_features", _boom)
     _stage2(w, cfg)
     outs = {"vh": w("vh.json")}
-    f = pipeline.stage2_predict_variants(w("s2.h5"), w("head.pt"), w("s.json"), w("m.json"),
+    f = pipeline.stage2_predict_variants(w("s2.h5"), w("head.h5"), w("s.json"), w("m.json"),
                                          outs, cfg["stage2"],
                                          {"vh": {"predict": {"visible_half": True}}})
     assert f["stage"] == "stage2-features"

@@ -122,7 +122,7 @@ def test_deterministic(six, tmp_path):
         assert np.array_equal(np.asarray(feats[k]), np.asarray(feats2[k])), k
     ckpt2, _ = train_heads(feats2, s1, p)
     for k, v in ckpt["state_dict"].items():
-        assert torch.equal(v, ckpt2["state_dict"][k]), k
+        assert np.array_equal(v, ckpt2["state_dict"][k]), k
     assert predict_stage2(feats2, ckpt2, s1, p).to_json() == out.to_json()
 
 
@@ -180,8 +180,13 @@ def test_h5_and_checkpoint_round_trip(six, tmp_path):
     img, boxes, s1, p, feats, ckpt, info, out = six
     io.write_h5(tmp_path / "f.h5", feats)
     back, _ = io.read_h5(tmp_path / "f.h5")
-    save_checkpoint(tmp_path / "c.pt", {"head": ckpt, "info": info})
-    c = load_checkpoint(tmp_path / "c.pt")
+    save_checkpoint(tmp_path / "c.h5", {"head": ckpt, "info": info})
+    c = load_checkpoint(tmp_path / "c.h5")
+    assert c["info"] == info and c["head"]["rp_index"] == ckpt["rp_index"]
+    for k, v in ckpt["state_dict"].items():
+        assert np.array_equal(c["head"]["state_dict"][k], v), k
+    sel = c["head"]["selection"]                       # the selection the head was trained on
+    assert sel["distance"].shape == (len(feats["proposals"]), len(ckpt["rp_index"]))
     res = predict_stage2(back, c["head"], s1, p)
     assert res.to_json() == out.to_json()
     assert not list(tmp_path.glob(".*tmp*"))
@@ -370,14 +375,13 @@ def test_impute_half_keeps_the_named_half():
 def _template_head(t: np.ndarray, gain: float, bias: float) -> dict:
     """A checkpoint whose head gives P(RP 0) = sigmoid(gain * <t, x> - bias) (2 classes)."""
     d = len(t)
-    w1 = torch.zeros(2, d)
-    w1[0] = torch.from_numpy(t)
-    w1[1] = -torch.from_numpy(t)
-    sd = {"0.weight": w1, "0.bias": torch.zeros(2),
-          "2.weight": torch.eye(2), "2.bias": torch.zeros(2),
-          "4.weight": torch.tensor([[0.0, 0.0], [gain, -gain]]),
-          "4.bias": torch.tensor([0.0, -bias])}
-    return {"state_dict": sd, "mean": torch.zeros(d), "std": torch.ones(d), "in_dim": d,
+    w1 = np.stack([t, -t]).astype(np.float32)
+    sd = {"0.weight": w1, "0.bias": np.zeros(2, np.float32),
+          "2.weight": np.eye(2, dtype=np.float32), "2.bias": np.zeros(2, np.float32),
+          "4.weight": np.array([[0.0, 0.0], [gain, -gain]], np.float32),
+          "4.bias": np.array([0.0, -bias], np.float32)}
+    return {"state_dict": sd, "mean": np.zeros(d, np.float32), "std": np.ones(d, np.float32),
+            "in_dim": d,
             "hidden_sizes": [2, 2], "n_classes": 2, "rp_index": [0],
             "backbone": "efficientnet-lite0"}
 

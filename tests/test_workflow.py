@@ -107,7 +107,7 @@ def test_outputs_exist_and_parse(finished_run):
         assert "focal_px" in d and "focal_estimated" in d
     assert len(list((res / "synthetic" / "overlay").glob("*.png"))) == 3
     assert len(list((res / "synthetic" / "features").glob("*.h5"))) == 3
-    assert len(list((res / "synthetic" / "stage2").glob("*.head.pt"))) == 3
+    assert len(list((res / "synthetic" / "stage2").glob("*.head.h5"))) == 3
     for table in ("rp_discovery", "ablation", "stage2_ablation", "counting", "vpd", "ts",
                   "captions", "failures", "vpd_aa", "vpd_triplet_errors"):
         assert (res / "tables" / f"{table}.tsv").exists(), table

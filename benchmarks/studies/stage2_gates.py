@@ -33,7 +33,7 @@ still has such a proposal after each gate is printed:
 
 The column *any proposal* repeats the funnel with every proposal allowed (as if
 ``lattice_only`` were false). Reads ``<results>/<dataset>/rescu-i``, ``rescu-ii`` and
-``stage2/<image>.feats.h5`` / ``.head.pt``; an image without them is skipped with a
+``stage2/<image>.feats.h5`` / ``.head.h5``; an image without them is skipped with a
 message. Asserts nothing.
 
 Usage (after a run, from the repository root)::
@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     for f, gts in load_coco_rps(data / "annotations.json").items():
         stem = Path(f).stem
         paths = [run / "rescu-i" / f"{stem}.json", run / "rescu-ii" / f"{stem}.json",
-                 run / "stage2" / f"{stem}.feats.h5", run / "stage2" / f"{stem}.head.pt"]
+                 run / "stage2" / f"{stem}.feats.h5", run / "stage2" / f"{stem}.head.h5"]
         if not all(p.is_file() for p in paths):
             print(f"{f}: no RESCU-I / RESCU-II result or stage-II artefacts, skipped",
                   file=sys.stderr)

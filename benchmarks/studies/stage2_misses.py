@@ -1,7 +1,7 @@
 """Why stage II misses instances: every ground-truth instance RESCU-II does not find, by cause.
 
 Reads a finished run: the ground truth, the RESCU-II JSONs and the stage-II artefacts
-(``<results>/<dataset>/stage2/<image>.feats.h5`` and ``.head.pt``). A GT instance counts as
+(``<results>/<dataset>/stage2/<image>.feats.h5`` and ``.head.h5``). A GT instance counts as
 found when some RESCU-II instance (of any RP) covers it with IOD >= ``--iod`` (0.5, the
 tables' h). Each GT instance not found gets one cause:
 
@@ -81,7 +81,7 @@ def classify_misses(data: Path, results: Path, dataset: str, stage2: dict[str, A
         stem = Path(f).stem
         res = preds[f]
         h5 = results / dataset / "stage2" / f"{stem}.feats.h5"
-        pt = results / dataset / "stage2" / f"{stem}.head.pt"
+        pt = results / dataset / "stage2" / f"{stem}.head.h5"
         if res is None or not h5.is_file() or not pt.is_file():
             print(f"{f}: no RESCU-II result or stage-II artefacts, skipped", file=sys.stderr)
             continue

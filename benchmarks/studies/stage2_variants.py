@@ -100,7 +100,7 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
         return step(*args)
 
     with tempfile.TemporaryDirectory() as tmp:
-        h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.pt")
+        h5, ckpt = str(Path(tmp) / "feats.h5"), str(Path(tmp) / "head.h5")
         pipeline.limit_threads(threads["stage2_features"], torch=True)
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
                 or head(pipeline.stage2_train, h5, s1_json, ckpt, params)
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     predict_only = bool(over) and all(k.split(".")[0] == PREDICT_SECTION for k in over)
 
     def reuse(s: str) -> tuple[str, str] | None:
-        h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.pt"
+        h5, pt = run / "stage2" / f"{s}.feats.h5", run / "stage2" / f"{s}.head.h5"
         return (str(h5), str(pt)) if predict_only and h5.exists() and pt.exists() else None
 
     threads = {k: cfg["threads"][k] if a.threads is None else a.threads

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in a.datasets:
         root = a.results / name
         stems = sorted(p.stem for p in (root / "rescu-i").glob("*.json"))
-        stems = [s for s in stems if (root / "stage2" / f"{s}.head.pt").is_file()]
+        stems = [s for s in stems if (root / "stage2" / f"{s}.head.h5").is_file()]
         if not stems:
             print(f"{name}: no stage-II artefacts under {root}", file=sys.stderr)
             continue
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                 (out / "scene").mkdir()
                 for s in stems:
                     feats, _ = io.read_h5(root / "stage2" / f"{s}.feats.h5")
-                    ckpt = load_checkpoint(root / "stage2" / f"{s}.head.pt")
+                    ckpt = load_checkpoint(root / "stage2" / f"{s}.head.h5")
                     res = predict_stage2(feats, ckpt["head"],
                                          io.read_result(root / "rescu-i" / f"{s}.json"), P)
                     res.method = "rescu-ii"

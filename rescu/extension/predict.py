@@ -13,30 +13,37 @@ from ..types import ImageResult, Instance
 from ..boxes import size_gate, suppress
 from .examples import select_examples
 from .proposal_features import to_str
-from .head import make_head
 from .params import METHOD, Stage2Params
 
 
 def score_features(x: np.ndarray, ckpt: dict[str, Any]) -> np.ndarray:
     """Class probabilities of box features ``x`` (N, D), (N, R + 1) float32 (column 0
     background; an untrained head gives background 1). No box (N = 0, e.g. an image
-    whose proposal set is empty) gives a (0, R + 1) array."""
-    import torch
+    whose proposal set is empty) gives a (0, R + 1) array.
 
+    The head of :func:`rescu.extension.head.make_head` evaluated in NumPy (float32) from
+    the checkpoint's weights: dense, ReLU, dense, ReLU, dense, softmax, on the features
+    standardised with the training set's ``mean`` and ``std``. No torch import.
+    """
     x = np.asarray(x, np.float32)
     n_cls = int(ckpt["n_classes"])
-    if not ckpt["state_dict"] or len(x) == 0:
+    sd = ckpt["state_dict"]
+    if not sd or len(x) == 0:
         # checked before the reshape: (0, D) cannot be reshaped to (0, -1)
         out = np.zeros((len(x), n_cls), np.float32)
         out[:, 0] = 1.0
         return out
-    x = x.reshape(len(x), -1)
-    head = make_head(int(ckpt["in_dim"]), tuple(ckpt["hidden_sizes"]), n_cls)
-    head.load_state_dict(ckpt["state_dict"])
-    head.eval()
-    xt = (torch.from_numpy(x) - ckpt["mean"]) / ckpt["std"]
-    with torch.no_grad():
-        return torch.softmax(head(xt), dim=1).numpy().astype(np.float32)
+    h = (x.reshape(len(x), -1) - np.asarray(ckpt["mean"], np.float32)) \
+        / np.asarray(ckpt["std"], np.float32)
+    layers = sorted({int(k.split(".")[0]) for k in sd})
+    for j, i in enumerate(layers):
+        w = np.asarray(sd[f"{i}.weight"], np.float32)
+        h = h @ w.T + np.asarray(sd[f"{i}.bias"], np.float32)
+        if j < len(layers) - 1:
+            h = np.maximum(h, 0.0)
+    h = h - h.max(1, keepdims=True)
+    e = np.exp(h)
+    return (e / e.sum(1, keepdims=True)).astype(np.float32)
 
 
 def score_proposals(feats: dict[str, np.ndarray], ckpt: dict[str, Any]) -> np.ndarray:
@@ -207,7 +214,11 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         pf, replaced = visible_half_features(feats, ckpt, params)
         feats = dict(feats, proposal_features=pf)
     prob = score_proposals(feats, ckpt)
-    sel = select_examples(feats, params)      # distances to the DBSCAN centres
+    # distances to the DBSCAN centres, as the head's training selected them (again for a
+    # checkpoint without its selection, or one of other proposals)
+    sel = ckpt.get("selection")
+    if sel is None or np.shape(sel["distance"]) != (len(prob), len(rp_index)):
+        sel = select_examples(feats, params)
     boxes = np.asarray(feats["proposals"], np.float64).reshape(-1, 4)
     if not len(boxes):
         summary["status"] = "no_proposals"     # every RP below: no candidate, none added

@@ -1,6 +1,12 @@
 """Step 2 of RESCU-II: :func:`train_heads` — the training set from the self-supervised
 examples and the per-image classifier head trained on the cached features; the head's
-checkpoint file (:func:`save_checkpoint`, :func:`load_checkpoint`)."""
+checkpoint file (:func:`save_checkpoint`, :func:`load_checkpoint`).
+
+The checkpoint holds the head's weights as NumPy arrays and the example selection the
+head was trained from (:func:`rescu.extension.examples.select_examples`), in HDF5:
+prediction (:mod:`rescu.extension.predict`) and its variants read both and need neither
+torch nor the selection again.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from ..io import atomic_path
 from ..types import ImageResult
 from .examples import select_examples
 from .proposal_features import to_str
@@ -90,9 +95,13 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
     Returns
     -------
     ckpt : dict
-        ``state_dict`` (name -> torch.Tensor; empty when there is nothing to learn),
-        ``mean``/``std`` tensors (D,), ``in_dim``, ``hidden_sizes``, ``n_classes``,
-        ``rp_index`` list, ``backbone`` str. Save with :func:`save_checkpoint`.
+        ``state_dict`` (layer name -> float32 array, torch's names and shapes: ``"0.weight"``
+        (H1, D), ``"0.bias"`` (H1,), ... ``"4.weight"`` (R + 1, H2); empty when there is
+        nothing to learn), ``mean``/``std`` float32 (D,), ``in_dim``, ``hidden_sizes``,
+        ``n_classes``, ``rp_index`` list, ``backbone`` str and, once examples were
+        selected, ``selection`` (``distance`` (P, R) and ``radius`` (R,) of
+        :func:`rescu.extension.examples.select_examples`). Save with
+        :func:`save_checkpoint`.
     info : dict
         ``status`` ("trained", "no_rp", "no_examples"), ``epochs``, ``best_val_loss``,
         ``train_loss``/``val_loss`` per epoch, example counts, ``n_centres``.
@@ -107,13 +116,16 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
         if i >= len(stage1.patterns) or len(stage1.patterns[i].instances) < 2:  # noqa
             raise ValueError(f"feats['rp_index'] names pattern {i}, which stage1 "
                              f"({stage1.image}) does not have with >= 2 instances")
-    base = {"state_dict": {}, "mean": torch.zeros(0), "std": torch.ones(0), "in_dim": 0,
-            "hidden_sizes": list(params.head.hidden_sizes), "n_classes": len(rp_index) + 1,
-            "rp_index": rp_index, "backbone": backbone}
+    base: dict[str, Any] = {
+        "state_dict": {}, "mean": np.zeros(0, np.float32), "std": np.ones(0, np.float32),
+        "in_dim": 0, "hidden_sizes": list(params.head.hidden_sizes),
+        "n_classes": len(rp_index) + 1, "rp_index": rp_index, "backbone": backbone}
     if not rp_index:
         return base, {"status": "no_rp", "backbone": backbone}
     rng = np.random.default_rng(params.seed)
     sel = select_examples(feats, params)
+    base["selection"] = {"distance": np.asarray(sel["distance"], np.float64),
+                         "radius": np.asarray(sel["radius"], np.float64)}
     X, y = _training_set(feats, sel, params, rng)
     info: dict[str, Any] = {
         "backbone": backbone, "n_centres": sel["n_centres"].tolist(),
@@ -160,41 +172,77 @@ def train_heads(feats: dict[str, np.ndarray], stage1: ImageResult,
             hist_val.append(vl)
             if vl < best - params.head.min_delta:
                 best, bad = vl, 0
-                best_state = {k: v.detach().clone() for k, v in head.state_dict().items()}
+                best_state = {k: v.detach().numpy().astype(np.float32)
+                              for k, v in head.state_dict().items()}
             else:
                 bad += 1
                 if bad >= params.head.patience:
                     break
     assert best_state is not None
-    ckpt = dict(base, state_dict=best_state, mean=torch.from_numpy(mean.astype(np.float32)),
-                std=torch.from_numpy(std.astype(np.float32)), in_dim=int(X.shape[1]))
+    ckpt = dict(base, state_dict=best_state, mean=mean.astype(np.float32),
+                std=std.astype(np.float32), in_dim=int(X.shape[1]))
     info.update(status="trained", epochs=len(hist_tr), best_val_loss=float(best),
                 train_loss=[round(v, 6) for v in hist_tr], val_loss=[round(v, 6) for v in hist_val])
     return ckpt, info
 
 
 def save_checkpoint(path: str | os.PathLike[str], ckpt: dict[str, Any]) -> None:
-    """Write a checkpoint with ``torch.save`` atomically (temp file + rename).
+    """Write a checkpoint (``{"head": train_heads' ckpt, "info": its record}``, or
+    ``{"failure": record}``) to HDF5 atomically, bytes depending only on the content.
 
-    Saved through an open file, not a path: ``torch.save`` names the archive inside the
-    file after a path it is given, which here is a random temporary name, so the same
-    checkpoint written twice would differ in its bytes.
+    Arrays and nested mappings are stored as datasets and groups; the other values
+    (numbers, strings, lists, the records) as JSON in the root's ``json`` attribute.
     """
-    import torch
+    import json
 
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        torch.save(ckpt, f)
+    from ..io import write_h5
+
+    arrays: dict[str, Any] = {}
+    plain: dict[str, Any] = {}
+
+    def split(d: dict[str, Any], arr: dict[str, Any], js: dict[str, Any]) -> None:
+        for k, v in d.items():
+            if isinstance(v, np.ndarray):
+                arr[k] = v
+            elif isinstance(v, dict) and v and all(isinstance(x, np.ndarray)
+                                                   for x in v.values()):
+                arr[k] = dict(v)
+            elif isinstance(v, dict):
+                sub_a: dict[str, Any] = {}
+                sub_j: dict[str, Any] = {}
+                split(v, sub_a, sub_j)
+                if sub_a:
+                    arr[k] = sub_a
+                js[k] = sub_j
+            else:
+                js[k] = v
+
+    split(ckpt, arrays, plain)
+    write_h5(path, arrays, attrs={"json": json.dumps(plain, sort_keys=True)})
 
 
 def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a checkpoint written by :func:`save_checkpoint` (tensors on the CPU)."""
-    import torch
+    """Read a checkpoint written by :func:`save_checkpoint` (arrays as NumPy arrays). A
+    missing or unreadable file raises
+    :class:`rescu.io.InputError` naming it."""
+    import json
 
-    from ..io import InputError
+    from ..io import InputError, read_h5
 
+    if not os.path.isfile(path):
+        raise InputError(f"{path}: file not found")
+    arrays, attrs = read_h5(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except Exception as e:  # noqa: BLE001 - torch raises many kinds on a bad file
-        raise InputError(f"{path}: unreadable checkpoint ({type(e).__name__}: {e})") from None
+        plain = json.loads(attrs["json"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{path}: not a stage-II checkpoint ({type(e).__name__}: {e})") \
+            from None
+
+    def merge(js: dict[str, Any], arr: dict[str, Any]) -> dict[str, Any]:
+        out = dict(js)
+        for k, v in arr.items():
+            out[k] = merge(js.get(k, {}), v) if isinstance(v, dict) and isinstance(
+                js.get(k), dict) else v
+        return out
+
+    return merge(plain, arrays)

@@ -29,7 +29,7 @@ rule stage2_train:
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         code=step_code("stage2_train"),
     output:
-        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
     params:
         stage2=stage2_upstream(),
         threads=config["threads"]["stage2_head"],
@@ -45,7 +45,7 @@ rule stage2_train:
 rule stage2_predict:
     input:
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
-        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+        ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
         code=step_code("stage2_predict"),
@@ -69,7 +69,7 @@ if stage2_predict_variants():
     rule stage2_predict_ablation:
         input:
             feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
-            ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.pt",
+            ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
             meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
             code=step_code("stage2_predict_ablation"),

@@ -2,6 +2,6 @@
 from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])
-pipeline.limit_threads(snakemake.params.threads, torch=True)  # config threads, not the job's core share
+pipeline.limit_threads(snakemake.params.threads)  # the head runs in NumPy: no torch
 pipeline.stage2_predict(snakemake.input.feats, snakemake.input.ckpt, snakemake.input.stage1,
                         snakemake.output.json, snakemake.input.meta, snakemake.params.stage2)

@@ -3,7 +3,7 @@
 from rescu import pipeline
 
 pipeline.setup_logging(snakemake.log[0])
-pipeline.limit_threads(snakemake.params.threads, torch=True)  # config threads, not the job's core share
+pipeline.limit_threads(snakemake.params.threads)  # the head runs in NumPy: no torch
 variants = snakemake.params.variants
 outputs = dict(zip(variants, snakemake.output))  # output order = variant order
 pipeline.stage2_predict_variants(snakemake.input.feats, snakemake.input.ckpt,
