@@ -533,7 +533,7 @@ def _chain(prep: Prepared, cfg: dict[str, Any], method: str, keep: bool) -> RunO
     kept["features"] = feats
     found = None
     if s1_method == "rescu-i" and cfg["dense"]["enabled"]:
-        with _threads(cfg, "stage2_features"):
+        with _threads(cfg, "in_process"):
             found, f = attempt("dense", lambda: find_dense(prep, cfg["dense"]))
         found = as_written(found) if f is None else empty_result(meta, "dense", f)
         kept["dense"] = found
@@ -576,7 +576,7 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
             kept: dict[str, Any]) -> ImageResult:
     """Stage II's three steps on a good stage-I result; a failure keeps ``s1``."""
     p = cfg["stage2"]
-    with _threads(cfg, "stage2_features"):
+    with _threads(cfg, "in_process"):
         feats2, f = attempt("stage2-features", lambda: stage2_features(prep, s1, p))
     if f is None:
         kept["stage2_features"] = feats2
@@ -592,9 +592,11 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
 
 
 class _threads:
-    """The pipeline's thread count for a torch step (config ``threads``: the same floats
-    as its run, and no threads spinning against each other), the caller's torch and
-    OpenCV settings restored afterwards."""
+    """The thread count of a torch step run in this process (config ``threads``:
+    ``in_process`` for the backbone steps, ``stage2_head`` for the head; a fixed count
+    gives fixed floats, and no threads spin against each other), the caller's torch and
+    OpenCV settings restored afterwards. With ``threads.in_process`` equal to
+    ``threads.stage2_features`` the results are the pipeline's."""
 
     def __init__(self, cfg: dict[str, Any], key: str) -> None:
         self.n = (cfg.get("threads") or {}).get(key, 1 if key == "stage2_head" else 2)

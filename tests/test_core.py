@@ -66,6 +66,8 @@ def _text(res: rescu.ImageResult) -> str:
 def test_run_in_memory_equals_the_file_pipeline(tmp_path, method):
     photo = shelf_photo(tmp_path / "shelf.png")
     cfg = load_config(stage2=method == "rescu-ii")
+    # the pipeline's threads in this process too: float sums depend on the thread count
+    cfg["threads"]["in_process"] = cfg["threads"]["stage2_features"]
     want = _file_chain(photo, tmp_path, cfg, method)
     got = rescu.run(photo, cfg, method=method)
     assert got.patterns and json.loads(_text(got)) == want
