@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
+                                          [--strip-px N]
 
 Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
 chess, aerial cars; a synthetic rendering when absent), resizes each to
@@ -10,8 +11,12 @@ chess, aerial cars; a synthetic rendering when absent), resizes each to
 centre-surround blobs, grouping, ranking) ``--repeats`` times with the default
 ``dense`` section, the backbone loaded once beforehand (as the pipeline's job loads it
 once). Prints per image the median seconds and the number of dense RPs, then the
-median and maximum over images. ``--threads``: torch and OpenCV threads (the
-pipeline's job: 2 with ``--cores 2``).
+median and maximum over images, and the process's peak memory. ``--threads``: torch and
+OpenCV threads (the pipeline's job: ``threads.stage2_features``, 1; ``rescu discover``:
+``threads.in_process``, 2). ``--strip-px``: the backbone's first blocks run on strips of
+inputs over this many pixels (:data:`rescu.extension.backbone.STRIP_PX`; 0: never, one
+whole pass). The map cache of :func:`rescu.extension.dense.dense_map` is emptied before
+each call, so every repeat passes the backbone.
 """
 
 from __future__ import annotations
@@ -36,12 +41,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-set", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--strip-px", type=int, default=None)
     a = ap.parse_args(argv)
     import torch
 
+    import resource
+
     from rescu.discovery.sources import DenseParams
+    from rescu.extension import backbone as B
+    from rescu.extension import dense as D
     from rescu.extension.backbone import FrozenBackbone
     from rescu.extension.dense import find_dense
+
+    if a.strip_px is not None:
+        B.STRIP_PX = a.strip_px if a.strip_px > 0 else 1 << 62
+
+    def run(rgb: np.ndarray, params: DenseParams, backbone: FrozenBackbone):
+        D._LAST_MAP.clear()
+        return find_dense(rgb, params, backbone)
 
     torch.set_num_threads(a.threads)
     cv2.setNumThreads(a.threads)
@@ -65,11 +82,13 @@ def main(argv: list[str] | None = None) -> int:
     for name, rgb in images:
         rgb = resized(rgb, a.megapixels)
         h, w = rgb.shape[:2]
-        med, found = median_seconds(lambda: find_dense(rgb, params, backbone), a.repeats)
+        med, found = median_seconds(lambda: run(rgb, params, backbone), a.repeats)
         times.append(med)
         print(f"{name:<48} {w:>5}x{h:<5} {len(found):>4} {med:>8.2f}")
     print(f"median {statistics.median(times):.2f} s, max {max(times):.2f} s over {len(times)} "
-          f"image(s) at {a.megapixels} MP, {a.threads} thread(s)")
+          f"image(s) at {a.megapixels} MP, {a.threads} thread(s); peak memory "
+          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, strips of "
+          f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px")
     return 0
 
 

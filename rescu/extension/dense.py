@@ -56,8 +56,8 @@ from .objects import box_cells, integral_map, touching_sides
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
-           "objectness_for", "dense_map", "save_map", "load_map", "dense_levels", "level_candidates", "find_dense",
-           "score_and_split"]
+           "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
+           "level_candidates", "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map

@@ -223,8 +223,7 @@ def save_checkpoint(path: str | os.PathLike[str], ckpt: dict[str, Any]) -> None:
 
 def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint` (arrays as NumPy arrays). A
-    missing or unreadable file raises
-    :class:`rescu.io.InputError` naming it."""
+    missing or unreadable file raises :class:`rescu.io.InputError` naming it."""
     import json
 
     from ..io import InputError, read_h5
