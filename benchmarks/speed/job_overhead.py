@@ -1,6 +1,7 @@
 """Per-job overhead of the pipeline: what a Snakemake job costs that does nothing.
 
     python benchmarks/speed/job_overhead.py [--jobs 20] [--results results]
+                                            [--datasets cmp_facade,chess] [--rules-only]
 
 Prints
 1. the wall time per job of a no-op rule written like the pipeline's adapters (the
@@ -100,10 +101,14 @@ def import_seconds(stmt: str, repeat: int = 3) -> float:
     return statistics.median(times)
 
 
-def rule_medians(results: Path) -> dict[str, tuple[int, float]]:
-    """rule -> (jobs, median seconds) from ``results/benchmarks/<dataset>/<rule>/*.tsv``."""
+def rule_medians(results: Path, datasets: set[str] | None = None
+                 ) -> dict[str, tuple[int, float]]:
+    """rule -> (jobs, median seconds) from ``results/benchmarks/<dataset>/<rule>/*.tsv``
+    (only the given ``datasets`` when not None)."""
     by_rule: dict[str, list[float]] = {}
     for f in (results / "benchmarks").glob("**/*.tsv"):
+        if datasets is not None and f.parent.parent.name not in datasets:
+            continue
         lines = f.read_text().splitlines()
         if len(lines) > 1:
             by_rule.setdefault(f.parent.name, []).append(float(lines[1].split("\t")[0]))
@@ -115,9 +120,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--jobs", type=int, default=20, help="no-op jobs (default 20)")
     ap.add_argument("--results", type=Path, default=None,
                     help="a finished run's results folder: median seconds per rule")
+    ap.add_argument("--datasets", default=None,
+                    help="with --results: only these datasets (comma-separated)")
+    ap.add_argument("--rules-only", action="store_true",
+                    help="with --results: only the per-rule medians (no no-op jobs)")
     a = ap.parse_args(argv)
     if a.jobs < 1:
         ap.error("--jobs must be >= 1")
+    if a.rules_only and a.results is None:
+        ap.error("--rules-only needs --results")
+    if a.rules_only:
+        return print_rules(a.results, a.datasets)
     print(f"no-op job ({a.jobs} jobs, snakemake --cores 1):")
     per_job, bench = noop_jobs(a.jobs)
     print(f"  wall per job {per_job:.2f} s; its benchmark file records {bench:.2f} s")
@@ -125,9 +138,16 @@ def main(argv: list[str] | None = None) -> None:
     for name, stmt in STEP_IMPORTS.items():
         print(f"  {name:<20} {import_seconds(stmt):.2f} s")
     if a.results is not None:
-        print(f"median seconds per job, {a.results}/benchmarks:")
-        for rule, (n, med) in rule_medians(a.results).items():
-            print(f"  {rule:<26} {n:>5} jobs  {med:7.2f} s")
+        print_rules(a.results, a.datasets)
+
+
+def print_rules(results: Path, datasets: str | None) -> None:
+    """Print :func:`rule_medians` of a run (``datasets``: comma-separated, or None)."""
+    only = None if datasets is None else {d.strip() for d in datasets.split(",") if d.strip()}
+    print(f"median seconds per job, {results}/benchmarks"
+          + ("" if only is None else f" ({', '.join(sorted(only))})") + ":")
+    for rule, (n, med) in rule_medians(results, only).items():
+        print(f"  {rule:<26} {n:>5} jobs  {med:7.2f} s")
 
 
 if __name__ == "__main__":
