@@ -458,25 +458,18 @@ def save_map(path: str | os.PathLike[str], fmap: tuple[np.ndarray, float] | None
     """Store :func:`dense_map`'s result so that a later step (the scoring of stage I's RPs,
     :func:`score_and_split`) needs no backbone pass of its own.
 
-    HDF5 (atomic write): dataset ``map`` (C, h, w) float16, attributes ``scale`` (backbone
-    input px per prepared-image px) and what the map depends on (``backbone``,
-    ``max_side``, ``min_side``). ``fmap`` None (a failed dense step): no dataset, the
-    attribute ``failure`` says why.
+    HDF5 (:func:`rescu.io.write_h5`, atomic): dataset ``map`` (C, h, w) float16,
+    attributes ``scale`` (backbone input px per prepared-image px) and what the map
+    depends on (``backbone``, ``max_side``, ``min_side``). ``fmap`` None (a failed dense
+    step): no dataset, the attribute ``failure`` says why.
     """
-    import h5py
+    from ..io import write_h5
 
-    from ..io import atomic_path
-
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as h:
-            for k, v in _map_key(params).items():
-                h.attrs[k] = v
-            if fmap is None:
-                h.attrs["failure"] = failure or "no map"
-            else:
-                h.attrs["scale"] = float(fmap[1])
-                h.create_dataset("map", data=np.asarray(fmap[0], np.float16),
-                                 track_times=False)
+    if fmap is None:
+        write_h5(path, {}, attrs={**_map_key(params), "failure": failure or "no map"})
+    else:
+        write_h5(path, {"map": np.asarray(fmap[0], np.float16)},
+                 attrs={**_map_key(params), "scale": float(fmap[1])})
 
 
 def load_map(path: str | os.PathLike[str], params: DenseParams
@@ -484,19 +477,13 @@ def load_map(path: str | os.PathLike[str], params: DenseParams
     """A map stored by :func:`save_map`: ``(f (C, h, w) float32 read-only, s)``, or None
     when it holds none (failed dense step) or was made with other ``backbone``,
     ``max_side`` or ``min_side`` than ``params`` say. A file that cannot be read raises
-    :class:`rescu.io.InputError` naming it."""
-    import h5py
+    :class:`rescu.io.InputError` naming it (:func:`rescu.io.read_h5`)."""
+    from ..io import read_h5
 
-    from ..io import InputError
-
-    try:
-        with h5py.File(path, "r") as h:
-            attrs = dict(h.attrs)
-            if "map" not in h or any(attrs.get(k) != v for k, v in _map_key(params).items()):
-                return None
-            f = h["map"][()].astype(np.float32)
-    except OSError as e:
-        raise InputError(f"{path}: unreadable feature map file ({e})") from None
+    arrays, attrs = read_h5(path)
+    if "map" not in arrays or any(attrs.get(k) != v for k, v in _map_key(params).items()):
+        return None
+    f = np.asarray(arrays["map"], np.float32)
     f.setflags(write=False)
     return f, float(attrs["scale"])
 
