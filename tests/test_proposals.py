@@ -41,6 +41,37 @@ def test_edgeboxes_inside_image():
     assert np.all(b[:, 2] >= 8) and np.all(b[:, 3] >= 8)
 
 
+def test_edgeboxes_of_the_same_image_are_run_once(monkeypatch):
+    """A second call on the same pixels and parameters returns the first call's boxes
+    without running the detector (the stage-II ablation's variants); other pixels or other
+    parameters run it again, and changing a returned array leaves the kept one alone."""
+    import cv2
+
+    from rescu.extension import proposals as P
+
+    img, _ = _squares_image()
+    pp = proposal_params(method="edgeboxes", max_boxes=200)
+    b0, s0 = edgeboxes_proposals(img, pp)
+    calls = []
+    real = cv2.ximgproc.createEdgeBoxes
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(cv2.ximgproc, "createEdgeBoxes", counting)
+    b0[:] = -1
+    b1, s1 = edgeboxes_proposals(img.copy(), pp)
+    assert not calls and np.all(b1 >= 0)
+    assert np.array_equal(b1, edgeboxes_proposals(img, pp)[0]) and np.array_equal(s1, s0)
+    other = img.copy()
+    other[0, 0] += 1
+    edgeboxes_proposals(other, pp)
+    assert len(calls) == 1
+    edgeboxes_proposals(other, proposal_params(method="edgeboxes", max_boxes=50))
+    assert len(calls) == 2 and len(P._LAST_EDGEBOXES) == 1
+
+
 def test_instance_scale_covers_held_out_instance():
     img, boxes = _squares_image()
     held_out = boxes[4:5]
