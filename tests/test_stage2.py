@@ -441,3 +441,27 @@ def test_visible_half_in_prediction(six):
     assert 0 <= n <= out_v.extra["stage2"]["added"]
     assert "added_by_visible_half" not in out.extra["stage2"]
     assert out_v.patterns[0].count >= 4
+
+
+def test_a_variant_that_changes_only_prediction_is_told_apart():
+    """as_predict_variant: a variant whose other keys equal the base's is prediction-only
+    (its predict keys kept), one that changes any other key is not."""
+    from rescu.extension.params import as_predict_variant
+    from rescu.params import config_defaults
+
+    base = config_defaults("stage2")
+    assert base["proposals"]["method"] == "instance_scale"
+    same = {"proposals": {"method": "instance_scale"}, "predict": {"lattice_only": False}}
+    assert as_predict_variant(base, same) == {"predict": {"lattice_only": False}}
+    assert as_predict_variant(base, {"predict": {"visible_half": True}}) == \
+        {"predict": {"visible_half": True}}
+    assert as_predict_variant(base, {}) == {}
+    assert as_predict_variant(base, {"proposals": {"method": "edgeboxes"},
+                                     "predict": {"lattice_only": False}}) is None
+    assert as_predict_variant(base, {"head": {"lr": 0.5}}) is None
+    assert as_predict_variant(base, {"new_section": 1}) is None
+    assert as_predict_variant(base, "edgeboxes") is None
+    # the variant's dict is not shared with the result
+    out = as_predict_variant(base, same)
+    out["predict"]["lattice_only"] = True
+    assert same["predict"]["lattice_only"] is False

@@ -455,6 +455,48 @@ def test_completion_variant_of_the_configs_settings_is_the_runs_scene(finished_r
     assert "other settings" in capsys.readouterr().err
 
 
+def test_variant_that_changes_only_prediction_reuses_the_run_features_and_head(
+        finished_run, tmp_path):
+    """A stage2_ablation variant that, merged into the run's stage2, changes prediction only
+    (the default instance-scale sets the proposal method the run already has) is computed
+    from the run's own features and head (rule stage2_predict_ablation, no backbone pass),
+    and gives the instances the whole variant run (features, head, prediction) gives."""
+    from rescu import pipeline
+    from rescu.config import load_config
+    from rescu.extension.params import as_predict_variant
+
+    work, cfg = finished_run
+    res = work / "results"
+    conf = load_config(cfg)
+    over = conf["stage2_ablation"]["variants"]["instance-scale"]
+    assert as_predict_variant(conf["stage2"], over) == {"predict": over["predict"]}
+    for other in ("edgeboxes", "both"):
+        assert as_predict_variant(conf["stage2"], conf["stage2_ablation"]["variants"][other]) \
+            is None
+    proc = snakemake(work, cfg, "-n", "--forcerun", "stage2_predict_ablation")
+    text = proc.stdout + proc.stderr
+    assert re.search(r"rule stage2_predict_ablation:.*?output: [^\n]*stage2-ablation/"
+                     r"instance-scale/", text, re.S), text[-3000:]
+    blocks = [b for b in text.split("\nrule ") if b.startswith("stage2_ablation:")]
+    assert not [b for b in blocks if "instance-scale" in b.split("log:")[0]], blocks[:1]
+    # the same instances as the whole variant run, image by image
+    pipeline.limit_threads(conf["threads"]["stage2_features"], torch=True)
+    for s1 in sorted((res / "synthetic" / "rescu-i").glob("*.json")):
+        stem, prep = s1.stem, res / "synthetic" / "prepared"
+        out = tmp_path / f"{stem}.json"
+        pipeline.stage2_ablation(str(prep / f"{stem}.png"), str(prep / f"{stem}.meta.json"),
+                                 str(s1), {"instance-scale": str(out)}, conf["stage2"],
+                                 {"instance-scale": over})
+        a = json.loads((res / "synthetic" / "stage2-ablation" / "instance-scale"
+                        / f"{stem}.json").read_text())
+        b = json.loads(out.read_text())
+        assert a["method"] == b["method"] == "rescu-ii[instance-scale]"
+        boxes = [[np.round(i["bbox"], 3).tolist() for i in p["instances"]]
+                 for p in a["patterns"]]
+        assert boxes == [[np.round(i["bbox"], 3).tolist() for i in p["instances"]]
+                         for p in b["patterns"]], stem
+
+
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {
         "x": {"examples": {"top_p": 5}}}})

@@ -400,3 +400,30 @@ def predict_only_error(override: Any) -> str | None:
         return f"{override!r} is not a mapping"
     bad = sorted(k for k in override if k != PREDICT_SECTION)
     return f"{bad} are not the {PREDICT_SECTION} section" if bad else None
+
+
+def as_predict_variant(base: dict[str, Any], override: Any) -> dict[str, Any] | None:
+    """The prediction-only form of the stage-II variant ``override`` of ``base`` (a ``stage2``
+    mapping), or None when the variant changes more than prediction.
+
+    A variant such as ``{proposals: {method: instance_scale}, predict: {lattice_only:
+    false}}`` sets its proposal method to the one ``base`` already has: merged into
+    ``base`` (:func:`rescu.params.deep_merge`) it differs from ``base`` in the ``predict``
+    section only, so the run's own features and head give it and it needs no backbone
+    pass or training of its own.
+
+    Returns
+    -------
+    dict or None
+        ``{"predict": ...}`` (the variant's ``predict`` keys; ``{}`` when it has none and
+        equals ``base``), or None when some section other than ``predict`` differs after
+        the merge (or ``override`` is not a mapping).
+    """
+    if not isinstance(override, dict) or not isinstance(base, dict):
+        return None
+    merged = deep_merge(base, override)
+    if any(merged.get(k) != base.get(k) for k in set(merged) | set(base)
+           if k != PREDICT_SECTION):
+        return None
+    return {PREDICT_SECTION: copy.deepcopy(override[PREDICT_SECTION])} \
+        if PREDICT_SECTION in override else {}

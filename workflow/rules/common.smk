@@ -72,11 +72,45 @@ def stage2_upstream():
     return {k: v for k, v in config["stage2"].items() if k != PREDICT_SECTION}
 
 
+def _stage2_ablation_split():
+    """``stage2_ablation.variants`` split in two: those that need features and a head of their
+    own (rule ``stage2_ablation``), and those that, merged into ``stage2``, change only its
+    ``predict`` section (their prediction-only form,
+    :func:`rescu.extension.params.as_predict_variant`): the run's own features and head give
+    those (rule ``stage2_predict_ablation``), with no backbone pass or training of their own."""
+    from rescu.extension.params import as_predict_variant
+
+    own, pred = {}, {}
+    for name, over in config["stage2_ablation"]["variants"].items():
+        p = as_predict_variant(config["stage2"], over)
+        if p is None:
+            own[name] = over
+        else:
+            pred[name] = p
+    return own, pred
+
+
+def stage2_ablation_variants():
+    """The stage-II ablation variants that need their own features and head (rule
+    ``stage2_ablation``)."""
+    return _stage2_ablation_split()[0]
+
+
 def stage2_predict_variants():
-    """``stage2_ablation.predict_variants`` (the ``predict`` section only, names other than those
-    of ``stage2_ablation.variants``: checked once with the whole config by
-    :func:`rescu.config.validate_config` in the Snakefile)."""
-    return config["stage2_ablation"].get("predict_variants") or {}
+    """The variants rule ``stage2_predict_ablation`` computes from the run's own features and
+    head: ``stage2_ablation.predict_variants`` (the ``predict`` section only, names other than
+    those of ``stage2_ablation.variants``: checked once with the whole config by
+    :func:`rescu.config.validate_config` in the Snakefile), and the ``variants`` that change
+    nothing but prediction (:func:`_stage2_ablation_split`)."""
+    return {**(config["stage2_ablation"].get("predict_variants") or {}),
+            **_stage2_ablation_split()[1]}
+
+
+def stage2_ablation_rows():
+    """Every stage-II ablation variant, in the table's order: ``variants``, then
+    ``predict_variants``."""
+    return list(config["stage2_ablation"]["variants"]) + \
+        list(config["stage2_ablation"].get("predict_variants") or {})
 
 
 def images(dataset):

@@ -101,8 +101,7 @@ rule stage2_ablation_tables:
         ablation=per_image(
             f"{RESULTS}/{{dataset}}/stage2-ablation/{{variant}}/{{image}}.json",
             stage2_ablation_datasets(),
-            variant=list(config["stage2_ablation"]["variants"])
-            + list(stage2_predict_variants()),
+            variant=stage2_ablation_rows(),
         ),
         gt=gt_files(stage2_ablation_datasets(), "annotations.json"),
         code=EVAL_CODE,
@@ -113,8 +112,7 @@ rule stage2_ablation_tables:
         results=RESULTS,
         datasets=dataset_params(stage2_ablation_datasets()),
         evaluation=config["evaluation"],
-        variants=list(config["stage2_ablation"]["variants"])
-        + list(stage2_predict_variants()),
+        variants=stage2_ablation_rows(),
     log:
         LOGS + "/tables/stage2_ablation_tables.log",
     script:

@@ -63,7 +63,8 @@ rule stage2_predict:
         "../scripts/stage2_predict.py"
 
 
-# prediction-only variants (stage2_ablation.predict_variants): no rule when there are none
+# prediction-only variants (stage2_ablation.predict_variants, and the variants that change
+# nothing but prediction): no rule when there are none
 if stage2_predict_variants():
 
     rule stage2_predict_ablation:
@@ -91,26 +92,30 @@ if stage2_predict_variants():
             "../scripts/stage2_predict_ablation.py"
 
 
-rule stage2_ablation:
-    input:
-        **prepared(),
-        stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
-        code=step_code("stage2_ablation"),
-    output:
-        expand(
-            f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
-            variant=config["stage2_ablation"]["variants"],
-        ),
-    params:
-        stage2=config["stage2"],
-        variants=config["stage2_ablation"]["variants"],
-        threads=config["threads"]["stage2_features"],
-    threads: config["threads"]["stage2_features"]
-    resources:
-        mem_mb=4000,
-    log:
-        LOGS + "/{dataset}/stage2_ablation/{image}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/{{dataset}}/stage2_ablation/{{image}}.tsv"
-    script:
-        "../scripts/stage2_ablation.py"
+# variants with features and a head of their own; those that change only prediction go to
+# stage2_predict_ablation above (common.smk: _stage2_ablation_split)
+if stage2_ablation_variants():
+
+    rule stage2_ablation:
+        input:
+            **prepared(),
+            stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
+            code=step_code("stage2_ablation"),
+        output:
+            expand(
+                f"{RESULTS}/{{{{dataset}}}}/stage2-ablation/{{variant}}/{{{{image}}}}.json",
+                variant=stage2_ablation_variants(),
+            ),
+        params:
+            stage2=config["stage2"],
+            variants=stage2_ablation_variants(),
+            threads=config["threads"]["stage2_features"],
+        threads: config["threads"]["stage2_features"]
+        resources:
+            mem_mb=4000,
+        log:
+            LOGS + "/{dataset}/stage2_ablation/{image}.log",
+        benchmark:
+            f"{RESULTS}/benchmarks/{{dataset}}/stage2_ablation/{{image}}.tsv"
+        script:
+            "../scripts/stage2_ablation.py"
