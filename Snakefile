@@ -45,3 +45,17 @@ rule all:
     input:
         final_targets(),
     default_target: True
+
+
+# Snakemake's job rate limiter (--max-jobs-per-timespan, 100 jobs per 1 s by default) ends
+# every scheduling round by starting a timer that starts another round one timespan later,
+# and each finished job starts a round of its own: one more perpetual 1-s timer per finished
+# job. After a few hundred jobs Snakemake's own process re-schedules hundreds of times a
+# second and takes most of a core from the jobs (make paper: 4974 jobs). A run on this
+# machine submits nothing anywhere, so it has nothing to limit: the limiter is switched off
+# before the first round (jobs still start as soon as a job ends or a core is free).
+# Cluster runs (--profile profiles/slurm) keep it; `--no-hooks` skips this.
+onstart:
+    _scheduler = getattr(workflow, "scheduler", None)
+    if workflow.local_exec and getattr(_scheduler, "job_rate_limiter", None) is not None:
+        _scheduler.job_rate_limiter = None
