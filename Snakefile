@@ -59,3 +59,6 @@ onstart:
     _scheduler = getattr(workflow, "scheduler", None)
     if workflow.local_exec and getattr(_scheduler, "job_rate_limiter", None) is not None:
         _scheduler.job_rate_limiter = None
+        from snakemake.logging import logger as _logger
+
+        _logger.debug("rescu: job rate limiter off (local run)")

@@ -497,6 +497,18 @@ def test_variant_that_changes_only_prediction_reuses_the_run_features_and_head(
                          for p in b["patterns"]], stem
 
 
+def test_a_local_run_switches_the_job_rate_limiter_off(tmp_path):
+    """The Snakefile's onstart hook finds Snakemake's job rate limiter and switches it off
+    for local runs (its 1-s re-scheduling timers pile up, one more per finished job, and kept
+    Snakemake's own process busy on a core in make paper). Fails when a Snakemake release
+    moves what the hook reaches for, instead of the hook quietly doing nothing."""
+    cfg = tiny_config(tmp_path)
+    proc = snakemake(tmp_path, cfg, "--verbose", "--", "results/data/synthetic/truth.json")
+    text = proc.stdout + proc.stderr
+    assert "rescu: job rate limiter off (local run)" in text, text[-2000:]
+    assert re.search(r"Finished job|steps \(100%\) done", text), text[-2000:]
+
+
 def test_predict_variant_of_an_upstream_key_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, **{"stage2_ablation.predict_variants": {
         "x": {"examples": {"top_p": 5}}}})
