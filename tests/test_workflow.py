@@ -506,6 +506,8 @@ def test_a_local_run_switches_the_job_rate_limiter_off(tmp_path):
     proc = snakemake(tmp_path, cfg, "--verbose", "--", "results/data/synthetic/truth.json")
     text = proc.stdout + proc.stderr
     assert "rescu: job rate limiter off (local run)" in text, text[-2000:]
+    # the workflow's own profile (scheduler-subsample) is read without being named
+    assert re.search(r"Using workflow specific profile \S*profiles/default", text), text[:2000]
     assert re.search(r"Finished job|steps \(100%\) done", text), text[-2000:]
 
 
