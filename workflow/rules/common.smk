@@ -90,10 +90,13 @@ def _stage2_ablation_split():
     return own, pred
 
 
+_STAGE2_OWN, _STAGE2_PREDICT_ONLY = _stage2_ablation_split()  # once, when the workflow is read
+
+
 def stage2_ablation_variants():
     """The stage-II ablation variants that need their own features and head (rule
     ``stage2_ablation``)."""
-    return _stage2_ablation_split()[0]
+    return _STAGE2_OWN
 
 
 def stage2_predict_variants():
@@ -103,7 +106,7 @@ def stage2_predict_variants():
     :func:`rescu.config.validate_config` in the Snakefile), and the ``variants`` that change
     nothing but prediction (:func:`_stage2_ablation_split`)."""
     return {**(config["stage2_ablation"].get("predict_variants") or {}),
-            **_stage2_ablation_split()[1]}
+            **_STAGE2_PREDICT_ONLY}
 
 
 def stage2_ablation_rows():
