@@ -110,8 +110,12 @@ def test_objects_profile_loads_and_unknown_profile_is_refused():
 
     cfg = load_config(profile="objects", stage2=False)
     assert cfg["dense"]["enabled"] and cfg["dense"]["mode"] == "dense"
-    assert cfg["stage2"]["predict"]["lattice_only"] is False
-    assert cfg["stage1"] == load_config(stage2=False)["stage1"]   # the rest is the default
+    # its RPs are all whole objects: stage II extends them with the default's gates for
+    # whole objects (any proposal), so the profile needs no stage2 section of its own
+    gates = cfg["stage2"]["predict"]["whole_objects"]
+    assert gates["enabled"] and gates["lattice_only"] is False
+    base = load_config(stage2=False)
+    assert cfg["stage1"] == base["stage1"] and cfg["stage2"] == base["stage2"]
     with pytest.raises(InputError, match="unknown"):
         load_config(profile="facades", stage2=False)
 

@@ -266,6 +266,39 @@ def test_lattice_only_needs_lattice_windows(six):
     assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 4
 
 
+def test_whole_object_rps_are_extended_from_any_proposal(six):
+    # the same four squares, no lattice window: a stage-I RP gets nothing new (lattice
+    # only), an RP of whole objects (the dense source's) gets the two missing squares
+    # from instance-scale windows (stage2.predict.whole_objects); with that section
+    # disabled it is treated like any other RP
+    import copy
+
+    from rescu.extension.predict import rp_gates
+
+    img, boxes, s1, *_ = six
+    p = fast(proposals={"lattice_windows": False})
+    feats = compute_stage2_features(img, 1.0, s1, p)
+    ckpt, _ = train_heads(feats, s1, p)
+    dense = copy.deepcopy(s1)
+    dense.patterns[0].extra["source"] = "dense"
+    assert rp_gates(s1.patterns[0], p) == (False, 0.7, True)
+    assert rp_gates(dense.patterns[0], p) == (True, 3.0, False)
+    out = predict_stage2(feats, ckpt, dense, p)
+    new = np.array([i.bbox for i in out.patterns[0].instances if i.source == "stage2"])
+    assert len(new) == 2 and out.patterns[0].extra["stage2_added"] == 2
+    iod = iod_matrix(new, np.array(boxes[4:]))
+    assert np.all(iod.max(0) > 0.5) and np.all(iod.max(1) > 0.5)
+    off = fast(proposals={"lattice_windows": False},
+               predict={"whole_objects": {"enabled": False}})
+    assert rp_gates(dense.patterns[0], off) == (False, 0.7, True)
+    out = predict_stage2(feats, ckpt, dense, off)
+    assert [i.source for i in out.patterns[0].instances] == ["stage1"] * 4
+    with pytest.raises(ValueError, match="whole_objects"):
+        fast(predict={"whole_objects": {"score_threshold": 1.5}})
+    with pytest.raises(ValueError, match="unknown stage2.predict.whole_objects parameter"):
+        fast(predict={"whole_objects": {"threshold": 0.5}})
+
+
 def test_spacing_suppression():
     from rescu.boxes import suppress
 

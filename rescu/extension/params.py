@@ -269,6 +269,48 @@ class MergeSectionParams(MergeParams):
 
 
 @dataclass(frozen=True)
+@config_section("stage2", "predict", "whole_objects")
+class WholeObjectGates:
+    """Section ``stage2.predict.whole_objects``: the gates of prediction for the RPs of
+    whole objects (RESCU-I's RPs from the dense source, ``extra["source"] == "dense"``).
+
+    Their boxes have the extent of the objects, so an instance-scale window is a
+    candidate object of the same size, and objects (cars, chess pieces, coins) stand
+    where they like rather than on a lattice: any proposal may become a new instance.
+    Stage I's keypoint RPs keep the section's own gates. The values are those of the
+    ``objects`` profile before this section existed (docs/results.md).
+
+    Attributes
+    ----------
+    enabled : bool
+        False: whole-object RPs get the same gates as the others.
+    lattice_only : bool
+        As :attr:`PredictParams.lattice_only`, for these RPs.
+    score_threshold : float in [0, 1]
+        Smallest class probability of a new instance from a proposal that is not a
+        lattice window (lattice windows keep ``lattice_score_threshold``).
+    max_distance_ratio : float > 0
+        As :attr:`PredictParams.max_distance_ratio`, for those proposals.
+    max_new_fraction : float >= 0
+        At most this many new instances per instance of the RP.
+    """
+
+    enabled: bool
+    lattice_only: bool
+    score_threshold: float
+    max_distance_ratio: float
+    max_new_fraction: float
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.score_threshold <= 1:
+            raise ValueError(f"stage2.predict.whole_objects.score_threshold must be in "
+                             f"[0, 1], got {self.score_threshold}")
+        if self.max_distance_ratio <= 0 or self.max_new_fraction < 0:
+            raise ValueError("stage2.predict.whole_objects: max_distance_ratio must be > 0 "
+                             "and max_new_fraction >= 0")
+
+
+@dataclass(frozen=True)
 @config_section("stage2", "predict")
 class PredictParams:
     """Section ``stage2.predict``: the keys that act only in prediction.
@@ -307,6 +349,8 @@ class PredictParams:
         Only windows whose centre lies within the bounding box of the RP's instance
         centres grown by this times the median instance (width, height).
     merge : MergeSectionParams
+    whole_objects : WholeObjectGates
+        Other gates for the RPs of whole objects (the dense source's).
     """
 
     score_threshold: float
@@ -322,6 +366,7 @@ class PredictParams:
     visible_half_threshold: float
     visible_half_margin: float
     merge: MergeSectionParams = field(default_factory=MergeSectionParams)
+    whole_objects: WholeObjectGates = field(default_factory=WholeObjectGates)
 
     def __post_init__(self) -> None:
         for k in ("visible_half_min_score", "visible_half_threshold"):
@@ -380,6 +425,8 @@ class Stage2Params:
             raise ValueError(f"stage2.predict must be a mapping, got {type(pred).__name__}")
         pred = dict(pred or {})
         pred["merge"] = _section(MergeSectionParams, pred.get("merge"), "predict.merge")
+        pred["whole_objects"] = _section(WholeObjectGates, pred.get("whole_objects"),
+                                         "predict.whole_objects")
         d["predict"] = _section(PredictParams, pred, "predict")
         return cls(**d)
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..types import ImageResult, Instance
+from ..types import ImageResult, Instance, Pattern
 from ..boxes import size_gate, suppress
 from .examples import select_examples
 from .proposal_features import to_str
@@ -151,15 +151,29 @@ def visible_half_features(feats: dict[str, np.ndarray], ckpt: dict[str, Any],
     return pf, replaced
 
 
-def proposal_gates(lattice: np.ndarray, params: Stage2Params = Stage2Params()
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def proposal_gates(lattice: np.ndarray, params: Stage2Params = Stage2Params(),
+                   whole_objects: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each proposal's probability gate and feature-distance ratio: the lattice gates
     (``lattice_score_threshold``, ``lattice_distance_ratio``) for lattice windows
     (``lattice`` (P,) bool), ``score_threshold`` and ``max_distance_ratio`` for the
-    others; two (P,) float arrays."""
+    others (those of ``predict.whole_objects`` for an RP of whole objects when that
+    section is enabled); two (P,) float arrays."""
     pr = params.predict
-    return (np.where(lattice, pr.lattice_score_threshold, pr.score_threshold),
-            np.where(lattice, pr.lattice_distance_ratio, pr.max_distance_ratio))
+    other = pr.whole_objects if whole_objects and pr.whole_objects.enabled else pr
+    return (np.where(lattice, pr.lattice_score_threshold, other.score_threshold),
+            np.where(lattice, pr.lattice_distance_ratio, other.max_distance_ratio))
+
+
+def rp_gates(pattern: Pattern, params: Stage2Params = Stage2Params()
+             ) -> tuple[bool, float, bool]:
+    """``(whole_objects, max_new_fraction, lattice_only)`` of one RP in prediction: an RP
+    of whole objects (``pattern.extra["source"] == "dense"``, RESCU-I's RPs from the
+    dense source) gets ``predict.whole_objects``' values when that section is enabled,
+    every other RP the section's own."""
+    pr = params.predict
+    whole = pattern.extra.get("source") == "dense" and pr.whole_objects.enabled
+    g = pr.whole_objects if whole else pr
+    return whole, float(g.max_new_fraction), bool(g.lattice_only)
 
 
 def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: ImageResult,
@@ -228,14 +242,15 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
     lat = np.asarray(feats.get("proposal_lattice", np.zeros(len(boxes), np.int8))).reshape(-1) > 0
     if len(lat) != len(boxes):
         lat = np.zeros(len(boxes), bool)
-    thr, ratio = proposal_gates(lat, params)
     total = by_half = 0
     for k, pi in enumerate(rp_index):
         pat = out.patterns[pi]
+        whole, new_fraction, lattice_only = rp_gates(stage1.patterns[pi], params)
+        thr, ratio = proposal_gates(lat, params, whole)
         own = np.array([i.bbox for i in stage1.patterns[pi].instances], np.float64)
         pk = prob[:, k + 1]
         near = sel["distance"][:, k] <= ratio * max(sel["radius"][k], 1e-6)
-        allowed = lat if params.predict.lattice_only else np.ones(len(boxes), bool)
+        allowed = lat if lattice_only else np.ones(len(boxes), bool)
         cand = np.nonzero((arg == k + 1) & (pk >= thr) & near & allowed
                           & size_gate(boxes, own, params.examples.size_tolerance))[0]
         cand = cand[np.argsort(-pk[cand], kind="stable")]
@@ -246,7 +261,7 @@ def predict_stage2(feats: dict[str, np.ndarray], ckpt: dict[str, Any], stage1: I
         spacing = float(np.median(dd.min(1))) if len(own) > 1 else 0.0
         cand = suppress(boxes, cand, own, all_inst, params.predict.nms_iou,
                          params.predict.min_spacing_fraction * spacing)
-        limit = int(np.floor(params.predict.max_new_fraction * len(own)))
+        limit = int(np.floor(new_fraction * len(own)))
         cand = cand[np.argsort(-pk[cand], kind="stable")][:limit]
         new = [Instance(bbox=tuple(float(v) for v in boxes[c]), score=float(pk[c]),
                         source="stage2") for c in cand]
