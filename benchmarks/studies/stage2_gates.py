@@ -60,7 +60,8 @@ COUNTS = STAGES + ("not extended", "added")   # what image_funnels and the total
 
 def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
                 lattice: np.ndarray, prob: np.ndarray, distance: np.ndarray, radius: float,
-                params: Any, lattice_only: bool, h: float = 0.5) -> dict[str, int]:
+                params: Any, lattice_only: bool, h: float = 0.5,
+                whole_objects: bool = False) -> dict[str, int]:
     """How many of one RP's missing GT instances keep a covering proposal after each gate.
 
     Parameters
@@ -76,6 +77,8 @@ def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
     params : Stage2Params (``predict`` gates, ``examples.size_tolerance``)
     lattice_only : only lattice windows may add an instance (the ``allowed`` gate)
     h : IOD above which a proposal covers a GT box
+    whole_objects : the RP gets ``predict.whole_objects``' gates (the first value of
+        :func:`rescu.extension.predict.rp_gates`)
 
     Returns
     -------
@@ -90,7 +93,7 @@ def gate_funnel(missing: np.ndarray, k: int, own: np.ndarray, boxes: np.ndarray,
     if not len(missing) or not len(boxes):
         return out
     cover = iod_matrix(boxes, missing) > h                       # (P, M)
-    thr, ratio = proposal_gates(lattice, params)
+    thr, ratio = proposal_gates(lattice, params, whole_objects)
     gates = [np.ones(len(boxes), bool),
              lattice if lattice_only else np.ones(len(boxes), bool),
              prob.argmax(1) == k + 1,
@@ -111,7 +114,7 @@ def image_funnels(stage1: Any, stage2: Any, feats: dict[str, Any], ckpt: dict[st
     any proposal allowed), each with ``not extended`` and ``added`` counts."""
     from rescu.evaluation.metrics import iod_matrix, score_image
     from rescu.extension.examples import select_examples
-    from rescu.extension.predict import score_proposals
+    from rescu.extension.predict import rp_gates, score_proposals
 
     conf, anyp = dict.fromkeys(COUNTS, 0), dict.fromkeys(COUNTS, 0)
     det = [[i.bbox for i in p.instances] for p in stage1.patterns]
@@ -144,9 +147,10 @@ def image_funnels(stage1: Any, stage2: Any, feats: dict[str, Any], ckpt: dict[st
                 d["added"] += added
             continue
         k = rp_index.index(pi)
-        for d, lo in ((conf, params.predict.lattice_only), (anyp, False)):
+        whole, _, lattice_only = rp_gates(stage1.patterns[pi], params)
+        for d, lo in ((conf, lattice_only), (anyp, False)):
             f = gate_funnel(missing, k, own, boxes, lattice, prob, sel["distance"][:, k],
-                            float(sel["radius"][k]), params, lo, h)
+                            float(sel["radius"][k]), params, lo, h, whole)
             for s in STAGES:
                 d[s] += f[s]
             d["added"] += added

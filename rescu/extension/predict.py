@@ -156,10 +156,10 @@ def proposal_gates(lattice: np.ndarray, params: Stage2Params = Stage2Params(),
     """Each proposal's probability gate and feature-distance ratio: the lattice gates
     (``lattice_score_threshold``, ``lattice_distance_ratio``) for lattice windows
     (``lattice`` (P,) bool), ``score_threshold`` and ``max_distance_ratio`` for the
-    others (those of ``predict.whole_objects`` for an RP of whole objects when that
-    section is enabled); two (P,) float arrays."""
+    others (those of ``predict.whole_objects`` when ``whole_objects``, the first value of
+    :func:`rp_gates`); two (P,) float arrays."""
     pr = params.predict
-    other = pr.whole_objects if whole_objects and pr.whole_objects.enabled else pr
+    other = pr.whole_objects if whole_objects else pr
     return (np.where(lattice, pr.lattice_score_threshold, other.score_threshold),
             np.where(lattice, pr.lattice_distance_ratio, other.max_distance_ratio))
 
