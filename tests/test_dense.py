@@ -321,6 +321,47 @@ def test_rank_candidates_multiplies_the_score_by_objectness():
         assert top == 30 or len(seen) < 30
 
 
+def test_iter_level_candidates_ranks_both_maps_and_classifies_only_what_it_yields(
+        monkeypatch):
+    from rescu.extension import dense as D
+
+    rng = np.random.default_rng(1)
+    per_level = [[D.DenseCandidate(boxes=np.array([[float(i), float(k), 8, 8]]),
+                                   score=float(v), touching=0.0, level=k)
+                  for i, v in enumerate(rng.random(20))] for k in range(2)]
+    obj = {(k, i): float(v) for k in range(2) for i, v in enumerate(rng.random(20))}
+    seen = []
+
+    def objectness_for(rgb, s, params, backbone):
+        def of(boxes):
+            key = (int(boxes[0, 1]), int(boxes[0, 0]))
+            seen.append(key)
+            return obj[key]
+        return of
+
+    monkeypatch.setattr(D, "_flat_candidates",
+                        lambda f, params, sizes=None, level=0: per_level[level])
+    monkeypatch.setattr(D, "objectness_for", objectness_for)
+    levels = [(np.zeros((1, 4, 4), np.float32), 1.0), (np.zeros((1, 8, 8), np.float32), 2.0)]
+    params = _params(max_candidates=12)
+    # every group classified and sorted by the final score (ties: level, top, left)
+    expect = sorted(((c.score * obj[(k, int(c.boxes[0, 0]))], k, int(c.boxes[0, 0]))
+                     for k in range(2) for c in per_level[k]),
+                    key=lambda t: (-t[0], t[1], 0.0, t[2]))[:12]
+    got = D.level_candidates(levels, None, params)
+    assert [(c.score, c.level, int(c.boxes[0, 0])) for c in got] == expect
+    assert len(seen) < 40           # the groups that cannot enter the first 12 are not classified
+    # a reader that stops after two groups classifies fewer still, and gets the same two
+    seen.clear()
+    it = D.iter_level_candidates(levels, None, params)
+    first = [next(it), next(it)]
+    assert [(c.score, c.level, int(c.boxes[0, 0])) for c in first] == expect[:2]
+    n_two = len(seen)
+    seen.clear()
+    D.level_candidates(levels, None, params)
+    assert n_two < len(seen)
+
+
 def test_find_dense_with_and_without_objectness():
     img, truth = _photo(np.random.default_rng(3))
     on, off = find_dense(img, _params(max_patterns=4)), \

@@ -44,7 +44,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -57,7 +57,7 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
-           "level_candidates", "find_dense", "score_and_split"]
+           "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -539,7 +539,7 @@ def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray
     """The groups of recurring blobs of every level (:func:`dense_candidates`, the coarse
     map with ``params.sizes``, the fine one with ``params.fine_sizes``) that do not tile
     the plane, ranked together by contrast x rarity [x objectness], best first, at most
-    ``params.max_candidates``.
+    ``params.max_candidates``: the whole of :func:`iter_level_candidates`.
 
     Parameters
     ----------
@@ -552,13 +552,51 @@ def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray
     -------
     list of :class:`DenseCandidate` (``level`` set; boxes in its level's pixels)
     """
-    ranked: list[DenseCandidate] = []
-    for k, (f, s) in enumerate(levels):
-        cands = _flat_candidates(f, params, params.sizes if k == 0 else params.fine_sizes, k)
-        ranked += rank_candidates(cands, objectness_for(rgb, s, params, backbone),
-                                  params.max_candidates)
-    ranked.sort(key=lambda c: (-c.score, c.level, c.boxes[0, 1], c.boxes[0, 0]))
-    return ranked[:params.max_candidates]
+    return list(iter_level_candidates(levels, rgb, params, backbone))
+
+
+def iter_level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray,
+                          params: DenseParams, backbone: Any = None
+                          ) -> Iterator[DenseCandidate]:
+    """:func:`level_candidates` one at a time, each group classified (:func:`objectness`,
+    a backbone pass on its crops) only when the ranking needs it.
+
+    Objectness is at most 1, so a group's contrast x rarity bounds its final score: the
+    best group not yet yielded is the first in the order (final score, level, top, left)
+    whose bound is its final score, the unclassified ones ranked by their bound. The
+    order is the same as classifying every group and sorting (:func:`level_candidates`);
+    a caller that stops early (:func:`rescu.extension.objects.whole_objects`, once it
+    holds ``max_patterns`` RPs) skips the classifier on the groups it never reaches.
+
+    Yields
+    ------
+    :class:`DenseCandidate`, best first, at most ``params.max_candidates`` (``score``
+    multiplied by the objectness)
+    """
+    import heapq
+
+    of = [objectness_for(rgb, s, params, backbone) for _, s in levels]
+    heap: list[tuple[float, int, float, float, int, bool]] = []
+    cands: list[DenseCandidate] = []
+    for k, (f, _) in enumerate(levels):
+        for c in _flat_candidates(f, params, params.sizes if k == 0 else params.fine_sizes,
+                                  k):
+            heap.append((-c.score, k, float(c.boxes[0, 1]), float(c.boxes[0, 0]),
+                         len(cands), of[k] is None))
+            cands.append(c)
+    heapq.heapify(heap)
+    n = 0
+    while heap and n < params.max_candidates:
+        _, k, y, x, i, scored = heapq.heappop(heap)
+        c = cands[i]
+        if scored:
+            n += 1
+            yield c
+        else:
+            objectness_of = of[k]
+            assert objectness_of is not None
+            cands[i] = c = replace(c, score=c.score * objectness_of(c.boxes))
+            heapq.heappush(heap, (-c.score, k, y, x, i, True))
 
 
 def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
@@ -606,7 +644,7 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     to_orig = 1.0 / float(scale_factor)
     pats = []
     if params.whole_objects:
-        ranked = level_candidates(levels, rgb, params, backbone)
+        ranked = iter_level_candidates(levels, rgb, params, backbone)
         found = whole_objects(levels, 8.0, rgb, ranked, params)
     else:
         f, s = levels[0]

@@ -37,7 +37,7 @@ pixels.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -523,7 +523,7 @@ def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: fl
 
 
 def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
-                  rgb: np.ndarray, ranked: Sequence[Any], params: Any
+                  rgb: np.ndarray, ranked: Iterable[Any], params: Any
                   ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """RPs of whole objects from the dense source's ranked groups (steps 1-4 of the
     module docstring), each group on the map it was found on.
@@ -543,8 +543,9 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         (C, h, w) float32, the feature map of ``rgb`` resized by ``s``
     cell_px : pixels of the backbone input per cell (8)
     rgb : (H, W, 3) uint8, the prepared image
-    ranked : :class:`rescu.extension.dense.DenseCandidate` list, best first (with ``emb``
-        and ``level``)
+    ranked : :class:`rescu.extension.dense.DenseCandidate` iterable, best first (with
+        ``emb`` and ``level``); read only until ``params.max_patterns`` RPs are kept
+        (:func:`rescu.extension.dense.iter_level_candidates` classifies no more groups)
     params : :class:`rescu.discovery.sources.DenseParams`
 
     Returns
