@@ -168,6 +168,31 @@ def test_parts_of_kept_objects_are_dropped():
     assert [len(k) for k in kept] == [3, 3] and np.array_equal(kept[1], elsewhere)
 
 
+def test_a_group_sharing_one_object_with_a_kept_rp_does_not_replace_it(monkeypatch):
+    """Only a group most of whose boxes lie on a kept RP's objects competes with it; one
+    that shares a single object and would keep too few boxes without it is skipped, even
+    when it is more confident."""
+    from rescu.extension import objects as O
+    from rescu.extension.dense import DenseCandidate
+
+    a = np.array([[x, 0, 40, 40] for x in range(0, 600, 100)], float)        # 6 objects
+    b = np.array([[200, 0, 40, 40], [100, 300, 40, 40], [400, 300, 40, 40]], float)
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
+                        {"confidence": 0.5 if len(boxes) == 6 else 0.9})
+    p = _params(complete=False, extent=False, min_object_px=1, min_map_px=1, min_instances=3)
+    ranked = [DenseCandidate(boxes=a, score=1.0, touching=0.0),
+              DenseCandidate(boxes=b, score=0.9, touching=0.0)]
+    rgb = np.zeros((400, 640, 3), np.uint8)
+    levels = [(np.zeros((4, 50, 80), np.float32), 1.0)]
+    out = O.whole_objects(levels, 8.0, rgb, ranked, p)
+    assert len(out) == 1 and np.array_equal(out[0][1], a)
+    # most of its boxes on the kept RP's objects: a rival, and the more confident wins
+    c = np.array([[0, 0, 40, 40], [100, 0, 40, 40], [400, 300, 40, 40]], float)
+    ranked[1] = DenseCandidate(boxes=c, score=0.9, touching=0.0)
+    out = O.whole_objects(levels, 8.0, rgb, ranked, p)
+    assert len(out) == 1 and np.array_equal(out[0][1], c)
+
+
 def test_confidence_of_any_rp_from_its_boxes():
     rng = np.random.default_rng(4)
     f = 0.05 * rng.normal(size=(8, 40, 60))

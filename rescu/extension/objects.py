@@ -87,7 +87,7 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "without_parts", "box_cells"]
+           "pattern_confidence", "without_parts", "on_objects", "box_cells"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -485,12 +485,36 @@ def without_parts(boxes: np.ndarray, taken: np.ndarray, cover: float, min_instan
     [[30.0, 0.0, 10.0, 10.0], [50.0, 0.0, 10.0, 10.0]]
     """
     b = np.asarray(boxes, float).reshape(-1, 4)
-    if len(taken) and len(b):
-        dup = (cover_matrix(b, taken).max(1) > cover) | (cover_matrix(taken, b).max(0) > cover)
-        if dup.mean() > 0.5:
-            return None
-        b = b[~dup]
+    dup = on_objects(b, taken, cover)
+    if len(b) and dup.mean() > 0.5:
+        return None
+    b = b[~dup]
     return b if len(b) >= min_instances else None
+
+
+def on_objects(boxes: np.ndarray, taken: np.ndarray, cover: float) -> np.ndarray:
+    """Which of ``boxes`` lie on an object of ``taken``: inside one of its boxes, or one
+    of them inside it, by more than ``cover`` of the smaller
+    (:func:`rescu.boxes.cover_matrix`).
+
+    Parameters
+    ----------
+    boxes, taken : (n, 4) and (m, 4) ``[x, y, w, h]``, one pixel unit
+    cover : in (0, 1]
+
+    Returns
+    -------
+    (n,) bool
+
+    >>> on_objects(np.array([[2, 2, 5, 5], [30, 0, 10, 10]], float),
+    ...            np.array([[0, 0, 10, 10]], float), 0.5).tolist()
+    [True, False]
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    t = np.asarray(taken, float).reshape(-1, 4)
+    if not len(t) or not len(b):
+        return np.zeros(len(b), bool)
+    return (cover_matrix(b, t).max(1) > cover) | (cover_matrix(t, b).max(0) > cover)
 
 
 def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: float,
@@ -533,7 +557,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     half: a map cannot tell whether smaller things look alike) and
     ``params.min_object_px`` pixels of the prepared image (enlarging an image adds no
     detail: a few pixels of highlight stay a few pixels). A group that sits on the objects
-    of an RP already kept (most of its boxes, :func:`without_parts`) replaces that RP when
+    of an RP already kept (most of its boxes, :func:`on_objects`) replaces that RP when
     it is more confident (:func:`rp_confidence`; typically the same objects seen whole on
     the coarse map and in parts on the fine one), else it is skipped.
 
@@ -582,8 +606,10 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if side < params.min_object_px or side * s < params.min_map_px:
             continue
         extra = {"seeds": int(len(c.boxes)), "extent": [float(v) for v in t], "level": level}
+        # a kept RP is a rival when most of these boxes lie on its objects (not when a
+        # few do and too few would be left: those are dropped below, the RP stays)
         rivals = [k for k, (_, kb, _) in enumerate(out)
-                  if without_parts(b, kb, params.part_cover, params.min_instances) is None]
+                  if on_objects(b, kb, params.part_cover).mean() > 0.5]
         if rivals:
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
