@@ -168,16 +168,17 @@ def test_parts_of_kept_objects_are_dropped():
     assert [len(k) for k in kept] == [3, 3] and np.array_equal(kept[1], elsewhere)
 
 
-def test_a_group_sharing_one_object_with_a_kept_rp_does_not_replace_it(monkeypatch):
-    """Only a group most of whose boxes lie on a kept RP's objects competes with it; one
-    that shares a single object and would keep too few boxes without it is skipped, even
-    when it is more confident."""
+def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confident(
+        monkeypatch):
+    """Only a group most of whose boxes lie on a kept RP's objects replaces it when more
+    confident; one that shares a single object takes that object when more confident,
+    and the kept RP keeps the rest of its own."""
     from rescu.extension import objects as O
     from rescu.extension.dense import DenseCandidate
 
     a = np.array([[x, 0, 40, 40] for x in range(0, 600, 100)], float)        # 6 objects
     b = np.array([[200, 0, 40, 40], [100, 300, 40, 40], [400, 300, 40, 40]], float)
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     p = _params(complete=False, extent=False, min_object_px=1, min_map_px=1, min_instances=3)
     ranked = [DenseCandidate(boxes=a, score=1.0, touching=0.0),
@@ -185,7 +186,15 @@ def test_a_group_sharing_one_object_with_a_kept_rp_does_not_replace_it(monkeypat
     rgb = np.zeros((400, 640, 3), np.uint8)
     levels = [(np.zeros((4, 50, 80), np.float32), 1.0)]
     out = O.whole_objects(levels, 8.0, rgb, ranked, p)
+    assert len(out) == 2 and np.array_equal(out[0][1], a[[0, 1, 3, 4, 5]])
+    assert np.array_equal(out[1][1], b)
+    # less confident: it cannot take the object, and is too small without it
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
+                        {"confidence": 0.5 if len(boxes) == 6 else 0.4})
+    out = O.whole_objects(levels, 8.0, rgb, ranked, p)
     assert len(out) == 1 and np.array_equal(out[0][1], a)
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
+                        {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     # most of its boxes on the kept RP's objects: a rival, and the more confident wins
     c = np.array([[0, 0, 40, 40], [100, 0, 40, 40], [400, 300, 40, 40]], float)
     ranked[1] = DenseCandidate(boxes=c, score=0.9, touching=0.0)
@@ -214,6 +223,14 @@ def test_confidence_of_any_rp_from_its_boxes():
     off = rp_confidence(f, 8.0, 1.0, background, ii, p)
     assert on["confidence"] > 0.5 > 0.2 > off["confidence"], (on, off)
     assert rp_confidence(f, 8.0, 1.0, objects[:1], ii, p)["confidence"] == 0.0
+    # a dense group's ranking score counts with confidence_score_scale > 0: a group that
+    # barely stands out in the map loses its confidence, a clear one keeps most of it
+    ps = _params(confidence_score_scale=0.02)
+    assert rp_confidence(f, 8.0, 1.0, objects, ii, ps)["confidence"] == on["confidence"]
+    weak = rp_confidence(f, 8.0, 1.0, objects, ii, ps, score=0.005)["confidence"]
+    clear = rp_confidence(f, 8.0, 1.0, objects, ii, ps, score=0.1)["confidence"]
+    assert weak < 0.3 * on["confidence"] and clear > 0.95 * on["confidence"]
+    assert rp_confidence(f, 8.0, 1.0, objects, ii, p, score=0.005) == on   # scale 0: not counted
 
 
 def _pat(boxes, **extra):
@@ -344,7 +361,7 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("extent_scales", []), ("confidence_gap_scale", 0),
                                        ("fine_scale", 0.5), ("fine_max_side", 32),
                                        ("fine_sizes", []), ("min_map_px", -1),
-                                       ("min_object_px", -2)])
+                                       ("min_object_px", -2), ("confidence_score_scale", -0.1)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

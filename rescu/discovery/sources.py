@@ -116,6 +116,8 @@ class DenseParams:
         (:func:`combine_sources`).
     confidence_gap_scale, confidence_n_scale, confidence_contrast_scale : float
         Scales of :func:`rescu.extension.objects.pattern_confidence`.
+    confidence_score_scale : float
+        Its scale of a dense RP's ranking score; 0: the score is not counted.
     min_confidence : float
         RPs whose confidence is below this are not reported: RESCU-I moves them to the
         result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
@@ -158,6 +160,7 @@ class DenseParams:
     confidence_gap_scale: float
     confidence_n_scale: float
     confidence_contrast_scale: float
+    confidence_score_scale: float
     min_confidence: float
 
     def __post_init__(self) -> None:
@@ -217,6 +220,9 @@ class DenseParams:
                self.confidence_contrast_scale) <= 0:
             raise ValueError("dense.confidence_gap_scale, confidence_n_scale and "
                              "confidence_contrast_scale must be > 0")
+        if not self.confidence_score_scale >= 0:
+            raise ValueError("dense.confidence_score_scale must be >= 0 (0: not counted), "
+                             f"got {self.confidence_score_scale}")
         if not 0 < self.min_side <= self.max_side:
             raise ValueError(f"dense.min_side must be in [1, max_side = {self.max_side}], "
                              f"got {self.min_side}")

@@ -382,7 +382,7 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
                   integrals: tuple[np.ndarray, np.ndarray], params: Any,
-                  objects: bool = True) -> dict[str, float]:
+                  objects: bool = True, score: float | None = None) -> dict[str, float]:
     """The confidence of any RP (from any source) from its instance boxes.
 
     The instances' mean features over their boxes give the prototype; the similarity map
@@ -405,6 +405,8 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         cannot tell whether boxes smaller than that look alike (their gap is measured on
         the boxes themselves, where a dense RP's was measured on its blobs, at least
         that size, before its extent was refined)
+    score : the dense group's ranking score (:func:`pattern_confidence`, counted with
+        ``params.confidence_score_scale`` > 0), or None
 
     Returns
     -------
@@ -423,7 +425,8 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
     conf = pattern_confidence(gap, len(b), con if objects else None,
                               params.confidence_gap_scale, params.confidence_n_scale,
-                              params.confidence_contrast_scale)
+                              params.confidence_contrast_scale, score,
+                              params.confidence_score_scale)
     out = {"gap": round(gap, 4), "contrast": round(con, 4)}
     if not objects:
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
@@ -518,10 +521,11 @@ def on_objects(boxes: np.ndarray, taken: np.ndarray, cover: float) -> np.ndarray
 
 
 def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: float,
-                       n_scale: float, contrast_scale: float) -> float:
+                       n_scale: float, contrast_scale: float, score: float | None = None,
+                       score_scale: float = 0.0) -> float:
     """How clearly an RP recurs, in [0, 1], without ground truth.
 
-    The product of three saturating terms ``1 - exp(-x / scale)``:
+    The product of saturating terms ``1 - exp(-x / scale)``:
 
     * the *gap* (:func:`distinctiveness`): how much more the instances resemble their
       prototype than anything else in the image does. A pattern that is everywhere
@@ -531,7 +535,14 @@ def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: fl
     * the instances' median colour *contrast* with their surroundings
       (:func:`colour_contrast`): objects stand out from what surrounds them, the
       gaps between objects and patches of texture do not. ``None``: not counted (the
-      boxes are keypoint patches, not objects).
+      boxes are keypoint patches, not objects);
+    * with ``score_scale`` > 0, the group's ranking *score* in the dense source
+      (:class:`rescu.extension.dense.DenseCandidate`: how much its blobs stand out from
+      their ring in the feature map x how unlike the image's mean feature they are x the
+      ImageNet classifier's confidence on their crops). The confidence's other terms do
+      not see these: a few patches of fur or background that recur more clearly than
+      anything else around them have a gap and a contrast like a small real pattern's,
+      but barely stand out in the map. ``None``: not counted (stage I's RPs).
 
     >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5), 3)
     0.827
@@ -539,11 +550,15 @@ def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: fl
     0.0
     >>> round(pattern_confidence(0.3, 12, None, 0.15, 3.0, 0.5), 3)
     0.843
+    >>> round(pattern_confidence(0.3, 12, 2.0, 0.15, 3.0, 0.5, score=0.01, score_scale=0.02), 3)
+    0.325
     """
     g = 1.0 - np.exp(-max(float(gap), 0.0) / gap_scale)
     k = 1.0 - np.exp(-max(int(n) - 1, 0) / n_scale)
     c = 1.0 if contrast is None else 1.0 - np.exp(-max(float(contrast), 0.0) / contrast_scale)
-    return float(g * k * c)
+    r = 1.0 if score is None or not score_scale > 0 else \
+        1.0 - np.exp(-max(float(score), 0.0) / score_scale)
+    return float(g * k * c * r)
 
 
 def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
@@ -559,7 +574,10 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     detail: a few pixels of highlight stay a few pixels). A group that sits on the objects
     of an RP already kept (most of its boxes, :func:`on_objects`) replaces that RP when
     it is more confident (:func:`rp_confidence`; typically the same objects seen whole on
-    the coarse map and in parts on the fine one), else it is skipped.
+    the coarse map and in parts on the fine one), else it is skipped. A group with a few
+    boxes on kept RPs' objects shares those objects with them: the more confident keeps
+    them (the other loses those boxes, and is dropped when fewer than
+    ``params.min_instances`` remain).
 
     Parameters
     ----------
@@ -606,28 +624,59 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if side < params.min_object_px or side * s < params.min_map_px:
             continue
         extra = {"seeds": int(len(c.boxes)), "extent": [float(v) for v in t], "level": level}
-        # a kept RP is a rival when most of these boxes lie on its objects (not when a
-        # few do and too few would be left: those are dropped below, the RP stays)
+        # a kept RP is a rival when most of these boxes lie on its objects (when a few
+        # do, the more confident of the two keeps those, below)
         rivals = [k for k, (_, kb, _) in enumerate(out)
                   if on_objects(b, kb, params.part_cover).mean() > 0.5]
         if rivals:
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
-            info = rp_confidence(f, cell_px, s, b, integrals, params)
+            info = rp_confidence(f, cell_px, s, b, integrals, params, score=c.score)
             if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
         taken = np.vstack([o[1] for o in out] + [np.zeros((0, 4))])    # the kept RPs' boxes
         kept = without_parts(b, taken, params.part_cover, params.min_instances)
+        whole = info if rivals else None                # the confidence of all of b
+        if kept is None or len(kept) < len(b):
+            # a few of its boxes lie on kept RPs' objects: the more confident keeps them
+            share = [k for k, o in enumerate(out) if on_objects(b, o[1], params.part_cover).any()]
+            if share:
+                whole = whole or rp_confidence(f, cell_px, s, b, integrals, params,
+                                               score=c.score)
+                if whole["confidence"] > max(out[k][2]["confidence"] for k in share):
+                    out = _give_up_objects(out, share, b, levels, cell_px, integrals, params)
+                    kept = b
         if kept is None:
             continue
-        if not rivals or len(kept) < len(b):
-            info = rp_confidence(f, cell_px, s, kept, integrals, params)
+        info = whole if whole is not None and len(kept) == len(b) else \
+            rp_confidence(f, cell_px, s, kept, integrals, params, score=c.score)
         out.append((float(c.score), kept, {**info, **extra}))
         if len(out) >= params.max_patterns:
             break
     out.sort(key=lambda o: -o[0])
     return out
+
+
+def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
+                     b: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
+                     cell_px: float, integrals: tuple[np.ndarray, np.ndarray], params: Any
+                     ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
+    """The kept RPs of :func:`whole_objects` (``out``) once those at positions ``share``
+    have given the objects of ``b`` ((n, 4) prepared-image pixels) to a more confident
+    RP: their boxes on those objects (:func:`on_objects`) removed, their confidence
+    measured again on the rest (on their own map), and dropped when fewer than
+    ``params.min_instances`` remain."""
+    kept = []
+    for k, (score, kb, info) in enumerate(out):
+        if k in share:
+            kb = kb[~on_objects(kb, b, params.part_cover)]
+            if len(kb) < params.min_instances:
+                continue
+            fo, so = levels[int(info.get("level", 0))]
+            info = {**info, **rp_confidence(fo, cell_px, so, kb, integrals, params, score=score)}
+        kept.append((score, kb, info))
+    return kept
 
 
 def _clip(b: np.ndarray, width: int, height: int) -> np.ndarray:
