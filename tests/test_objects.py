@@ -178,7 +178,7 @@ def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confi
 
     a = np.array([[x, 0, 40, 40] for x in range(0, 600, 100)], float)        # 6 objects
     b = np.array([[200, 0, 40, 40], [100, 300, 40, 40], [400, 300, 40, 40]], float)
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     p = _params(complete=False, extent=False, min_object_px=1, min_map_px=1, min_instances=3)
     ranked = [DenseCandidate(boxes=a, score=1.0, touching=0.0),
@@ -189,11 +189,11 @@ def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confi
     assert len(out) == 2 and np.array_equal(out[0][1], a[[0, 1, 3, 4, 5]])
     assert np.array_equal(out[1][1], b)
     # less confident: it cannot take the object, and is too small without it
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.4})
     out = O.whole_objects(levels, 8.0, rgb, ranked, p)
     assert len(out) == 1 and np.array_equal(out[0][1], a)
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, score=None:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     # most of its boxes on the kept RP's objects: a rival, and the more confident wins
     c = np.array([[0, 0, 40, 40], [100, 0, 40, 40], [400, 300, 40, 40]], float)
@@ -223,14 +223,14 @@ def test_confidence_of_any_rp_from_its_boxes():
     off = rp_confidence(f, 8.0, 1.0, background, ii, p)
     assert on["confidence"] > 0.5 > 0.2 > off["confidence"], (on, off)
     assert rp_confidence(f, 8.0, 1.0, objects[:1], ii, p)["confidence"] == 0.0
-    # a dense group's ranking score counts with confidence_score_scale > 0: a group that
-    # barely stands out in the map loses its confidence, a clear one keeps most of it
-    ps = _params(confidence_score_scale=0.02)
-    assert rp_confidence(f, 8.0, 1.0, objects, ii, ps)["confidence"] == on["confidence"]
-    weak = rp_confidence(f, 8.0, 1.0, objects, ii, ps, score=0.005)["confidence"]
-    clear = rp_confidence(f, 8.0, 1.0, objects, ii, ps, score=0.1)["confidence"]
-    assert weak < 0.3 * on["confidence"] and clear > 0.95 * on["confidence"]
-    assert rp_confidence(f, 8.0, 1.0, objects, ii, p, score=0.005) == on   # scale 0: not counted
+    # a dense group's ranking score, with confidence_score_scale > 0: a group that barely
+    # stood out in the map loses its confidence, a clear one keeps most of it
+    from rescu.extension.objects import pattern_confidence
+    base = pattern_confidence(0.3, 8, 1.0, 0.15, 3.0, 0.5)
+    weak = pattern_confidence(0.3, 8, 1.0, 0.15, 3.0, 0.5, score=0.005, score_scale=0.03)
+    clear = pattern_confidence(0.3, 8, 1.0, 0.15, 3.0, 0.5, score=0.2, score_scale=0.03)
+    assert weak < 0.3 * base and clear > 0.99 * base
+    assert pattern_confidence(0.3, 8, 1.0, 0.15, 3.0, 0.5, score=0.005, score_scale=0) == base
 
 
 def _pat(boxes, **extra):

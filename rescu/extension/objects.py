@@ -87,7 +87,7 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "without_parts", "on_objects", "box_cells"]
+           "pattern_confidence", "score_term", "without_parts", "on_objects", "box_cells"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -382,7 +382,7 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
                   integrals: tuple[np.ndarray, np.ndarray], params: Any,
-                  objects: bool = True, score: float | None = None) -> dict[str, float]:
+                  objects: bool = True) -> dict[str, float]:
     """The confidence of any RP (from any source) from its instance boxes.
 
     The instances' mean features over their boxes give the prototype; the similarity map
@@ -405,8 +405,6 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         cannot tell whether boxes smaller than that look alike (their gap is measured on
         the boxes themselves, where a dense RP's was measured on its blobs, at least
         that size, before its extent was refined)
-    score : the dense group's ranking score (:func:`pattern_confidence`, counted with
-        ``params.confidence_score_scale`` > 0), or None
 
     Returns
     -------
@@ -425,8 +423,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
     conf = pattern_confidence(gap, len(b), con if objects else None,
                               params.confidence_gap_scale, params.confidence_n_scale,
-                              params.confidence_contrast_scale, score,
-                              params.confidence_score_scale)
+                              params.confidence_contrast_scale)
     out = {"gap": round(gap, 4), "contrast": round(con, 4)}
     if not objects:
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
@@ -556,9 +553,20 @@ def pattern_confidence(gap: float, n: int, contrast: float | None, gap_scale: fl
     g = 1.0 - np.exp(-max(float(gap), 0.0) / gap_scale)
     k = 1.0 - np.exp(-max(int(n) - 1, 0) / n_scale)
     c = 1.0 if contrast is None else 1.0 - np.exp(-max(float(contrast), 0.0) / contrast_scale)
-    r = 1.0 if score is None or not score_scale > 0 else \
-        1.0 - np.exp(-max(float(score), 0.0) / score_scale)
+    r = 1.0 if score is None else score_term(score, score_scale)
     return float(g * k * c * r)
+
+
+def score_term(score: float, scale: float) -> float:
+    """The ranking-score term of :func:`pattern_confidence`, ``1 - exp(-score / scale)``
+    in [0, 1]; 1 when ``scale`` is 0 (not counted).
+
+    >>> score_term(0.05, 0.0), round(score_term(0.03, 0.03), 3)
+    (1.0, 0.632)
+    """
+    if not scale > 0:
+        return 1.0
+    return float(1.0 - np.exp(-max(float(score), 0.0) / scale))
 
 
 def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
@@ -631,7 +639,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if rivals:
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
-            info = rp_confidence(f, cell_px, s, b, integrals, params, score=c.score)
+            info = rp_confidence(f, cell_px, s, b, integrals, params)
             if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
@@ -642,20 +650,23 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             # a few of its boxes lie on kept RPs' objects: the more confident keeps them
             share = [k for k, o in enumerate(out) if on_objects(b, o[1], params.part_cover).any()]
             if share:
-                whole = whole or rp_confidence(f, cell_px, s, b, integrals, params,
-                                               score=c.score)
+                whole = whole or rp_confidence(f, cell_px, s, b, integrals, params)
                 if whole["confidence"] > max(out[k][2]["confidence"] for k in share):
                     out = _give_up_objects(out, share, b, levels, cell_px, integrals, params)
                     kept = b
         if kept is None:
             continue
         info = whole if whole is not None and len(kept) == len(b) else \
-            rp_confidence(f, cell_px, s, kept, integrals, params, score=c.score)
+            rp_confidence(f, cell_px, s, kept, integrals, params)
         out.append((float(c.score), kept, {**info, **extra}))
         if len(out) >= params.max_patterns:
             break
     out.sort(key=lambda o: -o[0])
-    return out
+    # the ranking score counts in the reported confidence, not in the choices above: it
+    # is a score within one map, and the fine map's parts outscore the coarse map's
+    # whole objects
+    return [(sc, kb, {**info, "confidence": round(info["confidence"] * score_term(
+        sc, params.confidence_score_scale), 4)}) for sc, kb, info in out]
 
 
 def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
@@ -674,7 +685,7 @@ def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share:
             if len(kb) < params.min_instances:
                 continue
             fo, so = levels[int(info.get("level", 0))]
-            info = {**info, **rp_confidence(fo, cell_px, so, kb, integrals, params, score=score)}
+            info = {**info, **rp_confidence(fo, cell_px, so, kb, integrals, params)}
         kept.append((score, kb, info))
     return kept
 
