@@ -37,6 +37,7 @@ def test_each_step_depends_on_its_own_modules_only():
     assert "discovery/features.py" in dep["features"]
     assert not any(n.startswith("extension/") for n in dep["features"] | dep["caption"])
     assert "extension/backbone.py" in dep["stage2_features"]
+    assert "extension/train.py" in dep["stage2_features"]  # the head is trained in the same job
     assert "captions/caption.py" in dep["caption"]
     assert "data/synth.py" in dep["generate_synthetic"]
     for stem, files in dep.items():

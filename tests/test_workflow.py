@@ -143,7 +143,7 @@ def test_parameter_change_reruns_only_dependants(finished_run):
     assert jobs, "a changed scene parameter must rerun something"
     assert jobs.get("scene") == 3 and jobs.get("caption") == 3
     for upstream in ("prepare", "features", "rescu_i", "grasp", "ablation", "stage2_features",
-                     "stage2_train", "stage2_predict", "stage2_ablation", "generate_synthetic",
+                     "stage2_predict", "stage2_ablation", "generate_synthetic",
                      "line_vp"):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene change: {jobs}"
 
@@ -186,7 +186,7 @@ def test_code_change_reruns_its_steps_only(finished_run, tmp_path):
     changed = set(rewritten.splitlines()) ^ set(listed.splitlines())
     assert {line.split()[1] for line in changed} == {"rescu/scene/completion.py"}, changed
     for upstream in ("prepare", "features", "rescu_i", "grasp",
-                     "stage2_features", "stage2_train", "stage2_predict",
+                     "stage2_features", "stage2_predict",
                      "generate_synthetic", "line_vp"):
         assert upstream not in jobs, f"{upstream} must not rerun after a scene code edit: {jobs}"
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
@@ -197,7 +197,7 @@ def test_stage2_gate_change_reruns_prediction_only(finished_run):
     changed = tiny_config(work, **{"stage2.predict.lattice_score_threshold": 0.9})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs.get("stage2_predict") == 3, jobs
-    for upstream in ("features", "rescu_i", "stage2_features", "stage2_train"):
+    for upstream in ("features", "rescu_i", "stage2_features"):
         assert upstream not in jobs, f"{upstream} must not rerun after a gate change: {jobs}"
 
 
