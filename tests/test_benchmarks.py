@@ -94,6 +94,12 @@ def test_stage1_variants_refusals(tmp_path, capsys):
     with pytest.raises(SystemExit):          # not a stage1 key
         s1.main([str(tmp_path), "--set", "no_such_key=1"])
     assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):          # not a dense key
+        s1.main([str(tmp_path), "--set", "dense.no_such_key=1"])
+    assert "no_such_key" in capsys.readouterr().err
+    with pytest.raises(SystemExit):          # a value DenseParams refuses
+        s1.main([str(tmp_path), "--set", "dense.confidence_stage1_score_scale=-1"])
+    assert "confidence_stage1_score_scale" in capsys.readouterr().err
     with pytest.raises(SystemExit):          # not a dataset of the config
         s1.main([str(tmp_path), "--dataset", "nowhere", "--set", "max_patterns=8"])
     assert "nowhere" in capsys.readouterr().err

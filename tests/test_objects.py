@@ -326,6 +326,39 @@ def test_a_stage_one_rp_is_scored_without_colour_contrast_and_with_the_maps_reso
     assert tiny["resolution"] == 0.25 and tiny["confidence"] <= 0.25
 
 
+def test_a_stage_one_rp_that_barely_stands_out_in_the_map_loses_confidence():
+    """With ``confidence_stage1_score_scale`` > 0 a stage-I RP's confidence counts its map
+    score (centre-surround contrast x rarity in the feature map): faint blocks that recur
+    lose most of theirs, clear ones keep theirs; 0 leaves the confidence as it was."""
+    from dataclasses import replace
+
+    from rescu.extension.objects import score_term
+
+    rng = np.random.default_rng(5)
+    f = 0.05 * rng.normal(size=(8, 40, 60))
+    f[0] += 1
+    clear = [(5, 5), (5, 25), (5, 45), (25, 15), (25, 35)]
+    faint = [(15, 5), (15, 25), (15, 45), (33, 5), (33, 50)]
+    for y, x in clear:
+        f[3, y:y + 4, x:x + 4] += 2
+    for y, x in faint:
+        f[4, y:y + 4, x:x + 4] += 0.3
+    f = (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32)
+    flat = colour_integrals(np.full((320, 480, 3), 90, np.uint8))
+    off, on = _params(), _params(confidence_stage1_score_scale=0.03)
+    assert off.confidence_stage1_score_scale == 0.0 and replace(off, confidence_stage1_score_scale=0.03) == on
+    got = {}
+    for name, at in (("clear", clear), ("faint", faint)):
+        boxes = np.array([[x * 8, y * 8, 32, 32] for y, x in at], float)
+        got[name] = [rp_confidence(f, 8.0, 1.0, boxes, flat, q, objects=False) for q in (off, on)]
+    (c0, c1), (w0, w1) = got["clear"], got["faint"]
+    assert c0["map_score"] > 0.2 > 0.01 > w0["map_score"], (c0, w0)
+    assert c1["confidence"] >= 0.99 * c0["confidence"]
+    assert w1["confidence"] == pytest.approx(w0["confidence"] * score_term(w0["map_score"], 0.03),
+                                             abs=2e-4)
+    assert w1["confidence"] < 0.1 * w0["confidence"]
+
+
 def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
     coins = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40], [180, 0, 40, 40]],
                  confidence=0.9, source="dense")
@@ -361,7 +394,8 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("extent_scales", []), ("confidence_gap_scale", 0),
                                        ("fine_scale", 0.5), ("fine_max_side", 32),
                                        ("fine_sizes", []), ("min_map_px", -1),
-                                       ("min_object_px", -2), ("confidence_score_scale", -0.1)])
+                                       ("min_object_px", -2), ("confidence_score_scale", -0.1),
+                                       ("confidence_stage1_score_scale", -0.1)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

@@ -118,6 +118,10 @@ class DenseParams:
         Scales of :func:`rescu.extension.objects.pattern_confidence`.
     confidence_score_scale : float
         Its scale of a dense RP's ranking score; 0: the score is not counted.
+    confidence_stage1_score_scale : float
+        Its scale of a stage-I RP's score on the feature map (its boxes' centre-surround
+        contrast x their rarity, the dense ranking score without the objectness);
+        0: not counted.
     min_confidence : float
         RPs whose confidence is below this are not reported: RESCU-I moves them to the
         result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
@@ -161,6 +165,7 @@ class DenseParams:
     confidence_n_scale: float
     confidence_contrast_scale: float
     confidence_score_scale: float
+    confidence_stage1_score_scale: float
     min_confidence: float
 
     def __post_init__(self) -> None:
@@ -220,9 +225,10 @@ class DenseParams:
                self.confidence_contrast_scale) <= 0:
             raise ValueError("dense.confidence_gap_scale, confidence_n_scale and "
                              "confidence_contrast_scale must be > 0")
-        if not self.confidence_score_scale >= 0:
-            raise ValueError("dense.confidence_score_scale must be >= 0 (0: not counted), "
-                             f"got {self.confidence_score_scale}")
+        for k in ("confidence_score_scale", "confidence_stage1_score_scale"):
+            if not getattr(self, k) >= 0:
+                raise ValueError(f"dense.{k} must be >= 0 (0: not counted), "
+                                 f"got {getattr(self, k)}")
         if not 0 < self.min_side <= self.max_side:
             raise ValueError(f"dense.min_side must be in [1, max_side = {self.max_side}], "
                              f"got {self.min_side}")

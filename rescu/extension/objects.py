@@ -380,9 +380,48 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
     return float(np.median(sims) - np.percentile(sim[free], quantile))
 
 
+def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
+              emb: np.ndarray | None = None, integral: np.ndarray | None = None) -> float:
+    """How much a set of boxes stands out in a feature map, as the dense source ranks its
+    groups (:func:`rescu.extension.dense.dense_candidates`, without the objectness): the
+    boxes' mean centre-surround contrast (:func:`rescu.extension.dense.box_contrast`)
+    times their rarity, ``1 - cos`` of their mean feature with the image's mean feature
+    (background is what the image mostly is).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32
+    cell_px : pixels of the map's input per cell
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
+    emb : :func:`box_features` of the boxes when already computed
+    integral : :func:`integral_map` of ``f`` when already computed
+
+    Returns
+    -------
+    float in [0, 4] (0 for no boxes)
+
+    >>> f = np.zeros((2, 8, 8), np.float32); f[0] = 1.0; f[:, 2:4, 2:4] = [[[0.0]], [[1.0]]]
+    >>> round(map_score(f, 8.0, np.array([[16, 16, 16, 16]])), 3)  # a block unlike its ring
+    0.933
+    >>> round(map_score(f, 8.0, np.array([[48, 48, 16, 16]])), 3)  # background
+    0.0
+    """
+    from .dense import box_contrast
+
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if not len(b):
+        return 0.0
+    emb = box_features(f, cell_px, b) if emb is None else emb
+    g = f.reshape(f.shape[0], -1).mean(1)
+    cen = emb.mean(0)
+    rarity = 1.0 - float(cen @ g) / float((np.linalg.norm(cen) + 1e-12) * (np.linalg.norm(g) + 1e-12))
+    return float(box_contrast(f, b, cell_px, integral).mean()) * max(rarity, 0.0)
+
+
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
                   integrals: tuple[np.ndarray, np.ndarray], params: Any,
-                  objects: bool = True) -> dict[str, float]:
+                  objects: bool = True, integral: np.ndarray | None = None
+                  ) -> dict[str, float]:
     """The confidence of any RP (from any source) from its instance boxes.
 
     The instances' mean features over their boxes give the prototype; the similarity map
@@ -404,12 +443,17 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         backbone-input pixels: the map's coarser half has a stride of two cells, so it
         cannot tell whether boxes smaller than that look alike (their gap is measured on
         the boxes themselves, where a dense RP's was measured on its blobs, at least
-        that size, before its extent was refined)
+        that size, before its extent was refined). Such an RP also gets its *map score*
+        (:func:`map_score`: its boxes' centre-surround contrast in ``f`` x their rarity,
+        the dense source's ranking score without the objectness), which multiplies its
+        confidence by :func:`score_term` with ``params.confidence_stage1_score_scale``
+        (0: not counted), as a dense RP's ranking score does
+    integral : :func:`integral_map` of ``f`` when already computed (for the map score)
 
     Returns
     -------
     ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``, and
-    ``"resolution"`` when not ``objects``
+    ``"resolution"`` and ``"map_score"`` when not ``objects``
     """
     b = np.asarray(boxes, float).reshape(-1, 4) * s
     if len(b) < 2:
@@ -428,7 +472,9 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     if not objects:
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
         out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
-        conf *= out["resolution"]
+        out["map_score"] = round(map_score(f, cell_px, b, emb, integral), 4)
+        conf *= out["resolution"] * score_term(out["map_score"],
+                                               params.confidence_stage1_score_scale)
     return {"confidence": round(conf, 4), **out}
 
 
@@ -726,6 +772,8 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
     if not todo:
         return
     integrals = colour_integrals(rgb)
+    ii = integral_map(f)
     for p in todo:
         b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
-        p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params, objects=False))
+        p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params, objects=False,
+                                     integral=ii))
