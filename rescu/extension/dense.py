@@ -51,7 +51,8 @@ import numpy as np
 from ..discovery.sources import DenseParams
 from ..boxes import cover_matrix
 from ..types import Instance, Pattern
-from .objects import box_cells, integral_map, touching_sides
+from .boxmaps import box_contrast, integral_map
+from .objects import touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
@@ -156,45 +157,6 @@ def blob_boxes(cells: np.ndarray, sizes: Sequence[int], cell_px: float) -> np.nd
     a = np.array([sizes[s] for s in cells[:, 0]], float) if len(cells) else np.zeros(0)
     return np.c_[(cells[:, 2] - a / 2 + 0.5) * cell_px, (cells[:, 1] - a / 2 + 0.5) * cell_px,
                  a * cell_px, a * cell_px] if len(cells) else np.zeros((0, 4))
-
-
-def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
-                 integral: np.ndarray | None = None) -> np.ndarray:
-    """Centre-surround contrast of pixel boxes in a feature map.
-
-    ``(1 - cos(m_box, m_ring)) * |m_box|``, with ``m_box`` the mean feature over the
-    box's cells and ``m_ring`` that of the box grown by its own width and height on
-    every side, minus the box (clipped to the map).
-
-    Parameters
-    ----------
-    f : (C, h, w) float32 (:func:`hypercolumn`)
-    boxes : (n, 4) ``[x, y, w, h]``, pixels of the backbone input
-    cell_px : pixels per cell
-    integral : :func:`integral_map` of ``f`` when already computed (None: computed here)
-
-    Returns
-    -------
-    (n,) float in [0, 2]
-    """
-    c, h, w = f.shape
-    ii = integral_map(f) if integral is None else integral
-
-    def total(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
-        return ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
-
-    out = np.zeros(len(boxes))
-    for i, box in enumerate(np.asarray(boxes, float).reshape(-1, 4)):
-        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
-        dx, dy = x1 - x0, y1 - y0
-        X0, Y0, X1, Y1 = max(0, x0 - dx), max(0, y0 - dy), min(w, x1 + dx), min(h, y1 + dy)
-        inner, outer = dx * dy, (X1 - X0) * (Y1 - Y0)
-        s = total(x0, y0, x1, y1)
-        mc = s / inner
-        mr = (total(X0, Y0, X1, Y1) - s) / (outer - inner) if outer > inner else mc
-        nc, nr = np.linalg.norm(mc) + 1e-9, np.linalg.norm(mr) + 1e-9
-        out[i] = (1.0 - float(mc @ mr) / (nc * nr)) * nc
-    return out
 
 
 # ------------------------------------------------------------------------------ RPs

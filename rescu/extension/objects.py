@@ -42,15 +42,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..boxes import cover_matrix, nms
-
-
-def integral_map(f: np.ndarray) -> np.ndarray:
-    """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
-    :func:`box_contrast`)."""
-    c, h, w = f.shape
-    ii = np.zeros((c, h + 1, w + 1), np.float64)
-    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
-    return ii
+from .boxmaps import box_features, integral_map, map_score
 
 
 def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
@@ -85,9 +77,9 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
     return out
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
-           "whole_objects", "rp_confidence", "score_patterns", "integral_map", "touching_sides",
+           "whole_objects", "rp_confidence", "score_patterns", "touching_sides",
            "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "score_term", "without_parts", "on_objects", "box_cells"]
+           "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -122,46 +114,6 @@ def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
         acc += m * p[c]
         norm += m * m
     return acc / (np.sqrt(norm) + 1e-9)
-
-
-def box_cells(box: Sequence[float], cell_px: float, h: int, w: int
-              ) -> tuple[int, int, int, int]:
-    """The cells ``[x0, x1) x [y0, y1)`` of an ``h x w`` map that a pixel box
-    ``[x, y, w, h]`` touches, at least one, clipped to the map.
-
-    >>> box_cells([4, 0, 20, 8], 8.0, 10, 10)
-    (0, 0, 3, 1)
-    """
-    x, y, bw, bh = (float(v) for v in box)
-    x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
-    y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
-    x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
-    y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
-    return x0, y0, x1, y1
-
-
-def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray:
-    """The unit mean feature of ``f`` over each box.
-
-    Parameters
-    ----------
-    f : (C, h, w) float32
-    cell_px : pixels per cell
-    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input (each covers >= 1 cell)
-
-    Returns
-    -------
-    (n, C) float32, rows of unit norm
-    """
-    ii = integral_map(f)
-    h, w = f.shape[1:]
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    emb = np.zeros((len(b), f.shape[0]), np.float32)
-    for i, box in enumerate(b):
-        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
-        v = ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
-        emb[i] = v / (np.linalg.norm(v) + 1e-12)
-    return emb
 
 
 def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: float,
@@ -378,44 +330,6 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
     if not free.any() or not len(sims):
         return -1.0
     return float(np.median(sims) - np.percentile(sim[free], quantile))
-
-
-def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
-              emb: np.ndarray | None = None, integral: np.ndarray | None = None) -> float:
-    """How much a set of boxes stands out in a feature map, as the dense source ranks its
-    groups (:func:`rescu.extension.dense.dense_candidates`, without the objectness): the
-    boxes' mean centre-surround contrast (:func:`rescu.extension.dense.box_contrast`)
-    times their rarity, ``1 - cos`` of their mean feature with the image's mean feature
-    (background is what the image mostly is).
-
-    Parameters
-    ----------
-    f : (C, h, w) float32
-    cell_px : pixels of the map's input per cell
-    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
-    emb : :func:`box_features` of the boxes when already computed
-    integral : :func:`integral_map` of ``f`` when already computed
-
-    Returns
-    -------
-    float in [0, 4] (0 for no boxes)
-
-    >>> f = np.zeros((2, 8, 8), np.float32); f[0] = 1.0; f[:, 2:4, 2:4] = [[[0.0]], [[1.0]]]
-    >>> round(map_score(f, 8.0, np.array([[16, 16, 16, 16]])), 3)  # a block unlike its ring
-    0.933
-    >>> round(map_score(f, 8.0, np.array([[48, 48, 16, 16]])), 3)  # background
-    0.0
-    """
-    from .dense import box_contrast
-
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    if not len(b):
-        return 0.0
-    emb = box_features(f, cell_px, b) if emb is None else emb
-    g = f.reshape(f.shape[0], -1).mean(1)
-    cen = emb.mean(0)
-    rarity = 1.0 - float(cen @ g) / float((np.linalg.norm(cen) + 1e-12) * (np.linalg.norm(g) + 1e-12))
-    return float(box_contrast(f, b, cell_px, integral).mean()) * max(rarity, 0.0)
 
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,

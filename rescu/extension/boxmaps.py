@@ -1,0 +1,140 @@
+"""Box statistics on a frozen CNN's feature map: summed-area tables, the mean feature and
+the centre-surround contrast of pixel boxes, and how much a set of boxes stands out
+(shared by the dense source, :mod:`rescu.extension.dense`, and the whole-object
+selection and confidence, :mod:`rescu.extension.objects`).
+
+Maps are ``(C, h, w)`` float32 arrays whose cells are ``cell_px`` pixels of the map's input
+(8 for the dense source's hypercolumn); boxes are ``[x, y, w, h]`` in those pixels.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "map_score"]
+
+
+def integral_map(f: np.ndarray) -> np.ndarray:
+    """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
+    :func:`box_contrast`)."""
+    c, h, w = f.shape
+    ii = np.zeros((c, h + 1, w + 1), np.float64)
+    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+    return ii
+
+
+def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,
+                 integral: np.ndarray | None = None) -> np.ndarray:
+    """Centre-surround contrast of pixel boxes in a feature map.
+
+    ``(1 - cos(m_box, m_ring)) * |m_box|``, with ``m_box`` the mean feature over the
+    box's cells and ``m_ring`` that of the box grown by its own width and height on
+    every side, minus the box (clipped to the map).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32 (:func:`rescu.extension.dense.hypercolumn`)
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the backbone input
+    cell_px : pixels per cell
+    integral : :func:`integral_map` of ``f`` when already computed (None: computed here)
+
+    Returns
+    -------
+    (n,) float in [0, 2]
+    """
+    c, h, w = f.shape
+    ii = integral_map(f) if integral is None else integral
+
+    def total(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        return ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
+
+    out = np.zeros(len(boxes))
+    for i, box in enumerate(np.asarray(boxes, float).reshape(-1, 4)):
+        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
+        dx, dy = x1 - x0, y1 - y0
+        X0, Y0, X1, Y1 = max(0, x0 - dx), max(0, y0 - dy), min(w, x1 + dx), min(h, y1 + dy)
+        inner, outer = dx * dy, (X1 - X0) * (Y1 - Y0)
+        s = total(x0, y0, x1, y1)
+        mc = s / inner
+        mr = (total(X0, Y0, X1, Y1) - s) / (outer - inner) if outer > inner else mc
+        nc, nr = np.linalg.norm(mc) + 1e-9, np.linalg.norm(mr) + 1e-9
+        out[i] = (1.0 - float(mc @ mr) / (nc * nr)) * nc
+    return out
+
+
+def box_cells(box: Sequence[float], cell_px: float, h: int, w: int
+              ) -> tuple[int, int, int, int]:
+    """The cells ``[x0, x1) x [y0, y1)`` of an ``h x w`` map that a pixel box
+    ``[x, y, w, h]`` touches, at least one, clipped to the map.
+
+    >>> box_cells([4, 0, 20, 8], 8.0, 10, 10)
+    (0, 0, 3, 1)
+    """
+    x, y, bw, bh = (float(v) for v in box)
+    x0 = int(np.clip(np.floor(x / cell_px), 0, w - 1))
+    y0 = int(np.clip(np.floor(y / cell_px), 0, h - 1))
+    x1 = int(np.clip(np.ceil((x + bw) / cell_px), x0 + 1, w))
+    y1 = int(np.clip(np.ceil((y + bh) / cell_px), y0 + 1, h))
+    return x0, y0, x1, y1
+
+
+def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray:
+    """The unit mean feature of ``f`` over each box.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32
+    cell_px : pixels per cell
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input (each covers >= 1 cell)
+
+    Returns
+    -------
+    (n, C) float32, rows of unit norm
+    """
+    ii = integral_map(f)
+    h, w = f.shape[1:]
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    emb = np.zeros((len(b), f.shape[0]), np.float32)
+    for i, box in enumerate(b):
+        x0, y0, x1, y1 = box_cells(box, cell_px, h, w)
+        v = ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
+        emb[i] = v / (np.linalg.norm(v) + 1e-12)
+    return emb
+
+
+def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
+              emb: np.ndarray | None = None, integral: np.ndarray | None = None) -> float:
+    """How much a set of boxes stands out in a feature map, as the dense source ranks its
+    groups (:func:`rescu.extension.dense.dense_candidates`, without the objectness): the
+    boxes' mean centre-surround contrast (:func:`box_contrast`)
+    times their rarity, ``1 - cos`` of their mean feature with the image's mean feature
+    (background is what the image mostly is).
+
+    Parameters
+    ----------
+    f : (C, h, w) float32
+    cell_px : pixels of the map's input per cell
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
+    emb : :func:`box_features` of the boxes when already computed
+    integral : :func:`integral_map` of ``f`` when already computed
+
+    Returns
+    -------
+    float in [0, 4] (0 for no boxes)
+
+    >>> f = np.zeros((2, 8, 8), np.float32); f[0] = 1.0; f[:, 2:4, 2:4] = [[[0.0]], [[1.0]]]
+    >>> round(map_score(f, 8.0, np.array([[16, 16, 16, 16]])), 3)  # a block unlike its ring
+    0.933
+    >>> round(map_score(f, 8.0, np.array([[48, 48, 16, 16]])), 3)  # background
+    0.0
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if not len(b):
+        return 0.0
+    emb = box_features(f, cell_px, b) if emb is None else emb
+    g = f.reshape(f.shape[0], -1).mean(1)
+    cen = emb.mean(0)
+    rarity = 1.0 - float(cen @ g) / float((np.linalg.norm(cen) + 1e-12) * (np.linalg.norm(g) + 1e-12))
+    return float(box_contrast(f, b, cell_px, integral).mean()) * max(rarity, 0.0)
