@@ -178,7 +178,7 @@ def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confi
 
     a = np.array([[x, 0, 40, 40] for x in range(0, 600, 100)], float)        # 6 objects
     b = np.array([[200, 0, 40, 40], [100, 300, 40, 40], [400, 300, 40, 40]], float)
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, **kw:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     p = _params(complete=False, extent=False, min_object_px=1, min_map_px=1, min_instances=3)
     ranked = [DenseCandidate(boxes=a, score=1.0, touching=0.0),
@@ -189,11 +189,11 @@ def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confi
     assert len(out) == 2 and np.array_equal(out[0][1], a[[0, 1, 3, 4, 5]])
     assert np.array_equal(out[1][1], b)
     # less confident: it cannot take the object, and is too small without it
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, **kw:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.4})
     out = O.whole_objects(levels, 8.0, rgb, ranked, p)
     assert len(out) == 1 and np.array_equal(out[0][1], a)
-    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p:
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, **kw:
                         {"confidence": 0.5 if len(boxes) == 6 else 0.9})
     # most of its boxes on the kept RP's objects: a rival, and the more confident wins
     c = np.array([[0, 0, 40, 40], [100, 0, 40, 40], [400, 300, 40, 40]], float)

@@ -80,7 +80,8 @@ def box_cells(box: Sequence[float], cell_px: float, h: int, w: int
     return x0, y0, x1, y1
 
 
-def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray:
+def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray,
+                 integral: np.ndarray | None = None) -> np.ndarray:
     """The unit mean feature of ``f`` over each box.
 
     Parameters
@@ -88,12 +89,13 @@ def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray) -> np.ndarray
     f : (C, h, w) float32
     cell_px : pixels per cell
     boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input (each covers >= 1 cell)
+    integral : :func:`integral_map` of ``f`` when already computed (None: computed here)
 
     Returns
     -------
     (n, C) float32, rows of unit norm
     """
-    ii = integral_map(f)
+    ii = integral_map(f) if integral is None else integral
     h, w = f.shape[1:]
     b = np.asarray(boxes, float).reshape(-1, 4)
     emb = np.zeros((len(b), f.shape[0]), np.float32)
@@ -133,7 +135,7 @@ def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
     b = np.asarray(boxes, float).reshape(-1, 4)
     if not len(b):
         return 0.0
-    emb = box_features(f, cell_px, b) if emb is None else emb
+    emb = box_features(f, cell_px, b, integral) if emb is None else emb
     g = f.reshape(f.shape[0], -1).mean(1)
     cen = emb.mean(0)
     rarity = 1.0 - float(cen @ g) / float((np.linalg.norm(cen) + 1e-12) * (np.linalg.norm(g) + 1e-12))

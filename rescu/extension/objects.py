@@ -117,7 +117,7 @@ def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
 
 
 def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: float,
-                   floor: float, quantile: float = 20.0
+                   floor: float, quantile: float = 20.0, integral: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Every instance of an RP, by correlating its prototype over the map.
 
@@ -135,6 +135,7 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
         prototype minus this
     floor : ... and never below this
     quantile : percentile of the instances' similarities, in [0, 100]
+    integral : :func:`integral_map` of ``f`` when already computed
 
     Returns
     -------
@@ -146,7 +147,7 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     from scipy.ndimage import maximum_filter
 
     b = np.asarray(boxes, float).reshape(-1, 4)
-    emb = box_features(f, cell_px, b)
+    emb = box_features(f, cell_px, b, integral)
     proto = emb.mean(0)
     proto /= np.linalg.norm(proto) + 1e-9
     bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
@@ -362,7 +363,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         the dense source's ranking score without the objectness), which multiplies its
         confidence by :func:`score_term` with ``params.confidence_stage1_score_scale``
         (0: not counted), as a dense RP's ranking score does
-    integral : :func:`integral_map` of ``f`` when already computed (for the map score)
+    integral : :func:`integral_map` of ``f`` when already computed
 
     Returns
     -------
@@ -372,7 +373,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     b = np.asarray(boxes, float).reshape(-1, 4) * s
     if len(b) < 2:
         return {"confidence": 0.0, "gap": -1.0, "contrast": 0.0}
-    emb = box_features(f, cell_px, b)
+    emb = box_features(f, cell_px, b, integral)
     proto = emb.mean(0)
     proto /= np.linalg.norm(proto) + 1e-9
     side = (max(1, int(round(float(np.median(b[:, 2])) / cell_px))),
@@ -567,14 +568,16 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     transform of :func:`refine_extent`, the map)
     """
     integrals = colour_integrals(rgb)
+    maps = _Integrals(levels)        # each map's summed-area table, made once when needed
     out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
     for c in ranked:
         level = int(getattr(c, "level", 0))
         f, s = levels[level]
+        ii = maps[level]
         boxes = np.asarray(c.boxes, float)               # the group's blobs, map pixels
         if params.complete and len(boxes):
             boxes = complete_group(f, cell_px, boxes, params.completion_margin,
-                                   params.completion_floor)[0]
+                                   params.completion_floor, integral=ii)[0]
         b = boxes / s
         t: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
         if params.extent and len(b):
@@ -599,7 +602,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if rivals:
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
-            info = rp_confidence(f, cell_px, s, b, integrals, params)
+            info = rp_confidence(f, cell_px, s, b, integrals, params, integral=ii)
             if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
@@ -610,14 +613,16 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             # a few of its boxes lie on kept RPs' objects: the more confident keeps them
             share = [k for k, o in enumerate(out) if on_objects(b, o[1], params.part_cover).any()]
             if share:
-                whole = whole or rp_confidence(f, cell_px, s, b, integrals, params)
+                whole = whole or rp_confidence(f, cell_px, s, b, integrals, params,
+                                               integral=ii)
                 if whole["confidence"] > max(out[k][2]["confidence"] for k in share):
-                    out = _give_up_objects(out, share, b, levels, cell_px, integrals, params)
+                    out = _give_up_objects(out, share, b, levels, cell_px, integrals, params,
+                                           maps)
                     kept = b
         if kept is None:
             continue
         info = whole if whole is not None and len(kept) == len(b) else \
-            rp_confidence(f, cell_px, s, kept, integrals, params)
+            rp_confidence(f, cell_px, s, kept, integrals, params, integral=ii)
         out.append((float(c.score), kept, {**info, **extra}))
         if len(out) >= params.max_patterns:
             break
@@ -631,23 +636,43 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
 
 def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
                      b: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
-                     cell_px: float, integrals: tuple[np.ndarray, np.ndarray], params: Any
+                     cell_px: float, integrals: tuple[np.ndarray, np.ndarray], params: Any,
+                     maps: "_Integrals | None" = None
                      ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """The kept RPs of :func:`whole_objects` (``out``) once those at positions ``share``
     have given the objects of ``b`` ((n, 4) prepared-image pixels) to a more confident
     RP: their boxes on those objects (:func:`on_objects`) removed, their confidence
     measured again on the rest (on their own map), and dropped when fewer than
-    ``params.min_instances`` remain."""
+    ``params.min_instances`` remain (``maps``: the maps' summed-area tables, when
+    already made)."""
+    maps = _Integrals(levels) if maps is None else maps
     kept = []
     for k, (score, kb, info) in enumerate(out):
         if k in share:
             kb = kb[~on_objects(kb, b, params.part_cover)]
             if len(kb) < params.min_instances:
                 continue
-            fo, so = levels[int(info.get("level", 0))]
-            info = {**info, **rp_confidence(fo, cell_px, so, kb, integrals, params)}
+            lv = int(info.get("level", 0))
+            fo, so = levels[lv]
+            info = {**info, **rp_confidence(fo, cell_px, so, kb, integrals, params,
+                                            integral=maps[lv])}
         kept.append((score, kb, info))
     return kept
+
+
+class _Integrals:
+    """The summed-area table (:func:`integral_map`) of each map of ``levels``
+    (``[(f, s), ...]``), made on first use and kept: :func:`whole_objects` measures many
+    groups on the same one or two maps."""
+
+    def __init__(self, levels: Sequence[tuple[np.ndarray, float]]) -> None:
+        self.levels = levels
+        self.done: dict[int, np.ndarray] = {}
+
+    def __getitem__(self, level: int) -> np.ndarray:
+        if level not in self.done:
+            self.done[level] = integral_map(self.levels[level][0])
+        return self.done[level]
 
 
 def _clip(b: np.ndarray, width: int, height: int) -> np.ndarray:
