@@ -12,7 +12,8 @@ import pytest
 from rescu import io, pipeline
 from rescu.discovery.ablation import SOURCE_ROWS
 from rescu.discovery.sources import DenseParams, combine_sources
-from rescu.extension.dense import (box_contrast, dense_patterns, feature_blobs, find_dense,
+from rescu.extension.boxmaps import box_contrast
+from rescu.extension.dense import (dense_patterns, feature_blobs, find_dense,
                                   touching_sides)
 from rescu.types import ImageResult, Instance, Pattern
 

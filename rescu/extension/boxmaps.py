@@ -13,7 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "map_score"]
+__all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "map_score",
+           "unit_mean"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -107,7 +108,8 @@ def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray,
 
 
 def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
-              emb: np.ndarray | None = None, integral: np.ndarray | None = None) -> float:
+              emb: np.ndarray | None = None, integral: np.ndarray | None = None,
+              mean: np.ndarray | None = None) -> float:
     """How much a set of boxes stands out in a feature map, as the dense source ranks its
     groups (:func:`rescu.extension.dense.dense_candidates`, without the objectness): the
     boxes' mean centre-surround contrast (:func:`box_contrast`)
@@ -121,10 +123,11 @@ def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
     boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
     emb : :func:`box_features` of the boxes when already computed
     integral : :func:`integral_map` of ``f`` when already computed
+    mean : (C,) the image's unit mean feature (:func:`unit_mean`) when already computed
 
     Returns
     -------
-    float in [0, 4] (0 for no boxes)
+    float in [0, 2] (0 for no boxes)
 
     >>> f = np.zeros((2, 8, 8), np.float32); f[0] = 1.0; f[:, 2:4, 2:4] = [[[0.0]], [[1.0]]]
     >>> round(map_score(f, 8.0, np.array([[16, 16, 16, 16]])), 3)  # a block unlike its ring
@@ -136,7 +139,13 @@ def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
     if not len(b):
         return 0.0
     emb = box_features(f, cell_px, b, integral) if emb is None else emb
-    g = f.reshape(f.shape[0], -1).mean(1)
+    g = unit_mean(f) if mean is None else mean
     cen = emb.mean(0)
-    rarity = 1.0 - float(cen @ g) / float((np.linalg.norm(cen) + 1e-12) * (np.linalg.norm(g) + 1e-12))
-    return float(box_contrast(f, b, cell_px, integral).mean()) * max(rarity, 0.0)
+    rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
+    return float(float(box_contrast(f, b, cell_px, integral).mean()) * rarity)
+
+
+def unit_mean(f: np.ndarray) -> np.ndarray:
+    """The mean feature of ``f`` (C, h, w) over every cell, scaled to unit norm -> (C,)."""
+    g = f.reshape(f.shape[0], -1).mean(1)
+    return g / (np.linalg.norm(g) + 1e-12)

@@ -16,7 +16,8 @@ ImageNet backbone of stage II instead, once per image:
 3. **RPs** (:func:`dense_patterns`): the blobs' mean features, grouped by
    average-linkage clustering on cosine similarity; a group of ``min_instances`` or more
    non-overlapping blobs is one RP, its instances the blobs' square boxes. RPs are
-   ranked by the mean centre-surround contrast of their boxes (:func:`box_contrast`)
+   ranked by the mean centre-surround contrast of their boxes
+   (:func:`rescu.extension.boxmaps.box_contrast`)
    times their rarity (1 - cosine of their mean feature with the image's mean feature:
    background is what the image mostly is) times their objectness (the backbone's
    ImageNet classifier's mean top-class probability on crops of their instances,
@@ -51,11 +52,11 @@ import numpy as np
 from ..discovery.sources import DenseParams
 from ..boxes import cover_matrix
 from ..types import Instance, Pattern
-from .boxmaps import box_contrast, integral_map
+from .boxmaps import integral_map, map_score, unit_mean
 from .objects import touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
-           "blob_boxes", "distinct_blobs", "integral_map", "box_contrast", "touching_sides",
+           "blob_boxes", "distinct_blobs", "integral_map", "touching_sides",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
            "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
@@ -167,8 +168,8 @@ class DenseCandidate:
     Attributes
     ----------
     boxes : (n, 4) float, ``[x, y, w, h]`` in backbone-input pixels, strongest blob first
-    score : float, mean box contrast (:func:`box_contrast`) x rarity (1 - cosine of the
-        group's mean feature with the image's mean feature)
+    score : float, mean box contrast x rarity (1 - cosine of the group's mean feature
+        with the image's mean feature; :func:`rescu.extension.boxmaps.map_score`)
     touching : float, mean :func:`touching_sides` of the boxes (0..4)
     emb : (n, C) float32 or None, the blobs' unit mean features (row i of box i)
     level : int, the map it was found on (index in :func:`dense_levels`; 0 the coarse
@@ -239,17 +240,14 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
     labels = fcluster(linkage(np.asarray(emb, np.float64), method="average", metric="cosine"),
                       t=1.0 - params.min_similarity, criterion="distance")
     ii = integral_map(f)
-    g = f.reshape(f.shape[0], -1).mean(1)
-    g /= np.linalg.norm(g) + 1e-12
+    g = unit_mean(f)
     out = []
     for lab in np.unique(labels):
         m = np.flatnonzero(labels == lab)
         if len(m) < params.min_instances:
             continue
-        cen = emb[m].mean(0)
-        rarity = 1.0 - float(cen @ g) / (np.linalg.norm(cen) + 1e-12)
         out.append(DenseCandidate(
-            boxes=boxes[m], score=float(box_contrast(f, boxes[m], cell_px, ii).mean()) * rarity,
+            boxes=boxes[m], score=map_score(f, cell_px, boxes[m], emb[m], ii, g),
             touching=float(touching_sides(boxes[m], params.touch_tolerance).mean()),
             emb=emb[m], level=level))
     out.sort(key=lambda c: (-c.score, c.boxes[0, 1], c.boxes[0, 0]))
