@@ -120,3 +120,21 @@ def test_early_blocks_on_strips_give_the_whole_image_map(lite0, monkeypatch):
     monkeypatch.setattr(B, "STRIP_HALO", 16)              # too little context: not the same
     short8, _ = lite0.multiscale_maps(img)
     assert float((short8 - whole8).abs().max()) > 100 * tol
+
+
+def test_channels_last_layout_gives_the_channels_first_outputs(lite0):
+    """The backbone runs in channels-last memory (faster on CPU); its maps and class
+    probabilities are those of the usual channels-first layout up to float rounding."""
+    import copy
+
+    assert lite0.preprocess(np.zeros((8, 8, 3), np.uint8)).is_contiguous(
+        memory_format=torch.channels_last)
+    first = copy.copy(lite0)
+    first.model = copy.deepcopy(lite0.model).to(memory_format=torch.contiguous_format)
+    first.preprocess = lambda rgb: lite0.preprocess(rgb).contiguous()
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 255, (96, 160, 3), dtype=np.uint8)
+    for a, b in zip(lite0.multiscale_maps(img), first.multiscale_maps(img)):
+        assert float((a - b).abs().max()) <= 1e-5 * float(b.abs().max())
+    crops = rng.integers(0, 255, (3, 64, 64, 3), dtype=np.uint8)
+    assert np.abs(lite0.class_probabilities(crops) - first.class_probabilities(crops)).max() < 1e-5
