@@ -160,6 +160,38 @@ def test_extent_grows_a_box_to_the_object():
     assert np.median(colour_contrast(ii, truth)) > np.median(colour_contrast(ii, small))
 
 
+def test_extent_scores_every_transform_as_one_at_a_time():
+    """refine_extent scores all transforms in one colour_contrast call; the choice is the
+    one a transform-by-transform loop makes (first best in scale, aspect, dx, dy order,
+    transforms with under 70 % of the boxes inside skipped)."""
+    rng = np.random.default_rng(4)
+    img = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    img[30:60, 20:50] = 250
+    boxes = np.array([[25, 35, 20, 20], [100, 80, 22, 18], [140, 5, 25, 25]], float)
+    scales, aspects, shifts = (0.6, 1.0, 1.6, 2.5), (0.5, 1.0, 2.0), (-0.25, 0.0, 0.25)
+    got, t = refine_extent(img, boxes, scales, aspects, shifts)
+    ii = colour_integrals(img)
+    c = boxes[:, :2] + boxes[:, 2:] / 2
+    side = float(np.median(np.sqrt(boxes[:, 2] * boxes[:, 3])))
+    best_v, want = -1.0, None
+    for s in scales:
+        for r in aspects:
+            bw, bh = side * s * np.sqrt(r), side * s / np.sqrt(r)
+            for dx in shifts:
+                for dy in shifts:
+                    x0, y0 = c[:, 0] + dx * bw - bw / 2, c[:, 1] + dy * bh - bh / 2
+                    inside = ((x0 >= -0.15 * bw) & (y0 >= -0.15 * bh)
+                              & (x0 + bw <= 160 + 0.15 * bw) & (y0 + bh <= 120 + 0.15 * bh))
+                    if inside.mean() < 0.7:
+                        continue
+                    nb = np.c_[x0, y0, np.full(3, bw), np.full(3, bh)]
+                    v = float(np.median(colour_contrast(ii, nb[inside])))
+                    if v > best_v + 1e-12:
+                        best_v, want = v, (s, r, dx, dy)
+    assert t == want
+    assert got.shape == (3, 4) and (got[:, 2:] > 0).all()
+
+
 def test_parts_of_kept_objects_are_dropped():
     a = np.array([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40]], float)
     rims = np.c_[a[:, 0] + 10, a[:, 1], np.full(3, 20.0), np.full(3, 8.0)]
