@@ -157,3 +157,9 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
             raise ValueError(f"--set {it!r}: expected KEY=VALUE")
         out[key.strip()] = yaml.safe_load(val)
     return out
+
+
+def f1(precision: float, recall: float) -> float:
+    """F1 of a mean precision and a mean recall (the studies' one-number summary of a set's
+    any-RP instance figures); 0 when both are 0."""
+    return float(2 * precision * recall / (precision + recall + 1e-9))

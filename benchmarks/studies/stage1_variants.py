@@ -44,7 +44,7 @@ import numpy as np
 sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
                 str(Path(__file__).resolve().parents[1])]
 
-from _cli import parse_sets  # noqa: E402
+from _cli import f1, parse_sets  # noqa: E402
 
 
 def _one(job: tuple[str, str, str, dict[str, Any], dict[str, Any] | None]
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     name = a.name or ("_".join(f"{k}={v}" for k, v in over.items()) or "config")
     base = a.results / "benchmarks" / "stage1-variants" / name
     sets = a.dataset or ["synthetic"]
-    f1: dict[str, list[float]] = {}
+    f1s: dict[str, list[float]] = {}
     for ds in sets:
         if ds not in cfg["datasets"]:
             ap.error(f"dataset {ds!r} is not in the config")
@@ -124,9 +124,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{ds}: {len(jobs)} images in {time.time() - t0:.0f} s")
         print_side_by_side(data, {"RESCU-I": run / "rescu-i", name: out}, ds)
         for label, folder in (("RESCU-I", run / "rescu-i"), (name, out)):
-            f1.setdefault(label, []).append(_any_f1(data, folder))
+            f1s.setdefault(label, []).append(_any_f1(data, folder))
     print("\nmean any-RP instance F1 over the datasets (F1 of each set's mean P and R):")
-    for label, v in f1.items():
+    for label, v in f1s.items():
         print(f"  {label}: {np.mean(v):.3f}")
     return 0
 
@@ -148,7 +148,7 @@ def _any_f1(data: Path, folder: Path) -> float:
     if not pr:
         return float("nan")
     p, r = np.nanmean(np.array(pr, float), 0)
-    return float(2 * p * r / (p + r + 1e-9))
+    return f1(p, r)
 
 
 if __name__ == "__main__":

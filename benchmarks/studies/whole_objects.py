@@ -38,7 +38,7 @@ import numpy as np
 sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
                 str(Path(__file__).resolve().parents[1])]
 
-from _cli import parse_sets  # noqa: E402
+from _cli import f1, parse_sets  # noqa: E402
 
 THRESHOLDS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     params = DenseParams.from_dict({**dense_cfg, "mode": "objects"})
     thresholds = tuple(a.threshold or THRESHOLDS)
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
-    f1 = {t: [] for t in thresholds}
+    f1s: dict[float, list[float]] = {t: [] for t in thresholds}
     for ds in a.dataset:
         data = dataset_root(ds, cfg["datasets"][ds], str(a.results))
         truth = {Path(k).stem: [r.boxes for r in v]
@@ -122,10 +122,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {name:<16} {m[0]:.3f} / {m[1]:.3f}   {m[2]:.3f} / {m[3]:.3f}   "
                   f"{m[4]:.3f} / {m[5]:.3f}   {m[6]:.2f}")
             if name.startswith("objects >= "):
-                f1[float(name.split(">= ")[1])].append(2 * m[0] * m[1] / (m[0] + m[1] + 1e-9))
+                f1s[float(name.split(">= ")[1])].append(f1(m[0], m[1]))
     print("\nmean any-RP F1 over the datasets, per threshold:")
     for t in thresholds:
-        print(f"  {t:g}: {np.mean(f1[t]):.3f}")
+        print(f"  {t:g}: {np.mean(f1s[t]):.3f}")
     return 0
 
 
