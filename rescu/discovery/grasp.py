@@ -119,9 +119,15 @@ class _Grasp:
     def copy_at(self, ref: int, pos: np.ndarray, tol: float, taken: set[int],
                 avail: np.ndarray) -> int:
         dd, qq = self.tree.query(pos, k=4, distance_upper_bound=tol)
+        return self.pick(ref, dd.tolist(), qq.tolist(), taken, avail)
+
+    def pick(self, ref: int, dd: list[float], qq: list[int], taken: set[int],
+             avail: np.ndarray) -> int:
+        """The first of a position's nearest features (``dd``, ``qq``: one row of a k-d
+        tree query) that is free and matches ``ref``'s descriptor; -1 when none."""
         # plain Python scalars: this runs ~10^5 times per image (numpy scalar checks cost
-        # more than the query); a missing neighbour has d = inf and q = n
-        for d, q in zip(dd.tolist(), qq.tolist()):
+        # more than the test); a missing neighbour has d = inf and q = n
+        for d, q in zip(dd, qq):
             if d != math.inf and q not in taken and avail[q] and self.desc_close(ref, q):
                 return q
         return -1
@@ -159,6 +165,10 @@ class _Grasp:
         tol = self.tol(om)
         out: list[np.ndarray] = []
         # add column: translate instance 0 through a correspondence of one of its features
+        # (each candidate column's positions looked up in one k-d tree query, then taken
+        # one instance after the other, as one query per position would)
+        rows = [k for k in range(m) if om[k, 0] >= 0]
+        refs = [int(om[k, 0]) for k in rows]
         for i in range(m):
             f = om[i, 0]
             if f < 0:
@@ -167,12 +177,12 @@ class _Grasp:
                 if h < 0 or h in taken or not avail[h]:
                     continue
                 t = self.xy[h] - self.xy[f]
+                dd, qq = self.tree.query(self.xy[refs] + t, k=4, distance_upper_bound=tol)
+                dd, qq = dd.tolist(), qq.tolist()
                 col = np.full(m, -1, np.int64)
                 loc = set(taken)
-                for k in range(m):
-                    if om[k, 0] < 0:
-                        continue
-                    q = int(h) if k == i else self.copy_at(int(om[k, 0]), self.xy[om[k, 0]] + t, tol, loc, avail)
+                for r, k in enumerate(rows):
+                    q = int(h) if k == i else self.pick(refs[r], dd[r], qq[r], loc, avail)
                     if q >= 0:
                         col[k] = q
                         loc.add(q)
@@ -181,22 +191,28 @@ class _Grasp:
         # add row: a feature near instance 0 copied by translation into every instance
         c0 = self.xy[om[:, 0][om[:, 0] >= 0]].mean(0)
         near = self.tree.query_ball_point(c0, self.gates.max_dist / 2.0)
+        ref0 = om[:, 0] >= 0
+        cols, shifts = [], []               # each instance's mean translation from instance 0
+        for j in range(1, n):
+            both = ref0 & (om[:, j] >= 0)
+            if both.any():
+                cols.append(j)
+                shifts.append((self.xy[om[both, j]] - self.xy[om[both, 0]]).mean(0))
         for e in sorted(near):
             if e in taken or not avail[e]:
                 continue
             row = np.full(n, -1, np.int64)
             row[0] = e
             loc = set(taken) | {e}
-            ref0 = om[:, 0] >= 0
-            for j in range(1, n):
-                both = ref0 & (om[:, j] >= 0)
-                if not both.any():
-                    continue
-                t = (self.xy[om[both, j]] - self.xy[om[both, 0]]).mean(0)
-                q = self.copy_at(int(e), self.xy[e] + t, tol, loc, avail)
-                if q >= 0:
-                    row[j] = q
-                    loc.add(q)
+            if cols:
+                dd, qq = self.tree.query(self.xy[e] + np.array(shifts), k=4,
+                                         distance_upper_bound=tol)
+                dd, qq = dd.tolist(), qq.tolist()
+                for r, j in enumerate(cols):
+                    q = self.pick(int(e), dd[r], qq[r], loc, avail)
+                    if q >= 0:
+                        row[j] = q
+                        loc.add(q)
             if (row >= 0).sum() >= 2:
                 out.append(np.vstack([om, row[None]]))
         if len(out) > self.p.max_candidates:
