@@ -169,6 +169,7 @@ class _Grasp:
         # one instance after the other, as one query per position would)
         rows = [k for k in range(m) if om[k, 0] >= 0]
         refs = [int(om[k, 0]) for k in rows]
+        base = self.xy[refs]                # their features' positions, (len(rows), 2)
         for i in range(m):
             f = om[i, 0]
             if f < 0:
@@ -177,7 +178,7 @@ class _Grasp:
                 if h < 0 or h in taken or not avail[h]:
                     continue
                 t = self.xy[h] - self.xy[f]
-                dd, qq = self.tree.query(self.xy[refs] + t, k=4, distance_upper_bound=tol)
+                dd, qq = self.tree.query(base + t, k=4, distance_upper_bound=tol)
                 dd, qq = dd.tolist(), qq.tolist()
                 col = np.full(m, -1, np.int64)
                 loc = set(taken)
@@ -198,6 +199,7 @@ class _Grasp:
             if both.any():
                 cols.append(j)
                 shifts.append((self.xy[om[both, j]] - self.xy[om[both, 0]]).mean(0))
+        shift = np.array(shifts).reshape(-1, 2)
         for e in sorted(near):
             if e in taken or not avail[e]:
                 continue
@@ -205,7 +207,7 @@ class _Grasp:
             row[0] = e
             loc = set(taken) | {e}
             if cols:
-                dd, qq = self.tree.query(self.xy[e] + np.array(shifts), k=4,
+                dd, qq = self.tree.query(self.xy[e] + shift, k=4,
                                          distance_upper_bound=tol)
                 dd, qq = dd.tolist(), qq.tolist()
                 for r, j in enumerate(cols):
