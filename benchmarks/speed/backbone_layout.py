@@ -66,15 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         "stage II map 1024 px": lambda b, im=at(1024): [b.feature_map(im).numpy()],
         "objectness 6 x 160 px": lambda b: [b.class_probabilities(crops)],
     }
-    import rescu.extension.backbone as B
-
     ours = FrozenBackbone("efficientnet-lite0", feature_stride=16)
-    fold = B.fold_batch_norms
-    B.fold_batch_norms = lambda model: None  # the published form: norms as layers
-    try:
-        published = FrozenBackbone("efficientnet-lite0", feature_stride=16)
-    finally:
-        B.fold_batch_norms = fold
+    # the published form: norms as layers
+    published = FrozenBackbone("efficientnet-lite0", feature_stride=16, fold_norms=False)
     published.model = published.model.to(memory_format=torch.contiguous_format)
     prep = published.preprocess
     published.preprocess = lambda im: prep(im).contiguous()  # type: ignore[method-assign]
