@@ -599,10 +599,10 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if side < params.min_object_px or side * s < params.min_map_px:
             continue
         extra = {"seeds": int(len(c.boxes)), "extent": [float(v) for v in t], "level": level}
-        # a kept RP is a rival when most of these boxes lie on its objects (when a few
-        # do, the more confident of the two keeps those, below)
-        rivals = [k for k, (_, kb, _) in enumerate(out)
-                  if on_objects(b, kb, params.part_cover).mean() > 0.5]
+        # which of these boxes lie on each kept RP's objects; a kept RP is a rival when
+        # most do (when a few do, the more confident of the two keeps those, below)
+        hits = [on_objects(b, kb, params.part_cover) for _, kb, _ in out]
+        rivals = [k for k, h in enumerate(hits) if h.mean() > 0.5]
         if rivals:
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
@@ -610,12 +610,13 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
+            hits = [h for k, h in enumerate(hits) if k not in rivals]
         taken = np.vstack([o[1] for o in out] + [np.zeros((0, 4))])    # the kept RPs' boxes
         kept = without_parts(b, taken, params.part_cover, params.min_instances)
         whole = info if rivals else None                # the confidence of all of b
         if kept is None or len(kept) < len(b):
             # a few of its boxes lie on kept RPs' objects: the more confident keeps them
-            share = [k for k, o in enumerate(out) if on_objects(b, o[1], params.part_cover).any()]
+            share = [k for k, h in enumerate(hits) if h.any()]
             if share:
                 whole = whole or rp_confidence(f, cell_px, s, b, integrals, params,
                                                integral=ii)
