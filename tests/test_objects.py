@@ -160,6 +160,33 @@ def test_extent_grows_a_box_to_the_object():
     assert np.median(colour_contrast(ii, truth)) > np.median(colour_contrast(ii, small))
 
 
+def test_extent_turns_the_boxes_of_objects_lying_the_other_way():
+    """Cars seen from above, parked both ways: one transform for the RP (the wide one,
+    most cars lie that way), and with ``turn`` each car across the row gets it turned."""
+    rng = np.random.default_rng(5)
+    img = np.clip(rng.normal(110, 6, (200, 260, 3)), 0, 255).astype(np.uint8)
+    truth = []
+    for k in range(6):                      # 40 x 20 wide cars in a row ...
+        x, y = 10 + 42 * k, 20
+        truth.append([x, y, 40, 20])
+    for k in range(3):                      # ... and 20 x 40 ones across another
+        x, y = 20 + 70 * k, 120
+        truth.append([x, y, 20, 40])
+    truth = np.array(truth, float)
+    for x, y, w, h in truth.astype(int):
+        img[y:y + h, x:x + w] = (230, 40, 40)
+    c = truth[:, :2] + truth[:, 2:] / 2
+    seeds = np.c_[c - 10, np.full((len(truth), 2), 20.0)]     # square blobs on the cars
+    args = (img, seeds, (1.0, 1.4, 2.0), (0.5, 1.0, 2.0), (0.0,))
+    fixed, t = refine_extent(*args)
+    turned, t2 = refine_extent(*args, turn=True)
+    assert t == t2 and t[1] == 2.0          # wide: most cars lie that way
+    iou_fixed = np.diag(iou_matrix(fixed, truth))
+    iou_turned = np.diag(iou_matrix(turned, truth))
+    assert (iou_turned > 0.8).all(), iou_turned
+    assert (iou_fixed[6:] < 0.5).all() and np.allclose(turned[:6], fixed[:6])
+
+
 def test_extent_scores_every_transform_as_one_at_a_time():
     """refine_extent scores all transforms in one colour_contrast call; the choice is the
     one a transform-by-transform loop makes (first best in scale, aspect, dx, dy order,

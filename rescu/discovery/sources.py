@@ -105,6 +105,9 @@ class DenseParams:
     extent_scales, extent_aspects, extent_shifts : tuple of float
         Its candidate transforms: box side x scale, width / height, centre shift as a
         fraction of the box.
+    extent_turn : bool
+        Each box may take the RP's transform turned by 90 degrees where its contrast is
+        larger turned (objects lying both ways, such as parked cars).
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
         the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
@@ -158,6 +161,7 @@ class DenseParams:
     extent_scales: tuple[float, ...]
     extent_aspects: tuple[float, ...]
     extent_shifts: tuple[float, ...]
+    extent_turn: bool
     part_cover: float
     part_area: float
     part_reach: float

@@ -235,14 +235,19 @@ def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
 
 def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
                   aspects: Sequence[float], shifts: Sequence[float],
-                  integrals: tuple[np.ndarray, np.ndarray] | None = None
+                  integrals: tuple[np.ndarray, np.ndarray] | None = None,
+                  turn: bool = False
                   ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     """The RP's boxes at the extent where they stand out most from their surroundings.
 
     One transform for all boxes (they show the same kind of object): side ``scale`` x the
     median box side, width / height ``aspect``, centre moved by ``shift`` x the new width
     and height; the transform with the largest median :func:`colour_contrast` over the
-    boxes that stay (mostly) inside the image wins. Boxes are clipped to the image.
+    boxes that stay (mostly) inside the image wins. With ``turn`` and an elongated
+    transform (aspect not 1), each box then takes the transform turned by 90 degrees
+    (width and height swapped, and the two shifts) where that box's contrast is larger
+    turned: the same kind of object lying the other way (cars parked across a row,
+    seen from above). Boxes are clipped to the image.
 
     Parameters
     ----------
@@ -251,11 +256,12 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     scales, aspects, shifts : the candidate transforms (1.0, 1.0, 0.0 included: the
         boxes as they are, squared to their median side)
     integrals : :func:`colour_integrals` of ``rgb`` when already computed
+    turn : let each box take the transform turned by 90 degrees
 
     Returns
     -------
     boxes : (n, 4) float, the refined boxes
-    transform : ``(scale, aspect, shift_x, shift_y)`` chosen
+    transform : ``(scale, aspect, shift_x, shift_y)`` chosen (for the boxes not turned)
     """
     b = np.asarray(boxes, float).reshape(-1, 4)
     if not len(b):
@@ -285,6 +291,14 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
             v = float(np.median(v_all[lo:hi]))
             if v > best_v + 1e-12:
                 best, best_t, best_v = nb[k], ts[k], v
+        if turn and abs(best_t[1] - 1.0) > 1e-9:
+            # the same transform turned: width and height swapped, and the two shifts
+            tw, th = best[:, 3], best[:, 2]
+            tb = np.stack([c[:, 0] + best_t[3] * tw - tw / 2, c[:, 1] + best_t[2] * th - th / 2,
+                           tw, th], axis=1)
+            both = colour_contrast(ii, np.vstack([best, tb]))
+            flip = both[len(b):] > both[:len(b)]
+            best = np.where(flip[:, None], tb, best)
     x0 = np.clip(best[:, 0], 0, W)
     y0 = np.clip(best[:, 1], 0, H)
     x1 = np.clip(best[:, 0] + best[:, 2], 0, W)
@@ -586,7 +600,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         t: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
         if params.extent and len(b):
             b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
-                                 params.extent_shifts, integrals)
+                                 params.extent_shifts, integrals, params.extent_turn)
             # two instances on one object (two parts) become one box at the object's extent
             b = b[np.sort(nms(b, colour_contrast(integrals, b), 0.5))]
         boxes = b * s
