@@ -1,0 +1,90 @@
+"""Whether a run's RP instances fail for their box or for their place.
+
+    python benchmarks/studies/box_fit.py RESULTS --dataset aerial_cars [--data ../shared/data]
+        [--folder rescu-i] [--verbose]
+
+For every image of one dataset of a finished run, every reported RP's instances
+(``<RESULTS>/<dataset>/<folder>/<image>.json``, ``patterns``; with ``--verbose`` also the
+``candidate_patterns`` below the confidence threshold, per RP) are compared with all the
+image's ground-truth boxes (any category): how many pass IOD > 0.5 against some GT box
+(what the metric counts), and how many fail it although their centre lies on a GT
+object (a box of the wrong shape or size on a right place). Prints the totals over the
+dataset. Asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def fit(det: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) bool twice: IOD > 0.5 against some GT box; centre inside a GT box but not
+    passing. ``det`` (n, 4), ``gt`` (m, 4), ``[x, y, w, h]``."""
+    if not len(det) or not len(gt):
+        return np.zeros(len(det), bool), np.zeros(len(det), bool)
+    gx0, gy0 = gt[:, 0], gt[:, 1]
+    gx1, gy1 = gt[:, 0] + gt[:, 2], gt[:, 1] + gt[:, 3]
+    ix = np.clip(np.minimum(det[:, None, 0] + det[:, None, 2], gx1)
+                 - np.maximum(det[:, None, 0], gx0), 0, None)
+    iy = np.clip(np.minimum(det[:, None, 1] + det[:, None, 3], gy1)
+                 - np.maximum(det[:, None, 1], gy0), 0, None)
+    ok = (ix * iy / np.maximum(det[:, 2] * det[:, 3], 1e-9)[:, None]).max(1) > 0.5
+    cx, cy = det[:, 0] + det[:, 2] / 2, det[:, 1] + det[:, 3] / 2
+    on = ((cx[:, None] > gx0) & (cx[:, None] < gx1)
+          & (cy[:, None] > gy0) & (cy[:, None] < gy1)).any(1)
+    return ok, on & ~ok
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("results", type=Path)
+    ap.add_argument("--dataset", required=True)
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--folder", default="rescu-i", help="method folder of the run")
+    ap.add_argument("--verbose", action="store_true")
+    a = ap.parse_args()
+    ann = json.loads((a.data / a.dataset / "annotations.json").read_text())
+    stems = {i["id"]: Path(i["file_name"]).stem for i in ann["images"]}
+    gt: dict[str, list] = collections.defaultdict(list)
+    for x in ann["annotations"]:
+        gt[stems[x["image_id"]]].append(x["bbox"])
+    tot = collections.Counter()
+    for stem in sorted(stems.values()):
+        p = a.results / a.dataset / a.folder / f"{stem}.json"
+        if not p.is_file():
+            continue
+        d = json.loads(p.read_text())
+        g = np.array(gt.get(stem, []), float).reshape(-1, 4)
+        tot["images"] += 1
+        tot["gt"] += len(g)
+        kinds = [("reported", d.get("patterns", []))]
+        if a.verbose:
+            kinds.append(("below", d.get("candidate_patterns", [])))
+            print(f"{stem}: {len(g)} GT boxes")
+        for kind, pats in kinds:
+            for q in pats:
+                b = np.array([i["bbox"] for i in q["instances"]], float).reshape(-1, 4)
+                ok, wrong_box = fit(b, g)
+                if kind == "reported":
+                    tot["instances"] += len(b)
+                    tot["pass"] += int(ok.sum())
+                    tot["on_object_fail"] += int(wrong_box.sum())
+                if a.verbose and len(b):
+                    print(f"  {kind:8s} {q.get('source', 'stage1'):6s} n={len(b):3d} "
+                          f"conf={q.get('confidence', float('nan')):.2f} "
+                          f"box {np.median(b[:, 2]):.0f}x{np.median(b[:, 3]):.0f} "
+                          f"pass {ok.mean():.2f} on-object-fail {wrong_box.mean():.2f}")
+    print(f"{a.dataset}: {tot['images']} images, {tot['gt']} GT boxes; the reported RPs hold "
+          f"{tot['instances']} instances: {tot['pass']} pass IOD > 0.5, {tot['on_object_fail']} "
+          f"more have their centre on a GT object")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
