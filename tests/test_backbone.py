@@ -158,6 +158,6 @@ def test_folded_batch_norms_give_the_published_network(lite0):
     with torch.no_grad():
         want, got = published(x.contiguous()), lite0.model(x)
     assert float((got - want).abs().max()) < 1e-4 * float(want.abs().max())
-    # fold_norms=False keeps the published layers (benchmarks/speed/backbone_layout.py)
-    raw = FrozenBackbone("efficientnet-lite0", feature_stride=16, fold_norms=False)
+    # fuse=False keeps the published layers (benchmarks/speed/backbone_layout.py)
+    raw = FrozenBackbone("efficientnet-lite0", feature_stride=16, fuse=False)
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in raw.model.modules())

@@ -1,6 +1,7 @@
 """What the backbone's inference form buys: the published EfficientNet-Lite0
-(channels-first memory, batch norms as layers) against RESCU's (channels-last weights and
-inputs, batch norms folded into the convolutions), on the passes the pipeline makes.
+(channels-first memory, batch norms and padding as layers) against RESCU's (channels-last
+weights and inputs, batch norms folded into the convolutions, stride-1 padding done by the
+convolutions, activations in place), on the passes the pipeline makes.
 
 Usage::
 
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     ours = FrozenBackbone("efficientnet-lite0", feature_stride=16)
     # the published form: norms as layers
-    published = FrozenBackbone("efficientnet-lite0", feature_stride=16, fold_norms=False)
+    published = FrozenBackbone("efficientnet-lite0", feature_stride=16, fuse=False)
     published.model = published.model.to(memory_format=torch.contiguous_format)
     prep = published.preprocess
     published.preprocess = lambda im: prep(im).contiguous()  # type: ignore[method-assign]

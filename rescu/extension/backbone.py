@@ -104,6 +104,40 @@ def fold_batch_norms(model) -> None:
             blk._bn2 = nn.Identity()
 
 
+def fold_same_padding(model) -> None:
+    """Give each stride-1 "same" convolution of an EfficientNet-Lite model its zero padding
+    as the convolution's own padding, in place, instead of a separate padding layer.
+
+    ``efficientnet_lite_pytorch`` pads every convolution with a ``ZeroPad2d`` layer before
+    it (TensorFlow's "same" padding, computed for 224-pixel inputs): a copy of the whole
+    input per layer. Where that padding is the same on both sides (every stride-1
+    convolution: ``(k - 1) / 2``), the convolution pads by itself with the same zeros and
+    the layer becomes an identity; the stride-2 convolutions' uneven padding stays. Same
+    function, the maps equal up to float rounding.
+
+    Parameters
+    ----------
+    model : efficientnet_lite_pytorch.EfficientNet
+    """
+    nn = _torch().nn
+    for m in model.modules():
+        pad = getattr(m, "static_padding", None)
+        if isinstance(pad, nn.ZeroPad2d) and isinstance(m, nn.Conv2d):
+            left, right, top, bottom = pad.padding
+            if left == right and top == bottom and tuple(m.padding) == (0, 0):
+                m.padding = (top, left)
+                m.static_padding = nn.Identity()
+
+
+def inplace_activations(model) -> None:
+    """Let each ReLU6 of a model overwrite its input (a convolution's fresh output, used
+    nowhere else in EfficientNet-Lite) instead of allocating a new tensor. In place."""
+    nn = _torch().nn
+    for m in model.modules():
+        if isinstance(m, nn.ReLU6):
+            m.inplace = True
+
+
 class FrozenBackbone:
     """A frozen (eval-mode, no-grad) ImageNet backbone giving a dense feature map.
 
@@ -118,15 +152,18 @@ class FrozenBackbone:
         16 or 32: which feature map is used.
     device : str
         Torch device (``"cpu"`` or ``"cuda"``).
-    fold_norms : bool
+    fuse : bool
         EfficientNet-Lite0: fold its batch norms into the convolutions
-        (:func:`fold_batch_norms`; the same network up to float rounding, 1.4-1.7x
-        faster). False keeps the published layers (for comparisons).
+        (:func:`fold_batch_norms`), its stride-1 convolutions' padding into them
+        (:func:`fold_same_padding`), and run its activations in place
+        (:func:`inplace_activations`): the same network up to float rounding, faster
+        (``benchmarks/speed/backbone_layout.py``). False keeps the published layers (for
+        comparisons).
     """
 
     def __init__(self, name: str = "efficientnet-lite0", weights_path: str | None = None,
                  feature_stride: int = 16, device: str = "cpu",
-                 fold_norms: bool = True) -> None:
+                 fuse: bool = True) -> None:
         torch = _torch()
         if name not in BACKBONES:
             raise ValueError(f"backbone must be one of {BACKBONES}, got {name!r}")
@@ -168,8 +205,10 @@ class FrozenBackbone:
                 if cum == 16:
                     last16 = i
             self._last8, self._last16 = last8, last16
-            if fold_norms:
+            if fuse:
                 fold_batch_norms(model)
+                fold_same_padding(model)
+                inplace_activations(model)
         else:
             import torchvision
 
