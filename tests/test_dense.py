@@ -153,14 +153,15 @@ def test_find_dense_finds_the_discs_in_original_pixels():
     pats = find_dense(img, p)
     assert pats and all(q.extra["source"] == "dense" for q in pats)
     small = cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    # 240 px at its own size: the 20-px discs' boxes (15 px after the extent) span less
-    # than min_map_px of even the fine map (2x): not reported unless the limit is lowered
-    tiny = find_dense(small, native, scale_factor=0.5)
+    # 240 px at its own size: the 20-px discs' boxes (15 px after the extent) span about
+    # 30 px of the fine map (2x), more than min_map_px (one stride-16 cell): found; a
+    # gate of two cells drops them
+    tiny = find_dense(small, _params(max_patterns=4, min_side=240, min_map_px=32),
+                      scale_factor=0.5)
     assert not any(np.median([i.bbox[2] for i in q.instances]) < 35 for q in tiny)
     runs = [pats, find_dense(small, p, scale_factor=0.5),   # processed = original x 0.5
             find_dense(img, native), find_dense(img, down),
-            find_dense(small, _params(max_patterns=4, min_side=240, min_map_px=24),
-                       scale_factor=0.5)]
+            find_dense(small, native, scale_factor=0.5)]
     for found in runs:
         best = 0
         for q in found:

@@ -99,18 +99,25 @@ def test_a_scene_with_nothing_repeated_reports_no_rp():
 
 
 def test_the_fine_map_finds_objects_too_small_for_the_coarse_one():
-    # 1600 px wide (not resized for the coarse map), discs 29 px across: under two
-    # stride-16 cells of the coarse map, three of the fine one (x1.5, capped at 2400 px)
+    # 1600 px wide (not resized for the coarse map), discs 29 px across: under a gate of
+    # two stride-16 cells (min_map_px 32; the default, one cell, lets the coarse map
+    # judge them itself) on the coarse map, above it on the fine one (x1.5, capped at
+    # 2400 px)
     img, truth = _discs(np.random.default_rng(4), rows=5, cols=9, r=14, gap=120,
                         size=(1600, 900))
-    coarse = find_dense(img, _params(fine_scale=1.0))
+    coarse = find_dense(img, _params(fine_scale=1.0, min_map_px=32))
     assert all(q.extra["level"] == 0 for q in coarse)
     assert not any((iou_matrix(np.array([i.bbox for i in q.instances]), truth).max(0) > 0.5)
                    .sum() > len(truth) // 4 for q in coarse)
-    pats = find_dense(img, _params())
+    pats = find_dense(img, _params(min_map_px=32))
     best = max(pats, key=lambda q: q.extra["confidence"])
     iou = iou_matrix(np.array([i.bbox for i in best.instances]), truth)
     assert best.extra["level"] == 1
+    assert (iou.max(0) > 0.5).sum() >= 0.9 * len(truth), (iou.max(0) > 0.5).sum()
+    assert (iou.max(1) > 0.5).mean() >= 0.9
+    # the default finds them too, on either map
+    best = max(find_dense(img, _params()), key=lambda q: q.extra["confidence"])
+    iou = iou_matrix(np.array([i.bbox for i in best.instances]), truth)
     assert (iou.max(0) > 0.5).sum() >= 0.9 * len(truth), (iou.max(0) > 0.5).sum()
     assert (iou.max(1) > 0.5).mean() >= 0.9
 

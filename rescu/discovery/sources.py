@@ -52,7 +52,7 @@ class DenseParams:
         Blob sides on the fine map, feature cells.
     min_map_px : float
         A dense RP's instances must span this many pixels of its map's input (median box
-        side; two cells of the stride-16 half are 32).
+        side; one cell of the stride-16 half is 16).
     min_object_px : float
         ... and this many pixels of the prepared image.
     surround : int

@@ -555,8 +555,9 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     module docstring), each group on the map it was found on.
 
     A group whose objects are too small to be judged is skipped: their median side must
-    span ``params.min_map_px`` pixels of its map's input (two cells of the stride-16
-    half: a map cannot tell whether smaller things look alike) and
+    span ``params.min_map_px`` pixels of its map's input (one cell of the stride-16
+    half: pooled over less, a box's features are those of what surrounds it; the group
+    was judged alike on blobs of at least four stride-8 cells around its objects) and
     ``params.min_object_px`` pixels of the prepared image (enlarging an image adds no
     detail: a few pixels of highlight stay a few pixels). A group that sits on the objects
     of an RP already kept (most of its boxes, :func:`on_objects`) replaces that RP when
