@@ -268,6 +268,37 @@ def test_a_group_sharing_one_object_with_a_kept_rp_takes_it_only_when_more_confi
     assert len(out) == 1 and np.array_equal(out[0][1], c)
 
 
+def test_groups_below_min_confidence_do_not_end_the_search(monkeypatch):
+    """max_patterns counts only RPs that will be reported: the search goes on past weak
+    groups ranked first to a clear one ranked below them; at most max_patterns RPs are
+    returned, the clear ones first."""
+    from rescu.extension import objects as O
+    from rescu.extension.dense import DenseCandidate
+
+    rows = [np.array([[x, y, 40, 40] for x in range(0, 500, 100)], float)
+            for y in (0, 100, 200)]
+    conf = {0.0: 0.1, 100.0: 0.2, 200.0: 0.9}          # by the row's height
+    monkeypatch.setattr(O, "rp_confidence", lambda f, cell, s, boxes, ii, p, **kw:
+                        {"confidence": conf[float(boxes[0, 1])]})
+    p = _params(complete=False, extent=False, min_object_px=1, min_map_px=1,
+                min_instances=3, max_patterns=1, confidence_score_scale=0.0)
+    ranked = [DenseCandidate(boxes=r, score=1.0 - 0.1 * k, touching=0.0)
+              for k, r in enumerate(rows)]
+    rgb = np.zeros((300, 640, 3), np.uint8)
+    levels = [(np.zeros((4, 40, 80), np.float32), 1.0)]
+    out = O.whole_objects(levels, 8.0, rgb, ranked, p)
+    assert [o[2]["confidence"] for o in out] == [0.9]
+    p2 = _params(complete=False, extent=False, min_object_px=1, min_map_px=1,
+                 min_instances=3, max_patterns=2, confidence_score_scale=0.0)
+    # two in all: the clear one and the best-ranked weak one, in ranking order
+    out = O.whole_objects(levels, 8.0, rgb, ranked, p2)
+    assert [o[2]["confidence"] for o in out] == [0.1, 0.9]
+    # with a clear group first, nothing after it is read
+    seen = []
+    out = O.whole_objects(levels, 8.0, rgb, (seen.append(c) or c for c in ranked[::-1]), p)
+    assert [o[2]["confidence"] for o in out] == [0.9] and len(seen) == 1
+
+
 def test_confidence_of_any_rp_from_its_boxes():
     rng = np.random.default_rng(4)
     f = 0.05 * rng.normal(size=(8, 40, 60))

@@ -574,13 +574,15 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     cell_px : pixels of the backbone input per cell (8)
     rgb : (H, W, 3) uint8, the prepared image
     ranked : :class:`rescu.extension.dense.DenseCandidate` iterable, best first (with
-        ``emb`` and ``level``); read only until ``params.max_patterns`` RPs are kept
+        ``emb`` and ``level``); read only until ``params.max_patterns`` RPs at or
+        above ``params.min_confidence`` (as reported, the ranking score counted) are kept
         (:func:`rescu.extension.dense.iter_level_candidates` classifies no more groups)
     params : :class:`rescu.discovery.sources.DenseParams`
 
     Returns
     -------
-    list of ``(score, boxes, info)``, best first, at most ``params.max_patterns``: boxes
+    list of ``(score, boxes, info)``, best first, at most ``params.max_patterns``, those
+    at or above ``params.min_confidence`` first (then the best-ranked below it): boxes
     (n, 4) ``[x, y, w, h]`` in pixels of ``rgb``, n >= ``params.min_instances``; info
     ``{"confidence", "gap", "contrast", "seeds", "extent", "level"}``
     (:func:`pattern_confidence`, the number of blobs the group started from, the
@@ -644,14 +646,28 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         info = whole if whole is not None and len(kept) == len(b) else \
             rp_confidence(f, cell_px, s, kept, integrals, params, integral=ii)
         out.append((float(c.score), kept, {**info, **extra}))
-        if len(out) >= params.max_patterns:
+        # only an RP that will be reported fills the budget: a group below
+        # min_confidence does not stop the search for clearer ones further down the
+        # ranking (small cars ranked under a few faint groups of road marks)
+        if sum(_reported(o, params) for o in out) >= params.max_patterns:
             break
+    # at most max_patterns in all: the reportable ones, then the best-ranked others
+    weak = [o for o in out if not _reported(o, params)]
+    out = [o for o in out if _reported(o, params)]
+    out += weak[:max(0, params.max_patterns - len(out))]
     out.sort(key=lambda o: -o[0])
     # the ranking score counts in the reported confidence, not in the choices above: it
     # is a score within one map, and the fine map's parts outscore the coarse map's
     # whole objects
     return [(sc, kb, {**info, "confidence": round(info["confidence"] * score_term(
         sc, params.confidence_score_scale), 4)}) for sc, kb, info in out]
+
+
+def _reported(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> bool:
+    """Whether a kept RP of :func:`whole_objects` (``(score, boxes, info)``) reaches
+    ``params.min_confidence`` with its ranking score counted (as reported)."""
+    conf = o[2]["confidence"] * score_term(o[0], params.confidence_score_scale)
+    return bool(conf >= params.min_confidence)
 
 
 def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
