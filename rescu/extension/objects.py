@@ -659,15 +659,21 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     # the ranking score counts in the reported confidence, not in the choices above: it
     # is a score within one map, and the fine map's parts outscore the coarse map's
     # whole objects
-    return [(sc, kb, {**info, "confidence": round(info["confidence"] * score_term(
-        sc, params.confidence_score_scale), 4)}) for sc, kb, info in out]
+    return [(sc, kb, {**info, "confidence": _reported_confidence((sc, kb, info), params)})
+            for sc, kb, info in out]
+
+
+def _reported_confidence(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> float:
+    """The confidence a kept RP of :func:`whole_objects` (``(score, boxes, info)``) is
+    reported with: its confidence x its ranking-score term (:func:`score_term`), 4
+    decimals."""
+    return round(o[2]["confidence"] * score_term(o[0], params.confidence_score_scale), 4)
 
 
 def _reported(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> bool:
-    """Whether a kept RP of :func:`whole_objects` (``(score, boxes, info)``) reaches
-    ``params.min_confidence`` with its ranking score counted (as reported)."""
-    conf = o[2]["confidence"] * score_term(o[0], params.confidence_score_scale)
-    return bool(conf >= params.min_confidence)
+    """Whether a kept RP of :func:`whole_objects` reaches ``params.min_confidence`` with
+    the confidence it is reported with (:func:`_reported_confidence`)."""
+    return _reported_confidence(o, params) >= params.min_confidence
 
 
 def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
