@@ -456,6 +456,44 @@ def test_a_stage_one_rp_that_barely_stands_out_in_the_map_loses_confidence():
     assert w1["confidence"] < 0.1 * w0["confidence"]
 
 
+def test_stage_one_samples_of_one_band_are_not_separate_objects():
+    """A stage-I RP of blocks with wall between them keeps its separation; the same boxes
+    laid along one band of the same stuff (a ledge, a rim) have none and are dropped as
+    one structure, while an RP whose instances are far apart carries no evidence."""
+    rng = np.random.default_rng(3)
+    f = 0.05 * rng.normal(size=(8, 30, 80))
+    f[0] += 1
+    boxes = np.array([[x * 8, 10 * 8, 24, 24] for x in range(4, 70, 6)], float)
+    band = f.copy()
+    band[3, 10:13, 4:70] += 2                    # the same stuff all along the row
+    for x, y, w, h in (boxes / 8).astype(int):
+        f[3, y:y + h, x:x + w] += 2
+    apart = np.array([[x * 8, 10 * 8, 24, 24] for x in (4, 40, 70)], float)
+    flat = colour_integrals(np.full((240, 640, 3), 90, np.uint8))
+    p = _params()
+    got = {}
+    for name, fm, b in (("objects", f, boxes), ("band", band, boxes), ("apart", f, apart)):
+        fm = (fm / np.linalg.norm(fm, axis=0, keepdims=True)).astype(np.float32)
+        got[name] = rp_confidence(fm, 8.0, 1.0, b, flat, p, objects=False)
+    assert got["objects"]["separation"] > 0.3 > p.min_separation, got["objects"]
+    assert got["band"]["separation"] < p.min_separation, got["band"]
+    assert "separation" not in got["apart"]
+    assert "separation" not in rp_confidence(
+        (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32), 8.0, 1.0, boxes,
+        flat, p)                                 # the dense RPs' boxes are not judged so
+    below = (boxes + [0, 120, 0, 0]).tolist()
+    res = ImageResult(image="x", width=640, height=240, method="rescu-i",
+                      patterns=[_pat(boxes.tolist(), **got["objects"]),
+                                _pat(below, **got["band"])])
+    split_by_confidence(res, 0.0, p)
+    assert [q.extra["separation"] for q in res.patterns] == [got["objects"]["separation"]]
+    assert [c["dropped"] for c in res.extra["candidate_patterns"]] == ["one structure"]
+    res = ImageResult(image="x", width=640, height=240, method="rescu-i",
+                      patterns=[_pat(boxes.tolist(), **got["band"])])
+    split_by_confidence(res, 0.0, _params(min_separation=-2.0))          # -2: all reported
+    assert len(res.patterns) == 1
+
+
 def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
     coins = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40], [180, 0, 40, 40]],
                  confidence=0.9, source="dense")
@@ -492,7 +530,8 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("fine_scale", 0.5), ("fine_max_side", 32),
                                        ("fine_sizes", []), ("min_map_px", -1),
                                        ("min_object_px", -2), ("confidence_score_scale", -0.1),
-                                       ("confidence_stage1_score_scale", -0.1)])
+                                       ("confidence_stage1_score_scale", -0.1),
+                                       ("min_separation", 3.0), ("separation_reach", 0.0)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

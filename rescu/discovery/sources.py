@@ -128,6 +128,13 @@ class DenseParams:
     min_confidence : float
         RPs whose confidence is below this are not reported: RESCU-I moves them to the
         result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
+    min_separation : float
+        A stage-I RP whose neighbouring instances are joined by more of the same (its
+        :func:`rescu.extension.objects.separation` below this) samples one structure (a
+        ledge, a board's frame, a rim, a road marking), not separate objects: not
+        reported (``"one structure"``); -2 reports all.
+    separation_reach : float
+        Neighbours farther apart than this x their mean box side are not compared.
     """
 
     enabled: bool
@@ -171,6 +178,8 @@ class DenseParams:
     confidence_score_scale: float
     confidence_stage1_score_scale: float
     min_confidence: float
+    min_separation: float
+    separation_reach: float
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -233,6 +242,10 @@ class DenseParams:
             if not getattr(self, k) >= 0:
                 raise ValueError(f"dense.{k} must be >= 0 (0: not counted), "
                                  f"got {getattr(self, k)}")
+        if not -2.0 <= self.min_separation <= 2.0:
+            raise ValueError(f"dense.min_separation must be in [-2, 2], got {self.min_separation}")
+        if not self.separation_reach > 0:
+            raise ValueError(f"dense.separation_reach must be > 0, got {self.separation_reach}")
         if not 0 < self.min_side <= self.max_side:
             raise ValueError(f"dense.min_side must be in [1, max_side = {self.max_side}], "
                              f"got {self.min_side}")
@@ -339,7 +352,9 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     saying why; not analysed further), in place; ids of both lists renumbered 0.. .
 
     An RP whose ``extra["confidence"]`` is below ``min_confidence`` is dropped
-    (``"low confidence"``). With ``params`` (:class:`DenseParams`), the more confident
+    (``"low confidence"``). With ``params`` (:class:`DenseParams`), a stage-I RP whose
+    ``extra["separation"]`` is below ``params.min_separation`` samples one structure and
+    is dropped (``"one structure"``), and the more confident
     of two overlapping RPs keeps the objects: going down the confidences, an RP loses its
     instances that overlap a reported RP's (IOD above ``params.overlap_iod`` either way)
     and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``); before
@@ -373,6 +388,10 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             dropped.append((p, "low confidence"))
             continue
         if params is not None and c is not None:
+            sep = p.extra.get("separation")
+            if sep is not None and float(sep) < params.min_separation:
+                dropped.append((p, "one structure"))
+                continue
             if any(parts_of(p, q, params, any_size=True) for q in kept):
                 dropped.append((p, "same objects"))
                 continue

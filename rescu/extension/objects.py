@@ -351,6 +351,63 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
     return float(np.median(sims) - np.percentile(sim[free], quantile))
 
 
+def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarray,
+               sims: np.ndarray, reach: float, integral: np.ndarray | None = None
+               ) -> float | None:
+    """How much less the space between neighbouring instances resembles their prototype
+    than they do: whether they are separate things or samples along one structure.
+
+    For each instance whose nearest instance (centre distance) lies within ``reach`` x
+    the two boxes' mean side, the box of their mean size half-way between them is
+    compared with the prototype: its *dip* is the pair's mean similarity minus the
+    midpoint box's. Between two windows, two coins or two cars, the midpoint box holds
+    wall, table or the edges of both, and the dip is clear; along a ledge, a board's
+    frame, a cup's rim or a road marking the midpoint box holds more of the same and the
+    dip is about 0 or negative.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, feature map (unit norm per cell)
+    cell_px : pixels of the map's input per cell
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
+    proto : (C,) unit prototype of the instances
+    sims : (n,) the instances' similarities to ``proto``
+    reach : neighbours farther apart than this x their mean side are not compared
+    integral : :func:`integral_map` of ``f`` when already computed
+
+    Returns
+    -------
+    The median dip in [-2, 2] over the instances with a near neighbour; None when fewer
+    than two have one (no evidence either way).
+
+    >>> f = np.zeros((2, 4, 12), np.float32); f[0] = 1.0
+    >>> f[:, :, 1::4] = np.array([0.0, 1.0])[:, None, None]   # objects every 4 cells
+    >>> boxes = np.array([[8.0 + 32 * k, 8, 8, 8] for k in range(3)])
+    >>> proto = np.array([0.0, 1.0]); sims = np.ones(3)
+    >>> separation(f, 8.0, boxes, proto, sims, 5.0)          # wall between them
+    1.0
+    >>> f[:, 1, :] = np.array([0.0, 1.0])[:, None]            # one band through them
+    >>> separation(f, 8.0, boxes, proto, sims, 5.0)
+    0.0
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if len(b) < 2:
+        return None
+    c = b[:, :2] + b[:, 2:] / 2
+    side = np.sqrt(b[:, 2] * b[:, 3])
+    d = np.linalg.norm(c[:, None] - c[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    j = d.argmin(1)
+    near = np.where(d[np.arange(len(b)), j] < reach * (side + side[j]) / 2)[0]
+    if len(near) < 2:
+        return None
+    wh = (b[near, 2:] + b[j[near], 2:]) / 2
+    mid = np.c_[(c[near] + c[j[near]]) / 2 - wh / 2, np.maximum(wh, cell_px)]
+    m = box_features(f, cell_px, mid, integral) @ np.asarray(proto, float)
+    s = np.asarray(sims, float)
+    return float(np.median((s[near] + s[j[near]]) / 2 - m))
+
+
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
                   integrals: tuple[np.ndarray, np.ndarray], params: Any,
                   objects: bool = True, integral: np.ndarray | None = None
@@ -380,13 +437,17 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         (:func:`map_score`: its boxes' centre-surround contrast in ``f`` x their rarity,
         the dense source's ranking score without the objectness), which multiplies its
         confidence by :func:`score_term` with ``params.confidence_stage1_score_scale``
-        (0: not counted), as a dense RP's ranking score does
+        (0: not counted), as a dense RP's ranking score does, and its *separation*
+        (:func:`separation` with ``params.separation_reach``, when defined), which
+        :func:`rescu.discovery.sources.split_by_confidence` compares with
+        ``params.min_separation``
     integral : :func:`integral_map` of ``f`` when already computed
 
     Returns
     -------
     ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``, and
-    ``"resolution"`` and ``"map_score"`` when not ``objects``
+    ``"resolution"``, ``"map_score"`` and (when defined) ``"separation"`` when not
+    ``objects``
     """
     b = np.asarray(boxes, float).reshape(-1, 4) * s
     if len(b) < 2:
@@ -406,6 +467,9 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
         out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
         out["map_score"] = round(map_score(f, cell_px, b, emb, integral), 4)
+        sep = separation(f, cell_px, b, proto, emb @ proto, params.separation_reach, integral)
+        if sep is not None:
+            out["separation"] = round(sep, 4)
         conf *= out["resolution"] * score_term(out["map_score"],
                                                params.confidence_stage1_score_scale)
     return {"confidence": round(conf, 4), **out}

@@ -17,7 +17,8 @@ DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) fee
 # (so switching dense.enabled or dense.mode, or changing how RESCU-I scores stage I's RPs,
 # does not rerun the dense or ablation jobs)
 DENSE_STEP = {**config["dense"], "enabled": True, "mode": "both",
-              "confidence_stage1_score_scale": 0.0}
+              "confidence_stage1_score_scale": 0.0, "min_separation": -2.0,
+              "separation_reach": 2.5}
 # the stage-I ablation's source rows (sparse-only, dense-only, sparse+dense; they need the dense step)
 ABLATION_SOURCES = bool(config["ablation"].get("sources", True))
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
