@@ -413,3 +413,51 @@ def test_compare_runs_tells_run_specific_parts_from_changes(tmp_path, capsys):
     assert CR.main([str(a), str(b)]) == 1
     out = capsys.readouterr().out
     assert "different: d/final/x.json" in out and "in one run only: d/final/y.json" in out
+
+
+def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
+    """One image, one GT RP of two boxes: a reported stage-I RP on both, a dense RP on
+    neither, an RP set aside as one structure; the dominant (most confident) RP covers
+    the GT RP and counts it right."""
+    import json
+
+    from rescu.types import ImageResult, Instance, Pattern
+
+    rs = load("rp_sources")
+    assert rs.main([str(tmp_path)]) == 2
+    assert "run the pipeline first" in capsys.readouterr().err
+    data = tmp_path / "data" / "synthetic"
+    data.mkdir(parents=True)
+    (data / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/x.png", "width": 100, "height": 100}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 0, "bbox": [0, 0, 10, 10]},
+                        {"id": 2, "image_id": 1, "category_id": 0, "bbox": [20, 0, 10, 10]}],
+        "categories": [{"id": 0, "name": "o"}]}))
+
+    def rp(boxes, **extra):
+        return Pattern(id=0, score=1.0, extra=extra,
+                       instances=[Instance(bbox=b, score=1.0) for b in boxes])
+
+    res = ImageResult(image="images/x.png", width=100, height=100, method="m", patterns=[
+        rp([(0, 0, 10, 10), (20, 0, 10, 10)], confidence=0.7),
+        rp([(60, 60, 10, 10), (80, 60, 10, 10), (60, 80, 10, 10)], confidence=0.35,
+           source="dense")])
+    res.extra["candidate_patterns"] = [dict(rp([(40, 40, 5, 5), (50, 40, 5, 5)],
+                                               confidence=0.5).to_json(), dropped="one structure")]
+    (tmp_path / "synthetic" / "rescu-ii").mkdir(parents=True)
+    (tmp_path / "synthetic" / "rescu-ii" / "x.json").write_text(json.dumps(res.to_json()))
+    assert rs.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "synthetic / rescu-ii: 1 images" in out
+    import re
+
+    def has(line):                       # the words of ``line``, any spacing
+        return re.search(r"\s+".join(map(re.escape, line.split())), out) is not None
+
+    assert has("reported dense 1 RPs 3 instances on GT 0.000")
+    assert has("reported stage1 1 RPs 2 instances on GT 1.000")
+    assert has("confidence 0.6-1.0 1 RPs 2 instances on GT 1.000")
+    assert has("set aside, one structure 1 RPs 2 instances on GT 0.000")
+    assert "covers 1.000, precision 1.000, relative count error 0.000" in out
+    with pytest.raises(SystemExit):
+        rs.main([str(tmp_path), "--dataset", "no_such_set"])

@@ -1,0 +1,149 @@
+"""Which RPs carry the precision: every RP of a finished run by source and confidence,
+the RPs it set aside by reason, and its dominant RP against the largest GT RP.
+
+For each image of a dataset with ground truth, each RP the run reports (and each one it
+set aside in ``candidate_patterns``) has its instances matched one-to-one to every GT
+box of the image (IOD > 0.5, :func:`rescu.evaluation.metrics.match_boxes`): the share
+that lie on a GT object is the RP's precision against any GT RP. Prints, per dataset:
+
+* the reported RPs by source (``stage1``: stage I's keypoint RPs; ``dense``: the dense
+  source's whole objects) and confidence band: RPs, instances, share on GT objects;
+* the RPs set aside, by the reason recorded (``low confidence``, ``one structure``,
+  ``same objects``, ``overlap``): the same three figures;
+* the dominant RP (:func:`rescu.scene.counting.dominant_pattern`: the most confident,
+  the one the caption counts) against the image's largest GT RP, over the images with a
+  GT RP: the mean share of that GT RP it covers, its mean
+  precision against it (images with an RP), and the mean relative count error
+  ``|count - GT count| / GT count`` (an image without an RP counts 0 instances).
+
+Usage (after a run, from the repository root)::
+
+    python benchmarks/studies/rp_sources.py results/realdev --config config/realdev.yaml \\
+        --dataset chess --dataset aerial_cars --method rescu-ii
+
+``--method`` is the per-image JSON folder under ``<results>/<dataset>/``. The dataset
+folder comes from the config, as in the run. Asserts nothing.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+# the checkout's rescu package, then benchmarks/ for the shared _cli.py
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]),
+                str(Path(__file__).resolve().parents[1])]
+
+BANDS = (0.0, 0.4, 0.6, 1.01)
+"""Confidence bands of the reported RPs: [0, 0.4), [0.4, 0.6), [0.6, 1]."""
+
+
+def _boxes(items: list[Any]) -> Any:
+    """(n, 4) float boxes of instances (objects or JSON dicts with ``bbox``) or boxes."""
+    import numpy as np
+
+    return np.array([i.bbox if hasattr(i, "bbox") else i["bbox"] if isinstance(i, dict)
+                     else i for i in items], float).reshape(-1, 4)
+
+
+def rp_rows(data: Path, pred: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """``(rps, images)``: one row per RP of every image of ``data`` with a result in
+    ``pred`` (``image, kind`` reported / set aside, ``source, confidence, reason, n,
+    on_gt``) and one per image (``gt_count`` of its largest GT RP, the dominant RP's
+    ``count``, ``covered`` GT instances and ``on_largest`` of its own)."""
+    from rescu.evaluation.metrics import match_boxes
+    from rescu.io import load_coco_rps, read_result
+    from rescu.scene.counting import dominant_pattern
+
+    gt = load_coco_rps(data / "annotations.json")
+    rps: list[dict[str, Any]] = []
+    images: list[dict[str, Any]] = []
+    for f, groups in gt.items():
+        path = pred / (Path(f).stem + ".json")
+        if not path.is_file():
+            continue
+        res = read_result(path)
+        every = _boxes([b for g in groups for b in g.boxes])
+        largest = max((g.boxes for g in groups), key=len, default=[])
+        cands = res.extra.get("candidate_patterns") or []
+        for kind, pats in (("reported", [(p.extra, p.instances) for p in res.patterns]),
+                           ("set aside", [(c, c.get("instances", [])) for c in cands])):
+            for extra, inst in pats:
+                b = _boxes(inst)
+                if not len(b):
+                    continue
+                rps.append({"image": f, "kind": kind,
+                            "source": extra.get("source") or "stage1",
+                            "confidence": extra.get("confidence"),
+                            "reason": extra.get("dropped"), "n": len(b),
+                            "on_gt": len(match_boxes(b, every)) if len(every) else 0})
+        dom = dominant_pattern(res.patterns)
+        row = {"image": f, "gt_count": len(largest), "count": 0, "covered": 0,
+               "on_largest": 0}
+        if dom is not None and len(largest):
+            b = _boxes(res.patterns[dom].instances)
+            m = len(match_boxes(b, _boxes(largest)))
+            row.update(count=len(b), covered=m, on_largest=m)
+        images.append(row)
+    return rps, images
+
+
+def _share(df: Any) -> str:
+    n = int(df.n.sum())
+    return f"{len(df):>5} RPs {n:>6} instances  on GT {df.on_gt.sum() / max(n, 1):.3f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    import numpy as np
+    import pandas as pd
+
+    import argparse
+
+    from _cli import inputs_present, run_dataset
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run")
+    ap.add_argument("--dataset", action="append", dest="datasets", default=None,
+                    help="a dataset of the run (repeat for several; default synthetic)")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
+    ap.add_argument("--method", default="rescu-ii", help="per-image JSON folder")
+    a = ap.parse_args(argv)
+    for ds in a.datasets or ["synthetic"]:
+        a.dataset = ds
+        _, data = run_dataset(ap, a)
+        pred = a.results / ds / a.method
+        if not inputs_present((data / "annotations.json", "ground truth"),
+                              (pred, "predictions")):
+            return 2
+        rows, imgs = rp_rows(data, pred)
+        df = pd.DataFrame(rows, columns=["image", "kind", "source", "confidence", "reason",
+                                         "n", "on_gt"])
+        im = pd.DataFrame(imgs, columns=["image", "gt_count", "count", "covered",
+                                         "on_largest"])
+        print(f"\n{ds} / {a.method}: {len(im)} images")
+        rep = df[df.kind == "reported"]
+        for src, g in rep.groupby("source"):
+            print(f"  reported {src:<7} {_share(g)}")
+            conf = pd.to_numeric(g.confidence, errors="coerce")
+            for lo, hi in zip(BANDS[:-1], BANDS[1:]):
+                band = g[(conf >= lo) & (conf < hi)]
+                if len(band):
+                    print(f"    confidence {lo:.1f}-{min(hi, 1.0):.1f} {_share(band)}")
+        for why, g in df[df.kind == "set aside"].groupby("reason"):
+            print(f"  set aside, {why:<15} {_share(g)}")
+        has = im[im.gt_count > 0]
+        if len(has):
+            err = (has["count"] - has.gt_count).abs() / has.gt_count
+            prec = np.where(has["count"] > 0, has.on_largest / has["count"].clip(lower=1),
+                            np.nan)
+            print(f"  dominant RP vs the largest GT RP ({len(has)} images): covers "
+                  f"{(has.covered / has.gt_count).mean():.3f}, precision "
+                  f"{np.nanmean(prec) if np.isfinite(prec).any() else float('nan'):.3f}, "
+                  f"relative count error {err.mean():.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
