@@ -130,7 +130,7 @@ class DenseParams:
         result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
     min_separation : float
         A stage-I RP whose neighbouring instances are joined by more of the same (its
-        :func:`rescu.extension.objects.separation` below this) samples one structure (a
+        :func:`rescu.extension.boxmaps.separation` below this) samples one structure (a
         ledge, a board's frame, a rim, a road marking), not separate objects: not
         reported (``"one structure"``); -2 reports all.
     separation_reach : float

@@ -42,7 +42,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..boxes import cover_matrix, nms
-from .boxmaps import box_features, integral_map, map_score
+from .boxmaps import box_features, integral_map, map_score, separation
 
 
 def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
@@ -349,63 +349,6 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
     if not free.any() or not len(sims):
         return -1.0
     return float(np.median(sims) - np.percentile(sim[free], quantile))
-
-
-def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarray,
-               sims: np.ndarray, reach: float, integral: np.ndarray | None = None
-               ) -> float | None:
-    """How much less the space between neighbouring instances resembles their prototype
-    than they do: whether they are separate things or samples along one structure.
-
-    For each instance whose nearest instance (centre distance) lies within ``reach`` x
-    the two boxes' mean side, the box of their mean size half-way between them is
-    compared with the prototype: its *dip* is the pair's mean similarity minus the
-    midpoint box's. Between two windows, two coins or two cars, the midpoint box holds
-    wall, table or the edges of both, and the dip is clear; along a ledge, a board's
-    frame, a cup's rim or a road marking the midpoint box holds more of the same and the
-    dip is about 0 or negative.
-
-    Parameters
-    ----------
-    f : (C, h, w) float32, feature map (unit norm per cell)
-    cell_px : pixels of the map's input per cell
-    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input
-    proto : (C,) unit prototype of the instances
-    sims : (n,) the instances' similarities to ``proto``
-    reach : neighbours farther apart than this x their mean side are not compared
-    integral : :func:`integral_map` of ``f`` when already computed
-
-    Returns
-    -------
-    The median dip in [-2, 2] over the instances with a near neighbour; None when fewer
-    than two have one (no evidence either way).
-
-    >>> f = np.zeros((2, 4, 12), np.float32); f[0] = 1.0
-    >>> f[:, :, 1::4] = np.array([0.0, 1.0])[:, None, None]   # objects every 4 cells
-    >>> boxes = np.array([[8.0 + 32 * k, 8, 8, 8] for k in range(3)])
-    >>> proto = np.array([0.0, 1.0]); sims = np.ones(3)
-    >>> separation(f, 8.0, boxes, proto, sims, 5.0)          # wall between them
-    1.0
-    >>> f[:, 1, :] = np.array([0.0, 1.0])[:, None]            # one band through them
-    >>> separation(f, 8.0, boxes, proto, sims, 5.0)
-    0.0
-    """
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    if len(b) < 2:
-        return None
-    c = b[:, :2] + b[:, 2:] / 2
-    side = np.sqrt(b[:, 2] * b[:, 3])
-    d = np.linalg.norm(c[:, None] - c[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    j = d.argmin(1)
-    near = np.where(d[np.arange(len(b)), j] < reach * (side + side[j]) / 2)[0]
-    if len(near) < 2:
-        return None
-    wh = (b[near, 2:] + b[j[near], 2:]) / 2
-    mid = np.c_[(c[near] + c[j[near]]) / 2 - wh / 2, np.maximum(wh, cell_px)]
-    m = box_features(f, cell_px, mid, integral) @ np.asarray(proto, float)
-    s = np.asarray(sims, float)
-    return float(np.median((s[near] + s[j[near]]) / 2 - m))
 
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
