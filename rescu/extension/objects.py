@@ -400,7 +400,8 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     proto /= np.linalg.norm(proto) + 1e-9
     side = (max(1, int(round(float(np.median(b[:, 2])) / cell_px))),
             max(1, int(round(float(np.median(b[:, 3])) / cell_px))))
-    gap = distinctiveness(similarity_map(f, proto, side), emb @ proto, b, cell_px)
+    sims = emb @ proto                         # the instances' similarities
+    gap = distinctiveness(similarity_map(f, proto, side), sims, b, cell_px)
     con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
     conf = pattern_confidence(gap, len(b), con if objects else None,
                               params.confidence_gap_scale, params.confidence_n_scale,
@@ -410,7 +411,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
         out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
         out["map_score"] = round(map_score(f, cell_px, b, emb, integral), 4)
-        sep = separation(f, cell_px, b, proto, emb @ proto, params.separation_reach, integral)
+        sep = separation(f, cell_px, b, proto, sims, params.separation_reach, integral)
         if sep is not None:
             out["separation"] = round(sep, 4)
         conf *= out["resolution"] * score_term(out["map_score"],
