@@ -478,9 +478,6 @@ def test_stage_one_samples_of_one_band_are_not_separate_objects():
     assert got["objects"]["separation"] > 0.3 > p.min_separation, got["objects"]
     assert got["band"]["separation"] < p.min_separation, got["band"]
     assert "separation" not in got["apart"]
-    assert "separation" not in rp_confidence(
-        (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32), 8.0, 1.0, boxes,
-        flat, p)                                 # the dense RPs' boxes are not judged so
     below = (boxes + [0, 120, 0, 0]).tolist()
     res = ImageResult(image="x", width=640, height=240, method="rescu-i",
                       patterns=[_pat(boxes.tolist(), **got["objects"]),
@@ -492,6 +489,38 @@ def test_stage_one_samples_of_one_band_are_not_separate_objects():
                       patterns=[_pat(boxes.tolist(), **got["band"])])
     split_by_confidence(res, 0.0, _params(min_separation=-2.0))          # -2: all reported
     assert len(res.patterns) == 1
+
+
+def test_whole_objects_that_abut_are_separate_and_a_rim_of_boxes_is_one_structure():
+    """Dense RPs (whole objects) are judged on their boxes' central thirds: objects that
+    abut with a one-cell gap (cars parked side by side) look like one more object to the
+    box half-way between two of them when pooled over whole boxes, but its centre holds
+    the gap; boxes laid along one band of the same stuff (a cup's rim) have none there
+    either, and are set aside as one structure."""
+    rng = np.random.default_rng(4)
+    f = 0.05 * rng.normal(size=(8, 12, 48))
+    f[0] += 1
+    band = f.copy()
+    boxes = np.array([[32.0 * k, 32, 24, 24] for k in range(12)])
+    for k in range(12):                          # objects 3 cells wide, 1-cell gaps
+        f[3, 4:7, 4 * k:4 * k + 3] += 2
+        f[4, 4:7, 4 * k + 1] += 1                # each with a middle unlike its sides
+    band[3, 4:7, :] += 2                         # the same stuff all along the row
+    flat = colour_integrals(np.full((96, 384, 3), 90, np.uint8))
+    p = _params()
+    got = {}
+    for name, fm in (("cars", f), ("rim", band)):
+        fm = (fm / np.linalg.norm(fm, axis=0, keepdims=True)).astype(np.float32)
+        got[name] = rp_confidence(fm, 8.0, 1.0, boxes, flat, p)
+        got[name + " pooled"] = rp_confidence(fm, 8.0, 1.0, boxes, flat, p, objects=False)
+    assert got["cars pooled"]["separation"] < 0.3 < got["cars"]["separation"], got
+    assert got["cars"]["separation"] > p.min_object_separation > got["rim"]["separation"], got
+    res = ImageResult(image="x", width=384, height=96, method="rescu-i", patterns=[
+        _pat(boxes.tolist(), source="dense", **got["cars"]),
+        _pat((boxes + [0, 40, 0, 0]).tolist(), source="dense", **got["rim"])])
+    split_by_confidence(res, 0.0, p)
+    assert [q.extra["separation"] for q in res.patterns] == [got["cars"]["separation"]]
+    assert [c["dropped"] for c in res.extra["candidate_patterns"]] == ["one structure"]
 
 
 def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
@@ -531,7 +560,8 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("fine_sizes", []), ("min_map_px", -1),
                                        ("min_object_px", -2), ("confidence_score_scale", -0.1),
                                        ("confidence_stage1_score_scale", -0.1),
-                                       ("min_separation", 3.0), ("separation_reach", 0.0)])
+                                       ("min_separation", 3.0), ("separation_reach", 0.0),
+                                       ("min_object_separation", -2.5)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

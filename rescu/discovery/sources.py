@@ -133,6 +133,10 @@ class DenseParams:
         :func:`rescu.extension.boxmaps.separation` below this) samples one structure (a
         ledge, a board's frame, a rim, a road marking), not separate objects: not
         reported (``"one structure"``); -2 reports all.
+    min_object_separation : float
+        The same for an RP of whole objects (the dense source's), its separation measured
+        on the central third of its boxes (:data:`rescu.extension.boxmaps.OBJECT_PROBE`):
+        a cup's rim or a band of texture sampled by abutting boxes; -2 reports all.
     separation_reach : float
         Neighbours farther apart than this x their mean box side are not compared.
     """
@@ -179,6 +183,7 @@ class DenseParams:
     confidence_stage1_score_scale: float
     min_confidence: float
     min_separation: float
+    min_object_separation: float
     separation_reach: float
 
     def __post_init__(self) -> None:
@@ -242,8 +247,9 @@ class DenseParams:
             if not getattr(self, k) >= 0:
                 raise ValueError(f"dense.{k} must be >= 0 (0: not counted), "
                                  f"got {getattr(self, k)}")
-        if not -2.0 <= self.min_separation <= 2.0:
-            raise ValueError(f"dense.min_separation must be in [-2, 2], got {self.min_separation}")
+        for k in ("min_separation", "min_object_separation"):
+            if not -2.0 <= getattr(self, k) <= 2.0:
+                raise ValueError(f"dense.{k} must be in [-2, 2], got {getattr(self, k)}")
         if not self.separation_reach > 0:
             raise ValueError(f"dense.separation_reach must be > 0, got {self.separation_reach}")
         if not 0 < self.min_side <= self.max_side:
@@ -352,9 +358,10 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     saying why; not analysed further), in place; ids of both lists renumbered 0.. .
 
     An RP whose ``extra["confidence"]`` is below ``min_confidence`` is dropped
-    (``"low confidence"``). With ``params`` (:class:`DenseParams`), a stage-I RP whose
-    ``extra["separation"]`` is below ``params.min_separation`` samples one structure and
-    is dropped (``"one structure"``), and the more confident
+    (``"low confidence"``). With ``params`` (:class:`DenseParams`), an RP whose
+    ``extra["separation"]`` is below ``params.min_separation`` (stage I's) or
+    ``params.min_object_separation`` (the dense source's, ``extra["source"]`` ``"dense"``)
+    samples one structure and is dropped (``"one structure"``), and the more confident
     of two overlapping RPs keeps the objects: going down the confidences, an RP loses its
     instances that overlap a reported RP's (IOD above ``params.overlap_iod`` either way)
     and is dropped when fewer than ``params.min_instances`` remain (``"overlap"``); before
@@ -389,7 +396,9 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             continue
         if params is not None and c is not None:
             sep = p.extra.get("separation")
-            if sep is not None and float(sep) < params.min_separation:
+            floor = (params.min_object_separation if p.extra.get("source") == "dense"
+                     else params.min_separation)
+            if sep is not None and float(sep) < floor:
                 dropped.append((p, "one structure"))
                 continue
             if any(parts_of(p, q, params, any_size=True) for q in kept):

@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "map_score",
-           "unit_mean", "separation"]
+           "unit_mean", "centre_part", "OBJECT_PROBE", "separation"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -152,9 +152,27 @@ def unit_mean(f: np.ndarray) -> np.ndarray:
     return g / (np.linalg.norm(g) + 1e-12)
 
 
+OBJECT_PROBE = 1.0 / 3.0
+"""The part of each box that :func:`separation` compares for RPs of whole objects: the
+central third of its width and height (where two abutting objects have the gap between
+them and one structure has more of itself)."""
+
+
+def centre_part(boxes: np.ndarray, fraction: float, min_side: float) -> np.ndarray:
+    """The central ``fraction`` of each box's width and height, at least ``min_side``
+    pixels on each axis, around the box's centre.
+
+    >>> centre_part(np.array([[0.0, 0, 30, 12]]), 1 / 3, 8.0).tolist()
+    [[10.0, 2.0, 10.0, 8.0]]
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    wh = np.maximum(b[:, 2:] * float(fraction), float(min_side))
+    return np.c_[b[:, :2] + b[:, 2:] / 2 - wh / 2, wh]
+
+
 def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarray,
-               sims: np.ndarray, reach: float, integral: np.ndarray | None = None
-               ) -> float | None:
+               sims: np.ndarray, reach: float, integral: np.ndarray | None = None,
+               probe: float = 1.0) -> float | None:
     """How much less the space between neighbouring instances resembles their prototype
     than they do: whether they are separate things or samples along one structure.
 
@@ -166,6 +184,14 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     frame, a cup's rim or a road marking the midpoint box holds more of the same and the
     dip is about 0 or negative.
 
+    Pooled over a whole box, two objects that abut (parked cars, seen from above) look
+    like one more object half-way between them: the midpoint box holds half of each.
+    With ``probe`` < 1 only the central ``probe`` of each box's width and height is
+    compared (:func:`centre_part`, at least one cell): the instances' centres with their
+    own prototype, and the centre of the midpoint box, which holds the gap between the
+    two objects, with it (:data:`OBJECT_PROBE` for RPs of whole objects). Along one
+    structure the centre of the midpoint box still holds more of it.
+
     Parameters
     ----------
     f : (C, h, w) float32, feature map (unit norm per cell)
@@ -175,6 +201,9 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     sims : (n,) the instances' similarities to ``proto``
     reach : neighbours farther apart than this x their mean side are not compared
     integral : :func:`integral_map` of ``f`` when already computed
+    probe : the central part of each box compared, fraction of its sides in (0, 1];
+        below 1, ``proto`` and ``sims`` are those of the instances' central parts,
+        computed here (the arguments are not used)
 
     Returns
     -------
@@ -190,6 +219,13 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     >>> f[:, 1, :] = np.array([0.0, 1.0])[:, None]            # one band through them
     >>> separation(f, 8.0, boxes, proto, sims, 5.0)
     0.0
+    >>> g = np.zeros((2, 4, 12), np.float32); g[0] = 1.0       # objects 3 cells wide ...
+    >>> for x0 in (0, 4, 8): g[:, :, x0:x0 + 3] = np.array([0.0, 1.0])[:, None, None]
+    >>> abut = np.array([[32.0 * k, 0, 24, 24] for k in range(3)])   # ... 1-cell gaps
+    >>> separation(g, 8.0, abut, proto, sims, 5.0) < 0.3          # pooled: like one more
+    True
+    >>> separation(g, 8.0, abut, proto, sims, 5.0, probe=1 / 3)   # its centre: the gap
+    1.0
     """
     b = np.asarray(boxes, float).reshape(-1, 4)
     if len(b) < 2:
@@ -204,6 +240,12 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
         return None
     wh = (b[near, 2:] + b[j[near], 2:]) / 2
     mid = np.c_[(c[near] + c[j[near]]) / 2 - wh / 2, np.maximum(wh, cell_px)]
-    m = box_features(f, cell_px, mid, integral) @ np.asarray(proto, float)
     s = np.asarray(sims, float)
+    if probe < 1.0:
+        ii = integral_map(f) if integral is None else integral
+        emb = box_features(f, cell_px, centre_part(b, probe, cell_px), ii)
+        proto = emb.mean(0)
+        proto = proto / (np.linalg.norm(proto) + 1e-9)
+        s, mid, integral = emb @ proto, centre_part(mid, probe, cell_px), ii
+    m = box_features(f, cell_px, mid, integral) @ np.asarray(proto, float)
     return float(np.median((s[near] + s[j[near]]) / 2 - m))

@@ -585,8 +585,8 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     list of Pattern (ids 0..; instances in **original** pixels, ``source="stage1"``;
     ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``, with
     ``whole_objects`` also ``"confidence"`` (:func:`rescu.extension.objects.pattern_confidence`),
-    ``"seeds"`` (blobs of the group), ``"gap"``, ``"extent"`` (the box transform) and
-    ``"level"`` (the map: 0 coarse, 1 fine))
+    ``"seeds"`` (blobs of the group), ``"gap"``, ``"separation"`` (when defined),
+    ``"extent"`` (the box transform) and ``"level"`` (the map: 0 coarse, 1 fine))
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))

@@ -42,7 +42,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..boxes import cover_matrix, nms
-from .boxmaps import box_features, integral_map, map_score, separation
+from .boxmaps import OBJECT_PROBE, box_features, integral_map, map_score, separation
 
 
 def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
@@ -383,14 +383,17 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         (0: not counted), as a dense RP's ranking score does, and its *separation*
         (:func:`separation` with ``params.separation_reach``, when defined), which
         :func:`rescu.discovery.sources.split_by_confidence` compares with
-        ``params.min_separation``
+        ``params.min_separation``. With ``objects``, the *separation* is measured on
+        the boxes' central thirds (``probe`` :data:`rescu.extension.boxmaps.OBJECT_PROBE`:
+        pooled over whole boxes, objects that abut look like one more object half-way
+        between them), for ``params.min_object_separation``
     integral : :func:`integral_map` of ``f`` when already computed
 
     Returns
     -------
     ``{"confidence": float in [0, 1], "gap": float, "contrast": float}``, and
-    ``"resolution"``, ``"map_score"`` and (when defined) ``"separation"`` when not
-    ``objects``
+    ``"resolution"`` and ``"map_score"`` when not ``objects``, and ``"separation"`` when
+    defined
     """
     b = np.asarray(boxes, float).reshape(-1, 4) * s
     if len(b) < 2:
@@ -411,11 +414,12 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
         side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
         out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
         out["map_score"] = round(map_score(f, cell_px, b, emb, integral), 4)
-        sep = separation(f, cell_px, b, proto, sims, params.separation_reach, integral)
-        if sep is not None:
-            out["separation"] = round(sep, 4)
         conf *= out["resolution"] * score_term(out["map_score"],
                                                params.confidence_stage1_score_scale)
+    sep = separation(f, cell_px, b, proto, sims, params.separation_reach, integral,
+                     probe=OBJECT_PROBE if objects else 1.0)
+    if sep is not None:
+        out["separation"] = round(sep, 4)
     return {"confidence": round(conf, 4), **out}
 
 
