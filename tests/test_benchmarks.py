@@ -417,7 +417,7 @@ def test_compare_runs_tells_run_specific_parts_from_changes(tmp_path, capsys):
 
 def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
     """One image, one GT RP of two boxes: a reported stage-I RP on both, a dense RP on
-    neither, an RP set aside as one structure; the dominant RP (2 x 0.7 against 3 x 0.35 trusted instances) covers
+    neither, an RP set aside as one structure; the dominant (most confident) RP covers
     the GT RP and counts it right."""
     import json
 

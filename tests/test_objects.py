@@ -567,15 +567,10 @@ def test_bad_objects_settings_are_refused(key, value):
         _params(**{key: value})
 
 
-def test_the_dominant_rp_has_the_most_trusted_instances_when_rps_have_confidences():
-    """count x confidence: nine instances at 0.4 outweigh three at 0.9, four at 0.9
-    outweigh nine at 0.3; without confidences, the most instances."""
+def test_the_dominant_rp_is_the_most_confident_when_rps_have_confidences():
     from rescu.scene.counting import dominant_pattern
 
-    def rp(n, **extra):
-        return _pat([[0, 0, 1, 1]] * n, **extra)
-
-    assert dominant_pattern([rp(3, confidence=0.9), rp(9, confidence=0.4)]) == 1
-    assert dominant_pattern([rp(9, confidence=0.3), rp(4, confidence=0.9)]) == 1
-    assert dominant_pattern([rp(9, confidence=0.4), rp(4)]) == 0         # none: 0
-    assert dominant_pattern([rp(9), rp(4)]) == 0
+    many, sure = _pat([[0, 0, 1, 1]] * 9, confidence=0.4), _pat([[0, 0, 1, 1]] * 4,
+                                                                 confidence=0.9)
+    assert dominant_pattern([many, sure]) == 1
+    assert dominant_pattern([_pat([[0, 0, 1, 1]] * 9), _pat([[0, 0, 1, 1]] * 4)]) == 0

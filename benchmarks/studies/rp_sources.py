@@ -10,8 +10,8 @@ that lie on a GT object is the RP's precision against any GT RP. Prints, per dat
   source's whole objects) and confidence band: RPs, instances, share on GT objects;
 * the RPs set aside, by the reason recorded (``low confidence``, ``one structure``,
   ``same objects``, ``overlap``): the same three figures;
-* the dominant RP (:func:`rescu.scene.counting.dominant_pattern`: the largest count x
-  confidence, the one the caption counts) against the image's largest GT RP, over the images with a
+* the dominant RP (:func:`rescu.scene.counting.dominant_pattern`: the most confident,
+  the one the caption counts) against the image's largest GT RP, over the images with a
   GT RP: the mean share of that GT RP it covers, its mean
   precision against it (images with an RP), and the mean relative count error
   ``|count - GT count| / GT count`` (an image without an RP counts 0 instances).

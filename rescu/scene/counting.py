@@ -1,10 +1,8 @@
 """Counting: instances per recurring pattern, the dominant RP, and count errors.
 
 * The count of an RP is its number of instances.
-* The *dominant* RP of an image is the one with the most instances it can be trusted
-  with: its count x its confidence when the RPs carry confidences, else its count
-  (:func:`dominant_pattern`); ties go to more instances, the higher score, then the lower
-  pattern index (so the choice is deterministic).
+* The *dominant* RP of an image is the one with the most instances; ties go to the
+  higher score, then to the lower pattern index (so the choice is deterministic).
 * Count errors are measured on *matched* RPs: :func:`count_pairs` turns the assignment
   of detected RPs to ground-truth RPs (``rescu.evaluation.metrics.score_image(...).rp_assignment``)
   into ``(predicted, ground-truth)`` count pairs, one per ground-truth RP that some
@@ -30,27 +28,18 @@ def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:
 def dominant_pattern(patterns: Sequence[Pattern]) -> int | None:
     """Index (position in ``patterns``) of the dominant RP, None when there is none.
 
-    When the patterns carry confidences (``extra["confidence"]`` in [0, 1],
-    :func:`rescu.extension.objects.rp_confidence`), the one with the largest count x
-    confidence: the number of instances it can be trusted with, what a person names
-    first when asked what recurs in a photo (the many cars of a car park, not three
-    clearer road signs; a pattern without a confidence counts 0). Else the one with the
-    most instances. Ties: more instances, higher score, then lower index. Patterns with
-    no instance are never dominant.
-
-    >>> from rescu.types import Instance
-    >>> rp = lambda n, c: Pattern(id=0, score=1.0, extra={"confidence": c},
-    ...                           instances=[Instance(bbox=(0, 0, 1, 1))] * n)
-    >>> dominant_pattern([rp(3, 0.9), rp(20, 0.35), rp(20, 0.3)])
-    1
+    The dominant RP is the most confident one (``extra["confidence"]``,
+    :func:`rescu.extension.objects.rp_confidence`) when the patterns carry confidences,
+    else the one with the most instances; ties: more instances, higher score, then lower
+    index. Patterns with no instance are never dominant.
     """
     conf = any("confidence" in p.extra for p in patterns)
     best: tuple[float, int, float, int] | None = None
     for i, p in enumerate(patterns):
         if p.count == 0:
             continue
-        trusted = p.count * float(p.extra.get("confidence", 0.0)) if conf else 0.0
-        key = (trusted, p.count, float(p.score), -i)
+        key = (float(p.extra.get("confidence", 0.0)) if conf else 0.0, p.count,
+               float(p.score), -i)
         if best is None or key > best:
             best = key
     return None if best is None else -best[3]
