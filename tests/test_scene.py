@@ -247,3 +247,26 @@ def test_image_vp_from_the_rows_of_patterns_too_small_for_a_vp_of_their_own():
     # union_rows off: only patterns with a VP of their own give the image VP
     p = SC.SceneParams.from_dict({"vp": {"union_rows": False}})
     assert SC.analyse_scene(result(a, b), p).vanishing_point is None
+
+
+def test_rps_set_aside_as_one_structure_give_the_image_vp_only_when_the_reported_do_not():
+    """A reported RP of scattered instances has no VP; the rows of an RP that RESCU-I set
+    aside as one structure (kept in ``candidate_patterns``) still point to one, which
+    becomes the RP-based image VP. The set-aside RP is not reported, and when a reported
+    RP has a VP of its own, it is the image VP."""
+    scattered = Pattern(id=0, score=0.9, instances=[
+        Instance((0.0, 0, 10, 10)), Instance((100.0, 37, 10, 10)), Instance((31.0, 200, 10, 10)),
+        Instance((300.0, 90, 10, 10)), Instance((170.0, 400, 10, 10))])
+    ledge = make_pattern(H_PERSP, np.arange(6.0), ny=2, noise=0.3)
+    aside = dict(ledge.to_json(), dropped="one structure")
+    r = result(scattered)
+    assert SC.analyse_scene(r).vanishing_point is None
+    r.extra["candidate_patterns"] = [aside, dict(aside, dropped="low confidence")]
+    out = SC.analyse_scene(r)
+    assert [p.id for p in out.patterns] == [0] and out.dominant_pattern == 0
+    assert vector_error(out.vanishing_point.homogeneous, H_PERSP @ [1.0, 0, 0],
+                        (640, 480)) < 1.0
+    frontal = make_pattern(H_FRONTAL, np.arange(6.0), pid=1)
+    r = result(frontal)
+    r.extra["candidate_patterns"] = [aside]
+    assert SC.analyse_scene(r).vanishing_point.homogeneous[2] == 0.0

@@ -12,7 +12,8 @@ returns a copy in which
   score, then earlier pattern; :func:`rescu.scene.counting.dominant_pattern`), None without
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
-  RP instances. With ``vp.union_rows`` it is first sought among the rows of all
+  RP instances; when the reported RPs give none, the RPs set aside as one structure
+  (:func:`structure_patterns`) are read too (not with ``vp.joint_alpha = 0``). With ``vp.union_rows`` it is first sought among the rows of all
   patterns together (:func:`rescu.scene.vp.estimator.union_vanishing_point`: lines
   weighted by their track length, so rows of several patterns that each have too few
   lines for a VP of their own still find theirs), kept when every pattern with a VP of
@@ -242,6 +243,12 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     if dom is not None:
         if params.vp.joint_alpha > 0:
             res.vanishing_point = rp_image_vp(res.patterns, dom, size, params)
+            if res.vanishing_point is None:
+                # the rows of RPs set aside as one structure (a ledge, a kerb sampled
+                # along its length) point to a VP too: read when the reported RPs' do not
+                lined = res.patterns + [analyse_pattern(p, size, params)
+                                        for p in structure_patterns(result)]
+                res.vanishing_point = rp_image_vp(lined, dom, size, params)
         elif res.patterns[dom].vanishing_point is not None:
             res.vanishing_point = copy.deepcopy(res.patterns[dom].vanishing_point)
         else:
@@ -270,6 +277,32 @@ def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True
     equal = equal_rows(fp, c, rows, params.symmetry, params.vp) if spacing else None
     return pattern_lines(fp, c, rows, sz, params.vp.max_line_residual,
                            params.vp.precision_floor_px, equal)
+
+
+def structure_patterns(result: ImageResult) -> list[Pattern]:
+    """The RPs that RESCU-I set aside as samples of one structure
+    (``extra["candidate_patterns"]`` with ``dropped`` ``"one structure"``,
+    :func:`rescu.discovery.sources.split_by_confidence`), as patterns in original pixels;
+    entries that cannot be read are skipped. Not reported as RPs, their rows still lie
+    along lines toward a VP.
+
+    >>> r = ImageResult(image="x", width=10, height=10, method="rescu-i", extra={
+    ...     "candidate_patterns": [{"id": 0, "score": 1.0, "dropped": "one structure",
+    ...                             "instances": [{"bbox": [0, 0, 2, 2]}]},
+    ...                            {"id": 1, "score": 1.0, "dropped": "low confidence",
+    ...                             "instances": [{"bbox": [0, 0, 2, 2]}]}]})
+    >>> [p.count for p in structure_patterns(r)]
+    [1]
+    """
+    out = []
+    for d in result.extra.get("candidate_patterns") or []:
+        if not isinstance(d, dict) or d.get("dropped") != "one structure":
+            continue
+        try:
+            out.append(Pattern.from_json(d))
+        except (KeyError, TypeError, ValueError):
+            continue
+    return out
 
 
 def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],
