@@ -13,9 +13,10 @@ returns a copy in which
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
   RP instances; when the reported RPs give none, the RPs set aside as one structure
-  (:func:`structure_patterns`) are read too (not with ``vp.joint_alpha = 0``). With ``vp.union_rows`` it is first sought among the rows of all
-  patterns together (:func:`rescu.scene.vp.estimator.union_vanishing_point`: lines
-  weighted by their track length, so rows of several patterns that each have too few
+  (:func:`structure_patterns`) are read too (not with ``vp.joint_alpha = 0``). With
+  ``vp.union_rows`` it is first sought among the rows of all patterns together
+  (:func:`rescu.scene.vp.estimator.union_vanishing_point`: lines weighted by their
+  track length, so rows of several patterns that each have too few
   lines for a VP of their own still find theirs), kept when every pattern with a VP of
   its own accepts it (likelihood-ratio test of level ``vp.joint_alpha``). Otherwise
   each pattern's VP is re-estimated jointly with the patterns that share it
