@@ -464,3 +464,51 @@ def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
             "0.000, relative count error 0.500, within 0.35 on 0.00") in capsys.readouterr().out
     with pytest.raises(SystemExit):
         rs.main([str(tmp_path), "--dataset", "no_such_set"])
+
+
+def test_rp_separation_of_objects_and_of_a_band(tmp_path, capsys):
+    """One image with a stored map: a dense RP of objects with wall between them (on the
+    two GT boxes) keeps its separation, a dense RP along a band of the same stuff falls
+    below the threshold; a stage-I RP is not counted with ``--source dense``."""
+    import json
+
+    import numpy as np
+
+    from rescu.discovery.sources import DenseParams
+    from rescu.extension.dense import save_map
+    from rescu.types import ImageResult, Instance, Pattern
+
+    rs = load("rp_separation")
+    data = tmp_path / "data" / "synthetic"
+    data.mkdir(parents=True)
+    boxes = [[8.0 + 32 * k, 8, 16, 16] for k in range(3)]   # 2 cells, 2 apart
+    (data / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/x.png", "width": 96, "height": 64}],
+        "annotations": [{"id": k + 1, "image_id": 1, "category_id": 0, "bbox": b}
+                        for k, b in enumerate(boxes[:2])],
+        "categories": [{"id": 0, "name": "o"}]}))
+    f = np.zeros((2, 8, 12), np.float32)
+    f[0] = 1.0
+    for x0 in (1, 5, 9):                                  # objects every 4 cells
+        f[:, 1:3, x0:x0 + 2] = np.array([0.0, 1.0])[:, None, None]
+    f[:, 5:7, :] = np.array([0.0, 1.0])[:, None, None]   # one band, rows 5-6
+    run = tmp_path / "synthetic"
+    for sub in ("dense", "prepared", "rescu-i"):
+        (run / sub).mkdir(parents=True)
+    save_map(run / "dense" / "x.map.h5", (f, 1.0), DenseParams.from_dict(None))
+    (run / "prepared" / "x.meta.json").write_text(json.dumps({"scale_factor": 1.0}))
+
+    def rp(bs, source):
+        return Pattern(id=0, score=1.0, extra={"source": source},
+                       instances=[Instance(bbox=tuple(b)) for b in bs])
+
+    band = [[b[0], 40, 16, 16] for b in boxes]
+    res = ImageResult(image="images/x.png", width=96, height=64, method="rescu-i",
+                      patterns=[rp(boxes, "dense"), rp(band, "dense"), rp(band, "stage1")])
+    (run / "rescu-i" / "x.json").write_text(json.dumps(res.to_json()))
+    assert rs.main([str(tmp_path), "--probe", "1", "--threshold", "0.01"]) == 0
+    out = capsys.readouterr().out
+    assert "dense RPs, probe 1.000: 2 RPs, 6 instances, on GT 0.333" in out
+    assert "below +0.010:    1 RPs      3 instances  on GT 0.000" in out
+    with pytest.raises(SystemExit):
+        rs.main([str(tmp_path), "--probe", "0"])
