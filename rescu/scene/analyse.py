@@ -244,11 +244,11 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     if dom is not None:
         if params.vp.joint_alpha > 0:
             res.vanishing_point = rp_image_vp(res.patterns, dom, size, params)
-            if res.vanishing_point is None:
+            aside = structure_patterns(result) if res.vanishing_point is None else []
+            if aside:
                 # the rows of RPs set aside as one structure (a ledge, a kerb sampled
                 # along its length) point to a VP too: read when the reported RPs' do not
-                lined = res.patterns + [analyse_pattern(p, size, params)
-                                        for p in structure_patterns(result)]
+                lined = res.patterns + [analyse_pattern(p, size, params) for p in aside]
                 res.vanishing_point = rp_image_vp(lined, dom, size, params)
         elif res.patterns[dom].vanishing_point is not None:
             res.vanishing_point = copy.deepcopy(res.patterns[dom].vanishing_point)
