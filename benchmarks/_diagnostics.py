@@ -292,13 +292,14 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     list of dict
         One per pair with evidence (both RPs have two or more instances with features):
         ``a, b`` (pattern positions), ``gt_a, gt_b`` (the assigned GT RP index, -1 for
-        none), ``same`` (both assigned to the same GT RP), and the ``merge, ratio, s_ab,
+        none), ``same`` (both assigned to the same GT RP), ``objects`` (both RPs are
+        whole objects: the merge's line test for objects), and the ``merge, ratio, s_ab,
         s_aa, s_bb, size_ratio, conflicts, line_residual`` of
         :func:`rescu.extension.merge.pair_evidence`. The pipeline's merge
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
     """
-    from rescu.extension.merge import MergeParams, pair_evidence
+    from rescu.extension.merge import MergeParams, is_object, pair_evidence
 
     params = params if params is not None else MergeParams()
     f = np.asarray(inst_feats, np.float64)
@@ -316,11 +317,15 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     rows = []
     for x in range(len(rp_index)):
         for y in range(x + 1, len(rp_index)):
-            ev = pair_evidence(f[irp == x], f[irp == y], tested[x], tested[y], params)
+            objects = (is_object(stage1.patterns[rp_index[x]])
+                       and is_object(stage1.patterns[rp_index[y]]))
+            ev = pair_evidence(f[irp == x], f[irp == y], tested[x], tested[y], params,
+                               objects=objects)
             if np.isnan(ev["ratio"]):       # an RP with fewer than 2 featured instances
                 continue
             rows.append({"a": int(rp_index[x]), "b": int(rp_index[y]), "gt_a": label[x],
                          "gt_b": label[y], "same": bool(label[x] >= 0 and label[x] == label[y]),
+                         "objects": objects,
                          **{k: ev[k] for k in ("merge", "ratio", "s_ab", "s_aa", "s_bb",
                                                "size_ratio", "conflicts", "line_residual")}})
     return rows

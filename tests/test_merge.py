@@ -91,6 +91,29 @@ def test_similar_objects_in_another_row_not_merged():
     assert [p.count for p in out.patterns] == [6, 4]
 
 
+def test_whole_objects_have_their_own_line_test():
+    # B has A's appearance 100 px below A's row: two rows of stage I stay apart whatever
+    # the objects' limit; two RPs of whole objects (the dense source's) are joined when
+    # their line test is off, and kept apart by the default (the rows' limit)
+    res, boxes, feats, rp = three_rps(b_y=150.0 + 100.0)
+    off = MergeParams(max_object_line_residual=0.0)
+    assert off.max_line_residual == MergeParams().max_line_residual > 0
+    out, _ = merge_split_patterns(res, boxes, feats, rp, off)
+    assert [p.count for p in out.patterns] == [3, 4, 3]
+    for p in res.patterns:
+        p.extra["source"] = "dense"
+    out, _ = merge_split_patterns(res, boxes, feats, rp, MergeParams())
+    assert [p.count for p in out.patterns] == [3, 4, 3]
+    out, log = merge_split_patterns(res, boxes, feats, rp, off)
+    assert [p.count for p in out.patterns] == [6, 4] and log[0]["line_residual"] == 0.0
+    assert out.patterns[0].extra["source"] == "dense"
+    ev = pair_evidence(feats[:3], feats[7:], boxes[:3], boxes[7:], off, objects=True)
+    assert ev["merge"] and not pair_evidence(feats[:3], feats[7:], boxes[:3], boxes[7:],
+                                             off)["merge"]
+    with pytest.raises(ValueError, match="max_object_line_residual"):
+        MergeParams(max_object_line_residual=-1.0)
+
+
 def test_different_objects_in_the_same_row_not_merged():
     # C continues A's row (y = 50) with similar objects (cross similarity ~0.79 against
     # ~0.99 between neighbours within A and within C): only appearance can tell

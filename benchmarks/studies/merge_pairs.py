@@ -12,7 +12,8 @@ and labels the pair *same* when both RPs are assigned to the same ground-truth R
 pairs that pass the size, overlap-conflict and line gates (the appearance test decides
 those), sorted by the appearance ratio ``S_AB / min(S_AA, S_BB)``, and a summary:
 merges by label, same-RP pairs not merged, and the pairs that pass every test but
-the line test (split grids, or rows of different RPs). Asserts nothing.
+the line test (split grids, or rows of different RPs), those of two RPs of whole objects
+(``max_object_line_residual``) apart. Asserts nothing.
 
 The evidence is recomputed on the stage-I boxes; the pipeline's merge also sees the
 stage-II instances' boxes in the conflict and line gates, so a pair can differ from the
@@ -73,8 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     if df.empty:
         print(f"{a.dataset}: no image with two or more stage-II RPs")
         return 0
-    line_ok = (df.line_residual <= params.max_line_residual if params.max_line_residual > 0
-               else pd.Series(True, index=df.index))
+    limit = np.where(df.objects, params.max_object_line_residual, params.max_line_residual)
+    line_ok = pd.Series((limit <= 0) | (df.line_residual <= limit), index=df.index)
     gated = df[(df.size_ratio <= params.size_tolerance) & (df.conflicts == 0) & line_ok]
     pd.set_option("display.width", 250)
     pd.set_option("display.max_rows", None)
@@ -93,9 +94,10 @@ def main(argv: list[str] | None = None) -> int:
 
     looks = ((df.ratio >= params.similarity_ratio) & (df.s_ab >= params.min_similarity)
              & (df.size_ratio <= params.size_tolerance) & (df.conflicts == 0))
-    if params.max_line_residual > 0:
-        print(f"stopped by the line test alone: {int((looks & ~line_ok).sum())} pairs "
-              f"({split(looks & ~line_ok)})")
+    for what, sel in (("rows", ~df.objects), ("whole objects", df.objects)):
+        stopped = looks & ~line_ok & sel
+        print(f"stopped by the line test alone, pairs of {what}: {int(stopped.sum())} "
+              f"({split(stopped)})")
     print(f"merged: {int(m.sum())} ({split(m)}); same-RP pairs: {int(df.same.sum())}, not "
           f"merged {int((~m & df.same).sum())} "
           f"({int((~m & df.same & df.index.isin(gated.index)).sum())} of them stopped by the "

@@ -29,7 +29,12 @@ that the parts are one pattern: the frozen ImageNet features of every stage-I in
   side) of the total-least-squares line through all of them (a row stays a line under
   perspective). Appearance alone merged a row with a row of similar objects elsewhere
   in the image (synthetic benchmark); the price is that the parts of a split *grid*
-  are not merged.
+  are not merged. Two RPs of *whole objects* (both ``source: dense``) have their own
+  limit, ``max_object_line_residual`` (0: no line test): cars or coins stand where they
+  like rather than in rows, and the dense source's grouping splits one kind of object
+  into groups by colour and orientation. By default it is the rows' limit: without the
+  line test the appearance test joins split groups of cars, but also groups of board
+  edges on chess (``docs/results.md``, "The dominant RP").
 
 Merging is agglomerative: the most similar admissible pair (largest
 ``S_AB / min(S_AA, S_BB)``) is merged first and the evidence recomputed for the merged
@@ -87,6 +92,9 @@ class MergeParams:
     max_line_residual : float
         Geometry test: every instance centre of A and B within this many instance sizes
         (median shorter box side) of their common total-least-squares line; 0 disables.
+    max_object_line_residual : float
+        The same limit when both RPs are whole objects (:func:`is_object`); 0 disables
+        the line test for them.
     """
 
     similarity_ratio: float
@@ -95,6 +103,7 @@ class MergeParams:
     duplicate_iou: float
     conflict_cover: float
     max_line_residual: float
+    max_object_line_residual: float
 
     def __post_init__(self) -> None:
         if not self.similarity_ratio > 0:
@@ -107,6 +116,9 @@ class MergeParams:
             raise ValueError(f"conflict_cover must be in [0, 1], got {self.conflict_cover}")
         if self.max_line_residual < 0:
             raise ValueError(f"max_line_residual must be >= 0, got {self.max_line_residual}")
+        if self.max_object_line_residual < 0:
+            raise ValueError(f"max_object_line_residual must be >= 0, got "
+                             f"{self.max_object_line_residual}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "MergeParams":
@@ -164,7 +176,8 @@ def line_residual(centres: np.ndarray) -> float:
 
 
 def pair_evidence(feats_a: np.ndarray, feats_b: np.ndarray, boxes_a: np.ndarray,
-                  boxes_b: np.ndarray, params: MergeParams = MergeParams()) -> dict[str, Any]:
+                  boxes_b: np.ndarray, params: MergeParams = MergeParams(),
+                  objects: bool = False) -> dict[str, Any]:
     """Evidence that RPs A and B are one pattern, and the merge decision.
 
     Parameters
@@ -174,6 +187,9 @@ def pair_evidence(feats_a: np.ndarray, feats_b: np.ndarray, boxes_a: np.ndarray,
     boxes_a, boxes_b : (Ka, 4), (Kb, 4) float
         All instance boxes of A and B, ``[x, y, w, h]`` pixels.
     params : MergeParams
+    objects : bool
+        Both RPs are whole objects: the line test uses ``params.max_object_line_residual``
+        instead of ``params.max_line_residual``.
 
     Returns
     -------
@@ -210,17 +226,24 @@ def pair_evidence(feats_a: np.ndarray, feats_b: np.ndarray, boxes_a: np.ndarray,
     ok = (s_ab >= params.similarity_ratio * within and s_ab >= params.min_similarity
           and size_ratio <= params.size_tolerance and conflicts == 0)
     res = 0.0
-    if params.max_line_residual > 0:
+    limit = params.max_object_line_residual if objects else params.max_line_residual
+    if limit > 0:
         allb = np.concatenate([ba, bb])
         size = float(np.median(np.minimum(allb[:, 2], allb[:, 3])))
         res = line_residual(allb[:, :2] + allb[:, 2:] / 2) / max(size, 1e-9)
-        ok = ok and res <= params.max_line_residual
+        ok = ok and res <= limit
     out.update(s_aa=s_aa, s_ab=s_ab, s_bb=s_bb, ratio=float(ratio), size_ratio=size_ratio,
                conflicts=conflicts, line_residual=float(res), merge=bool(ok))
     return out
 
 
 # ----------------------------------------------------------------------------- merging
+def is_object(p: Pattern) -> bool:
+    """Whether ``p`` is an RP of whole objects: RESCU-I took it from the dense source
+    (``extra["source"] == "dense"``; a merged RP keeps its higher-score part's source)."""
+    return p.extra.get("source") == "dense"
+
+
 def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float, geom_a: np.ndarray,
                geom_b: np.ndarray) -> tuple[Pattern, np.ndarray]:
     """One pattern from A (the higher score) and B (see the module docstring), and the
@@ -308,7 +331,8 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
     -------
     (ImageResult, list of dict)
         A copy with the merged patterns (ids renumbered 0..K-1, ``dominant_pattern`` the
-        id of the pattern with the most instances when anything merged), and one record
+        id of :func:`rescu.scene.counting.dominant_pattern`'s choice when anything
+        merged), and one record
         per merge: ``{"ids": [id_a, id_b], **pair_evidence}`` (ids as on input).
     """
     ib = np.asarray(inst_boxes, np.float64)
@@ -334,7 +358,8 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
             for kb in keys[x + 1:]:
                 pa, fa, ba = groups[ka]
                 pb, fb, bb = groups[kb]
-                ev = pair_evidence(fa, fb, ba, bb, params)
+                ev = pair_evidence(fa, fb, ba, bb, params,
+                                   objects=is_object(pa) and is_object(pb))
                 if ev["merge"] and (best is None or ev["ratio"] > best[0]):
                     best = (ev["ratio"], ka, kb, ev)
         if best is None:
