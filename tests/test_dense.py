@@ -145,6 +145,41 @@ def _photo(rng):
     return img, np.array(truth, float)
 
 
+def test_turned_maps_make_objects_lengthwise_and_crosswise_alike():
+    """With ``rotations`` 2 (4) a map is the mean of the maps of the image turned by 0 and
+    90 degrees (every right angle), turned back: bars lying along x and along y, alike
+    only when turned, get closer features; the map keeps the plain map's cells (the image
+    padded to a multiple of 16 pixels first), and 1 is the plain map itself."""
+    from rescu.extension.backbone import FrozenBackbone
+    from rescu.extension.boxmaps import box_features
+    from rescu.extension.dense import hypercolumn
+
+    img = np.full((203, 250, 3), 170, np.uint8)          # odd sizes: padded to 208 x 256
+    along = [(20 + 60 * i, 40, 48, 16) for i in range(3)]          # x, y, w, h
+    across = [(30 + 60 * i, 120, 16, 48) for i in range(3)]
+    for x, y, w, h in along + across:
+        img[y:y + h, x:x + w] = (40, 60, 160)
+        img[y + h // 4:y + 3 * h // 4, x + w // 4:x + 3 * w // 4] = (220, 200, 60)
+    bb = FrozenBackbone("efficientnet-lite0", feature_stride=16)
+    plain = hypercolumn(bb, img)
+    f8, _ = bb.multiscale_maps(img)
+    assert plain.shape[1:] == tuple(f8.shape[2:])
+    sims = {}
+    for r in (1, 2, 4):
+        f = plain if r == 1 else hypercolumn(bb, img, r)
+        assert f.shape == plain.shape and f.dtype == np.float32
+        n = np.linalg.norm(f, axis=0)   # the stride-16 half is interpolated between cells
+        assert n.max() < 1 + 1e-5 and n.min() > 0.75
+        e = box_features(f, 8.0, np.array(along + across, float))
+        sims[r] = float((e[:3] @ e[3:].T).mean())
+    assert sims[2] > sims[1] + 0.05 and sims[4] > sims[1] + 0.05, sims
+    assert np.array_equal(hypercolumn(bb, img, 1), plain)
+    with pytest.raises(ValueError, match="rotations"):
+        hypercolumn(bb, img, 3)
+    with pytest.raises(ValueError, match="rotations"):
+        _params(rotations=3)
+
+
 def test_find_dense_finds_the_discs_in_original_pixels():
     img, truth = _photo(np.random.default_rng(3))
     p = _params(max_patterns=4)                  # 480 px: upscaled to min_side = 960

@@ -557,7 +557,7 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("part_area", 0.0), ("part_reach", 0.5),
                                        ("extent_scales", []), ("confidence_gap_scale", 0),
                                        ("fine_scale", 0.5), ("fine_max_side", 32),
-                                       ("fine_sizes", []), ("min_map_px", -1),
+                                       ("fine_sizes", []), ("rotations", 3), ("min_map_px", -1),
                                        ("min_object_px", -2), ("confidence_score_scale", -0.1),
                                        ("confidence_stage1_score_scale", -0.1),
                                        ("min_separation", 3.0), ("separation_reach", 0.0),

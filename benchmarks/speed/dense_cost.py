@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
-                                          [--strip-px N]
+                                          [--strip-px N] [--rotations R]
 
 Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
 chess, aerial cars; a synthetic rendering when absent), resizes each to
@@ -15,7 +15,8 @@ median and maximum over images, and the process's peak memory. ``--threads``: to
 OpenCV threads (the pipeline's job: ``threads.stage2_features``, 1; ``rescu discover``:
 ``threads.in_process``, 2). ``--strip-px``: the backbone's first blocks run on strips of
 inputs over this many pixels (:data:`rescu.extension.backbone.STRIP_PX`; 0: never, one
-whole pass). The map cache of :func:`rescu.extension.dense.dense_map` is emptied before
+whole pass). ``--rotations``: ``dense.rotations`` instead of the config's (backbone
+passes per map). The map cache of :func:`rescu.extension.dense.dense_map` is emptied before
 each call, so every repeat passes the backbone.
 """
 
@@ -42,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--strip-px", type=int, default=None)
+    ap.add_argument("--rotations", type=int, default=None,
+                    help="dense.rotations (default: the config's)")
     a = ap.parse_args(argv)
     import torch
 
@@ -75,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         images = [(p.parent.parent.name + "/" + p.name,
                    cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in paths]
     params = DenseParams.from_dict(None)
+    if a.rotations is not None:
+        params = DenseParams.from_dict({**params.__dict__, "rotations": a.rotations})
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
     find_dense(np.zeros((64, 64, 3), np.uint8), params, backbone)   # warm-up
     times = []
@@ -88,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"median {statistics.median(times):.2f} s, max {max(times):.2f} s over {len(times)} "
           f"image(s) at {a.megapixels} MP, {a.threads} thread(s); peak memory "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, strips of "
-          f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px")
+          f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px, rotations {params.rotations}")
     return 0
 
 

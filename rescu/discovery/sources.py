@@ -50,6 +50,11 @@ class DenseParams:
         Longer side of the fine map's input at most, pixels (bounds its cost).
     fine_sizes : tuple of int
         Blob sides on the fine map, feature cells.
+    rotations : int
+        Backbone passes per map, 1, 2 or 4: each map is the mean of the image's maps
+        turned by 0 and 90 degrees (2) or by every right angle (4), each turned back
+        (:func:`rescu.extension.dense.hypercolumn`), so that objects seen from above at
+        those orientations look alike.
     min_map_px : float
         A dense RP's instances must span this many pixels of its map's input (median box
         side; one cell of the stride-16 half is 16).
@@ -150,6 +155,7 @@ class DenseParams:
     fine_scale: float
     fine_max_side: int
     fine_sizes: tuple[int, ...]
+    rotations: int
     min_map_px: float
     min_object_px: float
     surround: int
@@ -197,6 +203,8 @@ class DenseParams:
         if self.fine_scale < 1 or self.fine_max_side < 64:
             raise ValueError("dense.fine_scale must be >= 1 and fine_max_side >= 64, got "
                              f"{self.fine_scale}, {self.fine_max_side}")
+        if self.rotations not in (1, 2, 4):
+            raise ValueError(f"dense.rotations must be 1, 2 or 4, got {self.rotations}")
         if self.min_map_px < 0 or self.min_object_px < 0:
             raise ValueError("dense.min_map_px and min_object_px must be >= 0, got "
                              f"{self.min_map_px}, {self.min_object_px}")

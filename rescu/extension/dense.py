@@ -63,13 +63,23 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
 
 
 # --------------------------------------------------------------------- feature map
-def hypercolumn(backbone: Any, rgb: np.ndarray) -> np.ndarray:
+def hypercolumn(backbone: Any, rgb: np.ndarray, rotations: int = 1) -> np.ndarray:
     """The stride-8 and stride-16 maps of ``backbone`` on ``rgb``, concatenated.
+
+    With ``rotations`` 2 or 4 each half is the mean of the (unit) maps of the image turned
+    by 0 and 90 degrees, or by every right angle, each turned back: a car seen from
+    above lengthwise and one seen crosswise then get the same feature (the backbone
+    itself is not rotation invariant, and the dense source's grouping split the cars
+    of one photo by their orientation). The image is first padded (reflected) to a
+    multiple of 16 pixels, so that the turned maps' cells fall on the same pixels, and
+    the mean is cut to the plain map's cells.
 
     Parameters
     ----------
     backbone : rescu.extension.backbone.FrozenBackbone
     rgb : (H, W, 3) uint8
+    rotations : int
+        1 (one pass, the plain map), 2 or 4 backbone passes.
 
     Returns
     -------
@@ -80,11 +90,29 @@ def hypercolumn(backbone: Any, rgb: np.ndarray) -> np.ndarray:
     import torch
     import torch.nn.functional as F
 
-    f8, f16 = backbone.multiscale_maps(rgb)
+    if rotations not in (1, 2, 4):
+        raise ValueError(f"rotations must be 1, 2 or 4, got {rotations}")
+    if rotations == 1:
+        f8, f16 = backbone.multiscale_maps(rgb)
+        with torch.no_grad():
+            f8 = F.normalize(f8, dim=1)
+            f16 = F.normalize(f16, dim=1)
+    else:
+        h, w = rgb.shape[:2]
+        im = np.pad(rgb, ((0, -h % 16), (0, -w % 16), (0, 0)), mode="reflect")
+        s8 = s16 = None
+        for k in range(rotations):
+            a8, a16 = backbone.multiscale_maps(np.ascontiguousarray(np.rot90(im, k)))
+            with torch.no_grad():
+                a8 = torch.rot90(F.normalize(a8, dim=1), -k, (2, 3))
+                a16 = torch.rot90(F.normalize(a16, dim=1), -k, (2, 3))
+            s8 = a8 if s8 is None else s8 + a8
+            s16 = a16 if s16 is None else s16 + a16
+        with torch.no_grad():     # the plain map's cells: h // 8 x w // 8
+            f8 = F.normalize(s8[:, :, :h // 8, :w // 8], dim=1)
+            f16 = F.normalize(s16[:, :, :(h // 8 + 1) // 2, :(w // 8 + 1) // 2], dim=1)
     with torch.no_grad():
-        f8 = F.normalize(f8, dim=1)
-        f16 = F.interpolate(F.normalize(f16, dim=1), size=f8.shape[2:], mode="bilinear",
-                            align_corners=False)
+        f16 = F.interpolate(f16, size=f8.shape[2:], mode="bilinear", align_corners=False)
         f = torch.cat([f8, f16], 1)[0] / np.sqrt(2.0)
     return np.ascontiguousarray(f.numpy(), dtype=np.float32)
 
@@ -387,7 +415,7 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     name = params.backbone if backbone is None else getattr(backbone, "name", None)
     cpu = backbone is None or str(getattr(backbone, "device", "")) == "cpu"
     key = (hashlib.sha1(np.ascontiguousarray(rgb).data).hexdigest(), rgb.shape, name,
-           params.max_side, params.min_side)
+           params.max_side, params.min_side, params.rotations)
     if cpu and key in _LAST_MAP:
         return _LAST_MAP[key]
     if backbone is None:
@@ -399,7 +427,8 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
         rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
     # half precision, as the dense step stores it for the scoring of stage I's RPs
     # (:func:`save_map`): the map in memory and the one read back are the same
-    out = (hypercolumn(backbone, im).astype(np.float16).astype(np.float32), float(s))
+    out = (hypercolumn(backbone, im, params.rotations).astype(np.float16).astype(np.float32),
+           float(s))
     out[0].setflags(write=False)
     if cpu:
         _LAST_MAP.clear()
@@ -408,9 +437,13 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
 
 
 def _map_key(params: DenseParams) -> dict[str, Any]:
-    """What a stored map depends on besides the image (:func:`save_map`)."""
-    return {"backbone": str(params.backbone), "max_side": int(params.max_side),
-            "min_side": int(params.min_side)}
+    """What a stored map depends on besides the image (:func:`save_map`); ``rotations``
+    only when not 1 (the maps stored before it existed are plain ones)."""
+    key: dict[str, Any] = {"backbone": str(params.backbone), "max_side": int(params.max_side),
+                           "min_side": int(params.min_side)}
+    if params.rotations != 1:
+        key["rotations"] = int(params.rotations)
+    return key
 
 
 def save_map(path: str | os.PathLike[str], fmap: tuple[np.ndarray, float] | None,
@@ -436,12 +469,13 @@ def load_map(path: str | os.PathLike[str], params: DenseParams
              ) -> tuple[np.ndarray, float] | None:
     """A map stored by :func:`save_map`: ``(f (C, h, w) float32 read-only, s)``, or None
     when it holds none (failed dense step) or was made with other ``backbone``,
-    ``max_side`` or ``min_side`` than ``params`` say. A file that cannot be read raises
+    ``max_side``, ``min_side`` or ``rotations`` than ``params`` say. A file that cannot be read raises
     :class:`rescu.io.InputError` naming it (:func:`rescu.io.read_h5`)."""
     from ..io import read_h5
 
     arrays, attrs = read_h5(path)
-    if "map" not in arrays or any(attrs.get(k) != v for k, v in _map_key(params).items()):
+    if "map" not in arrays or any(attrs.get(k) != v for k, v in _map_key(params).items()) \
+            or int(attrs.get("rotations", 1)) != params.rotations:
         return None
     f = np.asarray(arrays["map"], np.float32)
     f.setflags(write=False)
@@ -482,7 +516,7 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     if s_fine > 1.05 * s:
         im = cv2.resize(np.asarray(rgb), None, fx=s_fine, fy=s_fine,
                         interpolation=cv2.INTER_AREA if s_fine < 1 else cv2.INTER_LINEAR)
-        out.append((hypercolumn(backbone, im), float(s_fine)))
+        out.append((hypercolumn(backbone, im, params.rotations), float(s_fine)))
     return out
 
 
