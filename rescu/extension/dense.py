@@ -395,7 +395,7 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     Parameters
     ----------
     rgb : (H, W, 3) uint8, the prepared image
-    params : DenseParams (``backbone``, ``max_side``, ``min_side``)
+    params : DenseParams (``backbone``, ``max_side``, ``min_side``, ``rotations``)
     backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
 
     Returns
@@ -469,8 +469,8 @@ def load_map(path: str | os.PathLike[str], params: DenseParams
              ) -> tuple[np.ndarray, float] | None:
     """A map stored by :func:`save_map`: ``(f (C, h, w) float32 read-only, s)``, or None
     when it holds none (failed dense step) or was made with other ``backbone``,
-    ``max_side``, ``min_side`` or ``rotations`` than ``params`` say. A file that cannot be read raises
-    :class:`rescu.io.InputError` naming it (:func:`rescu.io.read_h5`)."""
+    ``max_side``, ``min_side`` or ``rotations`` than ``params`` say. A file that cannot be
+    read raises :class:`rescu.io.InputError` naming it (:func:`rescu.io.read_h5`)."""
     from ..io import read_h5
 
     arrays, attrs = read_h5(path)
@@ -493,7 +493,7 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     ----------
     rgb : (H, W, 3) uint8, the prepared image
     params : DenseParams (``backbone``, ``max_side``, ``min_side``, ``fine_scale``,
-        ``fine_max_side``)
+        ``fine_max_side``, ``rotations``)
     backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
 
     Returns
