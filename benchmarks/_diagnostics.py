@@ -299,7 +299,8 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
         also sees the stage-II instances in the conflict and line tests, so its decision
         can differ in those (never in the appearance test).
     """
-    from rescu.extension.merge import MergeParams, is_object, pair_evidence
+    from rescu.discovery.sources import is_whole_object
+    from rescu.extension.merge import MergeParams, pair_evidence
 
     params = params if params is not None else MergeParams()
     f = np.asarray(inst_feats, np.float64)
@@ -317,8 +318,8 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     rows = []
     for x in range(len(rp_index)):
         for y in range(x + 1, len(rp_index)):
-            objects = (is_object(stage1.patterns[rp_index[x]])
-                       and is_object(stage1.patterns[rp_index[y]]))
+            objects = (is_whole_object(stage1.patterns[rp_index[x]])
+                       and is_whole_object(stage1.patterns[rp_index[y]]))
             ev = pair_evidence(f[irp == x], f[irp == y], tested[x], tested[y], params,
                                objects=objects)
             if np.isnan(ev["ratio"]):       # an RP with fewer than 2 featured instances

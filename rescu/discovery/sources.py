@@ -20,6 +20,13 @@ from ..types import ImageResult, Pattern, failure_record
 MODES = ("both", "dense", "objects")
 
 
+def is_whole_object(p: Pattern) -> bool:
+    """Whether ``p`` is an RP of whole objects: RESCU-I took it from the dense source
+    (``extra["source"] == "dense"``; an RP merged by RESCU-II keeps its higher-score
+    part's source)."""
+    return p.extra.get("source") == "dense"
+
+
 @dataclass(frozen=True)
 @config_section("dense")
 class DenseParams:
@@ -404,7 +411,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             continue
         if params is not None and c is not None:
             sep = p.extra.get("separation")
-            floor = (params.min_object_separation if p.extra.get("source") == "dense"
+            floor = (params.min_object_separation if is_whole_object(p)
                      else params.min_separation)
             if sep is not None and float(sep) < floor:
                 dropped.append((p, "one structure"))
@@ -462,4 +469,4 @@ def add_dense(res: ImageResult, found: ImageResult, params: Mapping[str, Any] | 
         return
     res.patterns = combine_sources(res.patterns, found.patterns,
                                    DenseParams.from_dict(params))
-    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
+    res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))

@@ -49,7 +49,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from ..discovery.sources import DenseParams
+from ..discovery.sources import DenseParams, is_whole_object
 from ..boxes import cover_matrix
 from ..types import Instance, Pattern
 from .boxmaps import integral_map, map_score, unit_mean
@@ -437,13 +437,9 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
 
 
 def _map_key(params: DenseParams) -> dict[str, Any]:
-    """What a stored map depends on besides the image (:func:`save_map`); ``rotations``
-    only when not 1 (the maps stored before it existed are plain ones)."""
-    key: dict[str, Any] = {"backbone": str(params.backbone), "max_side": int(params.max_side),
-                           "min_side": int(params.min_side)}
-    if params.rotations != 1:
-        key["rotations"] = int(params.rotations)
-    return key
+    """What a stored map depends on besides the image (:func:`save_map`)."""
+    return {"backbone": str(params.backbone), "max_side": int(params.max_side),
+            "min_side": int(params.min_side), "rotations": int(params.rotations)}
 
 
 def save_map(path: str | os.PathLike[str], fmap: tuple[np.ndarray, float] | None,
@@ -453,8 +449,8 @@ def save_map(path: str | os.PathLike[str], fmap: tuple[np.ndarray, float] | None
 
     HDF5 (:func:`rescu.io.write_h5`, atomic): dataset ``map`` (C, h, w) float16,
     attributes ``scale`` (backbone input px per prepared-image px) and what the map
-    depends on (``backbone``, ``max_side``, ``min_side``). ``fmap`` None (a failed dense
-    step): no dataset, the attribute ``failure`` says why.
+    depends on (``backbone``, ``max_side``, ``min_side``, ``rotations``). ``fmap`` None (a
+    failed dense step): no dataset, the attribute ``failure`` says why.
     """
     from ..io import write_h5
 
@@ -474,8 +470,8 @@ def load_map(path: str | os.PathLike[str], params: DenseParams
     from ..io import read_h5
 
     arrays, attrs = read_h5(path)
-    if "map" not in arrays or any(attrs.get(k) != v for k, v in _map_key(params).items()) \
-            or int(attrs.get("rotations", 1)) != params.rotations:
+    attrs = {"rotations": 1, **attrs}     # maps stored before ``rotations`` are plain ones
+    if "map" not in arrays or any(attrs.get(k) != v for k, v in _map_key(params).items()):
         return None
     f = np.asarray(arrays["map"], np.float32)
     f.setflags(write=False)
@@ -686,4 +682,4 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
         f, s = dense_map(rgb, dp, backbone) if fmap is None else fmap
         score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, f, s)
     split_by_confidence(res, dp.min_confidence, dp)
-    res.extra["n_dense_patterns"] = sum(p.extra.get("source") == "dense" for p in res.patterns)
+    res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))

@@ -65,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from ..discovery.extent import unrefined_boxes
+from ..discovery.sources import is_whole_object
 from ..boxes import cover_matrix, iou_matrix
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Instance, Pattern
@@ -93,7 +94,8 @@ class MergeParams:
         Geometry test: every instance centre of A and B within this many instance sizes
         (median shorter box side) of their common total-least-squares line; 0 disables.
     max_object_line_residual : float
-        The same limit when both RPs are whole objects (:func:`is_object`); 0 disables
+        The same limit when both RPs are whole objects
+        (:func:`rescu.discovery.sources.is_whole_object`); 0 disables
         the line test for them.
     """
 
@@ -238,12 +240,6 @@ def pair_evidence(feats_a: np.ndarray, feats_b: np.ndarray, boxes_a: np.ndarray,
 
 
 # ----------------------------------------------------------------------------- merging
-def is_object(p: Pattern) -> bool:
-    """Whether ``p`` is an RP of whole objects: RESCU-I took it from the dense source
-    (``extra["source"] == "dense"``; a merged RP keeps its higher-score part's source)."""
-    return p.extra.get("source") == "dense"
-
-
 def _merge_two(a: Pattern, b: Pattern, duplicate_iou: float, geom_a: np.ndarray,
                geom_b: np.ndarray) -> tuple[Pattern, np.ndarray]:
     """One pattern from A (the higher score) and B (see the module docstring), and the
@@ -359,7 +355,7 @@ def merge_split_patterns(result: ImageResult, inst_boxes: np.ndarray, inst_feats
                 pa, fa, ba = groups[ka]
                 pb, fb, bb = groups[kb]
                 ev = pair_evidence(fa, fb, ba, bb, params,
-                                   objects=is_object(pa) and is_object(pb))
+                                   objects=is_whole_object(pa) and is_whole_object(pb))
                 if ev["merge"] and (best is None or ev["ratio"] > best[0]):
                     best = (ev["ratio"], ka, kb, ev)
         if best is None:

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ..discovery.sources import is_whole_object
 from ..types import ImageResult, Instance, Pattern
 from ..boxes import size_gate, suppress
 from .examples import select_examples
@@ -171,7 +172,7 @@ def rp_gates(pattern: Pattern, params: Stage2Params = Stage2Params()
     dense source) gets ``predict.whole_objects``' values when that section is enabled,
     every other RP the section's own."""
     pr = params.predict
-    whole = pattern.extra.get("source") == "dense" and pr.whole_objects.enabled
+    whole = is_whole_object(pattern) and pr.whole_objects.enabled
     g = pr.whole_objects if whole else pr
     return whole, float(g.max_new_fraction), bool(g.lattice_only)
 
