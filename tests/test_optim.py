@@ -33,6 +33,31 @@ def test_adam_matches_torch_bit_for_bit(lr, betas):
         assert torch.equal(a, b)
 
 
+def test_parameters_without_a_gradient_keep_their_own_step_count():
+    # one layer takes part only in every third step: its step count falls behind the
+    # others', so the update runs as two groups of parameters; still torch's floats
+    def run(make_opt):
+        torch.manual_seed(5)
+        a, b = torch.nn.Linear(4, 6), torch.nn.Linear(6, 2)
+        side = torch.nn.Linear(4, 2)
+        opt = make_opt(list(a.parameters()) + list(b.parameters()) + list(side.parameters()))
+        rng = np.random.default_rng(1)
+        x = torch.from_numpy(rng.normal(size=(30, 4)).astype(np.float32))
+        for k in range(40):
+            opt.zero_grad()
+            out = b(torch.relu(a(x)))
+            if k % 3 == 0:
+                out = out + side(x)
+            out.square().mean().backward()
+            opt.step()
+        return [p.detach().clone() for m in (a, b, side) for p in m.parameters()]
+
+    ours = run(lambda ps: Adam(ps, lr=2e-3, betas=(0.5, 0.999)))
+    ref = run(lambda ps: torch.optim.Adam(ps, lr=2e-3, betas=(0.5, 0.999)))
+    for x, y in zip(ours, ref):
+        assert torch.equal(x, y)
+
+
 def test_bad_hyperparameters():
     p = [torch.zeros(2, requires_grad=True)]
     with pytest.raises(ValueError, match="lr"):
