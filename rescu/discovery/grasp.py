@@ -108,13 +108,22 @@ class _Grasp:
         self.tree = cKDTree(self.xy)
         w, h = features.image_size
         self.gates = Gates(p.P_d * float(np.hypot(w, h)), p.P_s, p.P_theta)
+        # desc_close's answers: the search asks about the same pairs of features again
+        # and again (an order of magnitude more calls than pairs)
+        self._close: dict[tuple[int, int], bool] = {}
 
     def U(self, om: np.ndarray) -> float:
         return objective(self.xy, self.s, self.a, om, self.affinity, self.gates)
 
     def desc_close(self, i: int, j: int) -> bool:
-        d2 = 2.0 - 2.0 * float(self.rs[i] @ self.rs[j])
-        return d2 <= self.p.match_max_dist ** 2
+        """Whether features ``i`` and ``j`` have RootSIFT descriptors within
+        ``match_max_dist`` (each pair computed once)."""
+        key = (i, j)
+        close = self._close.get(key)
+        if close is None:
+            d2 = 2.0 - 2.0 * float(self.rs[i] @ self.rs[j])
+            close = self._close[key] = d2 <= self.p.match_max_dist ** 2
+        return close
 
     def copy_at(self, ref: int, pos: np.ndarray, tol: float, taken: set[int],
                 avail: np.ndarray) -> int:
