@@ -52,6 +52,7 @@ import numpy as np
 
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, VanishingPoint
+from .vp.geometry import _chi2_sf
 
 
 @dataclass(frozen=True)
@@ -233,18 +234,6 @@ def pattern_vp_evidence(pattern: Pattern, params: ClaimParams = ClaimParams()
     if ev["residual_deg"] > params.max_residual_deg:
         return "inconsistent", ev
     return "supported", ev
-
-
-def _chi2_sf(x: float, df: int) -> float:
-    """Survival function of the chi-squared distribution with ``df`` degrees of freedom
-    at ``x`` >= 0: what ``scipy.stats.chi2.sf`` computes (``scipy.special.chdtrc``, the
-    same function), NaN for ``df`` < 1 as there. ``scipy.special`` alone imports in a
-    third of ``scipy.stats``'s time, which every caption job paid."""
-    from scipy.special import chdtrc
-
-    if df < 1:
-        return float("nan")
-    return float(chdtrc(df, max(float(x), 0.0)))
 
 
 def _one_row_evidence(pattern: Pattern, vp: VanishingPoint, params: ClaimParams,

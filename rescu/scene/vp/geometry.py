@@ -4,8 +4,9 @@ The normalisation of pixel coordinates (:func:`_normaliser`: image centre at 0,
 (W + H) / 2 pixels to 1), the sine of the angle between a line and the direction to a
 VP (:func:`_sin_errors`), the least-squares VP of lines (:func:`_fit_vp`,
 :func:`_fit_infinity`), the sign convention of a VP (:func:`_canonical`), the angular
-constraint (:func:`ac_mask`), :func:`inside_image`, and the chi-squared and F quantiles
-of the infinity tests (:func:`_chi2_ppf`, :func:`_f_ppf`). A VP is a homogeneous
+constraint (:func:`ac_mask`), :func:`inside_image`, the chi-squared and F quantiles
+of the infinity tests (:func:`_chi2_ppf`, :func:`_f_ppf`), and the chi-squared survival
+function of the claims' parallelism test (:func:`_chi2_sf`). A VP is a homogeneous
 3-vector, ``w = 0`` for a point at infinity.
 """
 
@@ -113,6 +114,17 @@ def _chi2_ppf(q: float, df: float) -> float:
     from scipy.special import gammaincinv
 
     return float(2 * gammaincinv(df / 2, q))
+
+
+def _chi2_sf(x: float, df: int) -> float:
+    """Survival function of the chi-squared distribution with ``df`` degrees of freedom
+    at ``x`` >= 0: what ``scipy.stats.chi2.sf`` computes (``scipy.special.chdtrc``, the
+    same function), NaN for ``df`` < 1 as there, without ``scipy.stats``' import."""
+    from scipy.special import chdtrc
+
+    if df < 1:
+        return float("nan")
+    return float(chdtrc(df, max(float(x), 0.0)))
 
 
 def _f_ppf(q: float, dfn: float, dfd: float) -> float:
