@@ -13,8 +13,10 @@ from rescu import io, pipeline
 from rescu.discovery.ablation import SOURCE_ROWS
 from rescu.discovery.sources import DenseParams, combine_sources
 from rescu.extension.boxmaps import box_contrast
-from rescu.extension.dense import (dense_patterns, feature_blobs, find_dense,
+from rescu.extension.dense import (central_colours, dense_candidates, dense_patterns,
+                                  feature_blobs, find_dense, split_by_colour,
                                   touching_sides)
+from rescu.extension.objects import colour_integrals
 from rescu.types import ImageResult, Instance, Pattern
 
 
@@ -94,6 +96,58 @@ def test_dense_patterns_drop_a_group_that_tiles_the_plane():
     kept = dense_patterns(f, 8.0, _params(sizes=(2, 3, 4, 5), max_patterns=5))
     assert len(kept) == len(keep_all) - 1                    # ... is what the default drops
     assert sorted(len(b) for _, b in kept[:2]) == [3, 4]
+
+
+def test_central_colours_are_those_of_the_box_centre():
+    # a white image with a black 20 x 20 square whose box has white corners: the mean
+    # over the central half is the square's, not a mixture
+    rgb = np.full((60, 60, 3), 255, np.uint8)
+    rgb[20:40, 20:40] = 0
+    lab = central_colours(colour_integrals(rgb), np.array([[15.0, 15, 30, 30],
+                                                           [0.0, 0, 10, 10]]))
+    assert lab.shape == (2, 3)
+    assert lab[0, 0] == 0 and lab[1, 0] == 255
+    # boxes cut by the border are clipped, never empty
+    edge = central_colours(colour_integrals(rgb), np.array([[-10.0, -10, 8, 8]]))
+    assert np.isfinite(edge).all()
+
+
+def test_split_by_colour_leaves_one_coloured_groups_alone():
+    labels = np.array([1, 1, 1, 2, 2, 2])
+    colours = np.array([[10, 128, 128], [30, 128, 128], [20, 120, 130],
+                        [200, 128, 128], [210, 128, 128], [30, 128, 128]], float)
+    # group 1 is one colour (spread 20): kept; group 2 holds two light and one dark blob
+    out = split_by_colour(labels, colours, 60.0, 2)
+    assert len(set(out[:3])) == 1
+    assert out[3] == out[4] and out[5] != out[3] and out[5] not in out[:3]
+    # groups too small to be an RP are not split
+    assert split_by_colour(labels, colours, 60.0, 4).tolist() == labels.tolist()
+
+
+def test_dense_candidates_split_alike_features_of_two_colours():
+    # one kind of object in the feature map (the backbone sees them alike), painted
+    # dark and light in the image: with max_colour_distance one group per colour
+    objects = [(1, 5 + 25 * (i // 4), 5 + 18 * (i % 4), 4) for i in range(8)]
+    f = _map(np.random.default_rng(4), objects)
+    rgb = np.full((60 * 8, 80 * 8, 3), 128, np.uint8)
+    for i, (_, y, x, a) in enumerate(objects):
+        rgb[y * 8:(y + a) * 8, x * 8:(x + a) * 8] = 30 if i % 2 else 230
+    params = _params(sizes=(2, 3, 4, 5), min_instances=3)
+
+    def colour_of(boxes):
+        return central_colours(colour_integrals(rgb), boxes)
+
+    # the objects' groups rank first (best score first); the background's noise after
+    whole = dense_candidates(f, 8.0, params)
+    assert len(whole[0].boxes) == 8
+    split = dense_candidates(f, 8.0, _params(sizes=(2, 3, 4, 5), min_instances=3,
+                                             max_colour_distance=60.0), colour_of=colour_of)
+    assert [len(c.boxes) for c in split[:2]] == [4, 4]
+    for c in split[:2]:                  # each group holds one colour
+        assert np.ptp(colour_of(c.boxes)[:, 0]) < 60
+    # without colour_of (or at 0) the groups are those of the features alone
+    assert [len(c.boxes) for c in dense_candidates(
+        f, 8.0, _params(sizes=(2, 3, 4, 5), min_instances=3, max_colour_distance=60.0))[:1]] == [8]
 
 
 def test_box_contrast_is_high_on_objects_and_low_on_background():
@@ -377,7 +431,8 @@ def test_iter_level_candidates_ranks_both_maps_and_classifies_only_what_it_yield
         return of
 
     monkeypatch.setattr(D, "_flat_candidates",
-                        lambda f, params, sizes=None, level=0: per_level[level])
+                        lambda f, params, sizes=None, level=0, colour_of=None:
+                        per_level[level])
     monkeypatch.setattr(D, "objectness_for", objectness_for)
     levels = [(np.zeros((1, 4, 4), np.float32), 1.0), (np.zeros((1, 8, 8), np.float32), 2.0)]
     params = _params(max_candidates=12)

@@ -73,6 +73,12 @@ class DenseParams:
         Strongest blobs kept before grouping.
     min_similarity : float
         Average-linkage cosine similarity at which blobs are one RP, in (0, 1).
+    max_colour_distance : float
+        ... and the average-linkage distance of the mean CIELAB colours of the blobs'
+        central halves (OpenCV's 8-bit L, a, b) beyond which one group of alike features
+        is split (:func:`rescu.extension.dense.split_by_colour`: the ImageNet features
+        see a dark car and a white one, a black pawn and a white one alike; a person
+        does not); 0 = not split.
     min_instances : int
         Smallest RP.
     max_patterns : int
@@ -168,6 +174,7 @@ class DenseParams:
     surround: int
     max_blobs: int
     min_similarity: float
+    max_colour_distance: float
     min_instances: int
     max_patterns: int
     overlap_iod: float
@@ -219,6 +226,9 @@ class DenseParams:
             raise ValueError(f"dense.surround must be odd and >= 3, got {self.surround}")
         if not 0.0 < self.min_similarity < 1.0:
             raise ValueError(f"dense.min_similarity must be in (0, 1), got {self.min_similarity}")
+        if not self.max_colour_distance >= 0:
+            raise ValueError("dense.max_colour_distance must be >= 0 (0: not split), got "
+                             f"{self.max_colour_distance}")
         if self.min_instances < 2 or self.max_patterns < 1 or self.max_blobs < 2:
             raise ValueError("dense.min_instances must be >= 2, max_patterns >= 1, "
                              "max_blobs >= 2")

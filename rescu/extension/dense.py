@@ -57,6 +57,7 @@ from .objects import touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "touching_sides",
+           "central_colours", "split_by_colour", "colour_for",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
            "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
@@ -239,8 +240,85 @@ def distinct_blobs(f: np.ndarray, cell_px: float, params: DenseParams,
     return boxes[keep], emb[keep]
 
 
+def central_colours(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray
+                    ) -> np.ndarray:
+    """Mean CIELAB colour of the central half of each box (half its width and height,
+    same centre): the colour of the object rather than of what its box's corners hold.
+
+    Parameters
+    ----------
+    integrals : :func:`rescu.extension.objects.colour_integrals` of the image (OpenCV's
+        8-bit L, a, b)
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of that image
+
+    Returns
+    -------
+    (n, 3) float64, L, a, b in [0, 255]
+
+    >>> import numpy as np
+    >>> from rescu.extension.objects import colour_integrals
+    >>> rgb = np.zeros((20, 40, 3), np.uint8); rgb[:, 20:] = 255
+    >>> central_colours(colour_integrals(rgb), np.array([[0, 0, 20, 20], [20, 0, 20, 20]]))[:, 0]
+    array([  0., 255.])
+    """
+    ii = integrals[0]
+    H, W = ii.shape[0] - 1, ii.shape[1] - 1
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    cx, cy = b[:, 0] + b[:, 2] / 2, b[:, 1] + b[:, 3] / 2
+    x0 = np.clip(np.round(cx - b[:, 2] / 4), 0, W - 1).astype(int)
+    y0 = np.clip(np.round(cy - b[:, 3] / 4), 0, H - 1).astype(int)
+    x1 = np.clip(np.round(cx + b[:, 2] / 4), x0 + 1, W).astype(int)
+    y1 = np.clip(np.round(cy + b[:, 3] / 4), y0 + 1, H).astype(int)
+    tot = ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
+    return tot / ((x1 - x0) * (y1 - y0)).astype(float)[:, None]
+
+
+def split_by_colour(labels: np.ndarray, colours: np.ndarray, max_distance: float,
+                    min_instances: int) -> np.ndarray:
+    """Groups of alike features split where their colours differ.
+
+    Each group of ``labels`` with at least ``min_instances`` members is clustered again
+    by average linkage on the Euclidean distance of its members' ``colours``, cut at
+    ``max_distance``: black and white squares of a board, dark and light cars, which an
+    ImageNet backbone's features see alike, become groups of their own. Smaller groups
+    are left as they are (they are not RPs either way).
+
+    Parameters
+    ----------
+    labels : (n,) int, group of each blob
+    colours : (n, 3) float, each blob's colour (:func:`central_colours`)
+    max_distance : float > 0, in the colours' units
+    min_instances : int
+
+    Returns
+    -------
+    (n,) int, new labels (the same partition when no group is split)
+
+    >>> import numpy as np
+    >>> split_by_colour(np.array([1, 1, 1, 1, 2]), np.array([[0, 0, 0], [5, 0, 0],
+    ...     [250, 0, 0], [245, 0, 0], [0, 0, 0]], float), 60.0, 2).tolist()
+    [1, 1, 3, 3, 2]
+    """
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    labels = np.asarray(labels).copy()
+    colours = np.asarray(colours, np.float64).reshape(len(labels), -1)
+    nxt = int(labels.max()) + 1 if len(labels) else 0
+    for lab in np.unique(labels):
+        m = np.flatnonzero(labels == lab)
+        if len(m) < max(min_instances, 2):
+            continue
+        sub = fcluster(linkage(colours[m], method="average", metric="euclidean"),
+                       t=max_distance, criterion="distance")
+        for k in np.unique(sub)[1:]:            # the first sub-group keeps the label
+            labels[m[sub == k]] = nxt
+            nxt += 1
+    return labels
+
+
 def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
-                     sizes: Sequence[int] | None = None, level: int = 0
+                     sizes: Sequence[int] | None = None, level: int = 0,
+                     colour_of: Callable[[np.ndarray], np.ndarray] | None = None
                      ) -> list[DenseCandidate]:
     """Every group of ``params.min_instances`` or more recurring blobs of one feature map
     (step 3 of the module docstring before the selection), best score first.
@@ -250,9 +328,13 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
     f : (C, h, w) float32 (:func:`hypercolumn`)
     cell_px : backbone-input pixels per cell (8)
     params : DenseParams (``sizes``, ``surround``, ``max_blobs``, ``min_similarity``,
-        ``min_instances``, ``touch_tolerance``)
+        ``max_colour_distance``, ``min_instances``, ``touch_tolerance``)
     sizes : blob sides, cells (None: ``params.sizes``)
     level : the map's index in :func:`dense_levels`, given to each candidate
+    colour_of : callable or None
+        Boxes (n, 4) in backbone-input pixels -> (n, 3) colours (:func:`central_colours`);
+        with ``params.max_colour_distance > 0`` each group of alike features is split by
+        colour (:func:`split_by_colour`). None: not split.
 
     Returns
     -------
@@ -267,6 +349,9 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
     # partition as scikit-learn's AgglomerativeClustering, without its 1-s import)
     labels = fcluster(linkage(np.asarray(emb, np.float64), method="average", metric="cosine"),
                       t=1.0 - params.min_similarity, criterion="distance")
+    if colour_of is not None and params.max_colour_distance > 0:
+        labels = split_by_colour(labels, colour_of(boxes), params.max_colour_distance,
+                                 params.min_instances)
     ii = integral_map(f)
     g = unit_mean(f)
     out = []
@@ -517,11 +602,26 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
 
 
 def _flat_candidates(f: np.ndarray, params: DenseParams,
-                     sizes: Sequence[int] | None = None, level: int = 0
+                     sizes: Sequence[int] | None = None, level: int = 0,
+                     colour_of: Callable[[np.ndarray], np.ndarray] | None = None
                      ) -> list[DenseCandidate]:
     """:func:`dense_candidates` of one map less the groups that tile the plane."""
-    return [c for c in dense_candidates(f, 8.0, params, sizes, level)
+    return [c for c in dense_candidates(f, 8.0, params, sizes, level, colour_of)
             if c.touching <= params.max_touching]
+
+
+def colour_for(rgb: np.ndarray, s: float, params: DenseParams,
+               integrals: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The ``colour_of`` of :func:`dense_candidates` for a map of ``rgb`` resized by ``s``:
+    boxes in that map's input pixels -> :func:`central_colours` on ``rgb``; None when
+    ``params.max_colour_distance`` is 0 (groups not split by colour)."""
+    if params.max_colour_distance <= 0:
+        return None
+    from .objects import colour_integrals
+
+    ii = colour_integrals(rgb) if integrals is None else integrals
+    return lambda boxes: central_colours(ii, np.asarray(boxes, float) / s)
 
 
 def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray,
@@ -566,11 +666,16 @@ def iter_level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.nd
     import heapq
 
     of = [objectness_for(rgb, s, params, backbone) for _, s in levels]
+    integrals = None
+    if params.max_colour_distance > 0:
+        from .objects import colour_integrals
+
+        integrals = colour_integrals(rgb)
     heap: list[tuple[float, int, float, float, int, bool]] = []
     cands: list[DenseCandidate] = []
-    for k, (f, _) in enumerate(levels):
+    for k, (f, s) in enumerate(levels):
         for c in _flat_candidates(f, params, params.sizes if k == 0 else params.fine_sizes,
-                                  k):
+                                  k, colour_for(rgb, s, params, integrals)):
             heap.append((-c.score, k, float(c.boxes[0, 1]), float(c.boxes[0, 0]),
                          len(cands), of[k] is None))
             cands.append(c)
@@ -639,7 +744,8 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     else:
         f, s = levels[0]
         found = [(c.score, c.boxes / s, {}) for c in
-                 rank_candidates(_flat_candidates(f, params),
+                 rank_candidates(_flat_candidates(f, params, None, 0,
+                                                  colour_for(rgb, s, params)),
                                  objectness_for(rgb, s, params, backbone),
                                  params.max_patterns)]
     for k, (score, boxes, info) in enumerate(found):
