@@ -53,7 +53,7 @@ from ..discovery.sources import DenseParams, is_whole_object
 from ..boxes import cover_matrix
 from ..types import Instance, Pattern
 from .boxmaps import integral_map, map_score, unit_mean
-from .objects import touching_sides
+from .objects import colour_integrals, rect_sums, touching_sides
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "touching_sides",
@@ -269,8 +269,7 @@ def central_colours(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray
     y0 = np.clip(np.round(cy - b[:, 3] / 4), 0, H - 1).astype(int)
     x1 = np.clip(np.round(cx + b[:, 2] / 4), x0 + 1, W).astype(int)
     y1 = np.clip(np.round(cy + b[:, 3] / 4), y0 + 1, H).astype(int)
-    tot = ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
-    return tot / ((x1 - x0) * (y1 - y0)).astype(float)[:, None]
+    return rect_sums(ii, x0, y0, x1, y1) / ((x1 - x0) * (y1 - y0)).astype(float)[:, None]
 
 
 def split_by_colour(labels: np.ndarray, colours: np.ndarray, max_distance: float,
@@ -618,8 +617,6 @@ def colour_for(rgb: np.ndarray, s: float, params: DenseParams,
     ``params.max_colour_distance`` is 0 (groups not split by colour)."""
     if params.max_colour_distance <= 0:
         return None
-    from .objects import colour_integrals
-
     ii = colour_integrals(rgb) if integrals is None else integrals
     return lambda boxes: central_colours(ii, np.asarray(boxes, float) / s)
 
@@ -666,11 +663,8 @@ def iter_level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.nd
     import heapq
 
     of = [objectness_for(rgb, s, params, backbone) for _, s in levels]
-    integrals = None
-    if params.max_colour_distance > 0:
-        from .objects import colour_integrals
-
-        integrals = colour_integrals(rgb)
+    # one set of colour tables for both maps (only when groups are split by colour)
+    integrals = colour_integrals(rgb) if params.max_colour_distance > 0 else None
     heap: list[tuple[float, int, float, float, int, bool]] = []
     cands: list[DenseCandidate] = []
     for k, (f, s) in enumerate(levels):

@@ -78,8 +78,8 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns", "touching_sides",
-           "colour_integrals", "colour_contrast", "refine_extent", "suppress_parts",
-           "pattern_confidence", "score_term", "without_parts", "on_objects"]
+           "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
+           "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -188,6 +188,13 @@ def colour_integrals(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cv2.integral(lab), cv2.integral(lab * lab)
 
 
+def rect_sums(t: np.ndarray, x0: np.ndarray, y0: np.ndarray, x1: np.ndarray,
+              y1: np.ndarray) -> np.ndarray:
+    """Sums over the rectangles ``[y0, y1) x [x0, x1)`` (int arrays, clipped by the
+    caller) from a summed-area table ``t`` ((H + 1, W + 1[, c]), :func:`colour_integrals`)."""
+    return t[y1, x1] - t[y0, x1] - t[y1, x0] + t[y0, x0]
+
+
 def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
                     ring: float = 0.5) -> np.ndarray:
     """How much the colour inside each box differs from a ring around it.
@@ -219,12 +226,8 @@ def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
     X0, Y0 = np.clip(x0 - rw, 0, W), np.clip(y0 - rh, 0, H)
     X1, Y1 = np.clip(x1 + rw, 0, W), np.clip(y1 + rh, 0, H)
 
-    def total(t: np.ndarray, a0: np.ndarray, b0: np.ndarray, a1: np.ndarray,
-              b1: np.ndarray) -> np.ndarray:
-        return t[b1, a1] - t[b0, a1] - t[b1, a0] + t[b0, a0]
-
-    si, si2 = total(ii, x0, y0, x1, y1), total(ii2, x0, y0, x1, y1)
-    so, so2 = total(ii, X0, Y0, X1, Y1) - si, total(ii2, X0, Y0, X1, Y1) - si2
+    si, si2 = rect_sums(ii, x0, y0, x1, y1), rect_sums(ii2, x0, y0, x1, y1)
+    so, so2 = rect_sums(ii, X0, Y0, X1, Y1) - si, rect_sums(ii2, X0, Y0, X1, Y1) - si2
     ni = ((x1 - x0) * (y1 - y0)).astype(float)[:, None]
     no = np.maximum(((X1 - X0) * (Y1 - Y0)).astype(float)[:, None] - ni, 1.0)
     mi, mo = si / ni, so / no
