@@ -234,6 +234,40 @@ def test_turned_maps_make_objects_lengthwise_and_crosswise_alike():
         _params(rotations=3)
 
 
+def test_completion_finds_the_objects_lying_the_other_way():
+    """The prototype of bars lying along x, correlated over the turned map
+    (:func:`turned_map`: the image turned by 90 degrees, its map turned back onto the
+    same cells), finds the bars lying along y, with their boxes turned; on the plain map
+    alone they are not found."""
+    from rescu.extension.backbone import FrozenBackbone
+    from rescu.extension.dense import hypercolumn, turned_map
+    from rescu.extension.objects import complete_group, complete_turned
+
+    img = np.full((203, 250, 3), 170, np.uint8)          # odd sizes: padded to 208 x 256
+    along = [(20 + 70 * i, 30, 48, 16) for i in range(3)]          # x, y, w, h
+    across = [(30 + 70 * i, 110, 16, 48) for i in range(3)]
+    for x, y, w, h in along + across:
+        img[y:y + h, x:x + w] = (40, 60, 160)
+        img[y + h // 4:y + 3 * h // 4, x + w // 4:x + 3 * w // 4] = (220, 200, 60)
+    bb = FrozenBackbone("efficientnet-lite0", feature_stride=16)
+    f = hypercolumn(bb, img)
+    t = turned_map(bb, img)
+    assert t.shape == f.shape and t.dtype == np.float32
+    assert np.linalg.norm(t, axis=0).min() > 0.75
+    seeds = np.array(along, float)
+    plain = complete_group(f, 8.0, seeds, 0.1, 0.55)[0]
+    boxes, sims, is_turned = complete_turned(f, t, 8.0, seeds, 0.1, 0.55)
+    assert len(plain) == 3 and np.array_equal(boxes[~is_turned], plain)
+    assert is_turned.sum() == 3 and (np.diff(sims) <= 0).all()
+    found = boxes[is_turned]
+    assert (found[:, 2:] == [16, 48]).all()               # turned: 2 x 6 cells
+    for x, y, w, h in across:            # one box on each bar across, within a cell or so
+        cx, cy = found[:, 0] + found[:, 2] / 2, found[:, 1] + found[:, 3] / 2
+        assert ((abs(cx - (x + w / 2)) <= 12) & (abs(cy - (y + h / 2)) <= 12)).sum() == 1
+    with pytest.raises(ValueError, match="shape"):
+        complete_turned(f, t[:, 1:], 8.0, seeds, 0.1, 0.55)
+
+
 def test_find_dense_finds_the_discs_in_original_pixels():
     img, truth = _photo(np.random.default_rng(3))
     p = _params(max_patterns=4)                  # 480 px: upscaled to min_side = 960

@@ -194,6 +194,28 @@ def test_extent_turns_the_boxes_of_objects_lying_the_other_way():
     assert (iou_fixed[6:] < 0.5).all() and np.allclose(turned[:6], fixed[:6])
 
 
+def test_extent_gives_the_turned_boxes_the_transform_turned():
+    """Boxes that the completion found lying the other way (``turned``) take the RP's
+    transform turned, in the choice of the transform too, whatever ``turn`` says."""
+    rng = np.random.default_rng(5)
+    img = np.clip(rng.normal(110, 6, (200, 260, 3)), 0, 255).astype(np.uint8)
+    truth = np.array([[10 + 42 * k, 20, 40, 20] for k in range(4)]
+                     + [[20 + 70 * k, 120, 20, 40] for k in range(3)], float)
+    for x, y, w, h in truth.astype(int):
+        img[y:y + h, x:x + w] = (230, 40, 40)
+    c = truth[:, :2] + truth[:, 2:] / 2
+    seeds = np.c_[c - 10, np.full((len(truth), 2), 20.0)]
+    mask = np.arange(len(truth)) >= 4
+    args = (img, seeds, (1.0, 1.4, 2.0), (0.5, 1.0, 2.0), (0.0,))
+    got, t = refine_extent(*args, turned=mask)
+    assert t[1] == 2.0                       # wide, as the boxes not turned lie
+    assert (np.diag(iou_matrix(got, truth)) > 0.8).all()
+    plain, _ = refine_extent(*args)
+    assert np.allclose(got[~mask], plain[~mask])
+    none, t0 = refine_extent(*args, turned=np.zeros(len(truth), bool))
+    assert np.array_equal(none, plain)
+
+
 def test_extent_scores_every_transform_as_one_at_a_time():
     """refine_extent scores all transforms in one colour_contrast call; the choice is the
     one a transform-by-transform loop makes (first best in scale, aspect, dx, dy order,

@@ -118,6 +118,10 @@ class DenseParams:
         minus this ...
     completion_floor : float
         ... and never below this cosine similarity.
+    completion_turn : bool
+        The completion also looks for the group's objects lying the other way: its
+        prototype correlated over the map of the image turned by 90 degrees
+        (:func:`rescu.extension.objects.complete_turned`; one more backbone pass per map).
     extent : bool
         Refine each RP's box extent (:func:`rescu.extension.objects.refine_extent`).
     extent_scales, extent_aspects, extent_shifts : tuple of float
@@ -188,6 +192,7 @@ class DenseParams:
     complete: bool
     completion_margin: float
     completion_floor: float
+    completion_turn: bool
     extent: bool
     extent_scales: tuple[float, ...]
     extent_aspects: tuple[float, ...]

@@ -60,7 +60,8 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
            "central_colours", "split_by_colour", "colour_for",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
-           "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
+           "turned_map", "level_image", "level_candidates", "iter_level_candidates",
+           "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -116,6 +117,48 @@ def hypercolumn(backbone: Any, rgb: np.ndarray, rotations: int = 1) -> np.ndarra
         f16 = F.interpolate(f16, size=f8.shape[2:], mode="bilinear", align_corners=False)
         f = torch.cat([f8, f16], 1)[0] / np.sqrt(2.0)
     return np.ascontiguousarray(f.numpy(), dtype=np.float32)
+
+
+def turned_map(backbone: Any, rgb: np.ndarray, rotations: int = 1,
+               cells: tuple[int, int] | None = None) -> np.ndarray:
+    """:func:`hypercolumn` of ``rgb`` turned by 90 degrees, turned back onto the cells of
+    ``rgb``'s own map: at each cell, the features of what lies there as it looks turned
+    (a car parked across the row looks like one parked along it). One backbone pass
+    (``rotations`` passes with ``rotations`` > 1). The image is first padded (reflected)
+    to a multiple of 16 pixels, as :func:`hypercolumn` does for its turned maps, so that
+    the cells fall on the same pixels.
+
+    Parameters
+    ----------
+    backbone : rescu.extension.backbone.FrozenBackbone
+    rgb : (H, W, 3) uint8, the image of the map (a level's, :func:`level_image`)
+    rotations : int, as :func:`hypercolumn`
+    cells : ``(h, w)`` of the plain map (None: ``(H // 8, W // 8)``)
+
+    Returns
+    -------
+    (C, h, w) float32, unit norm per cell
+    """
+    h, w = rgb.shape[:2]
+    im = np.pad(np.asarray(rgb), ((0, -h % 16), (0, -w % 16), (0, 0)), mode="reflect")
+    f = np.rot90(hypercolumn(backbone, np.ascontiguousarray(np.rot90(im, 1)), rotations),
+                 -1, axes=(1, 2))
+    ch, cw = cells if cells is not None else (h // 8, w // 8)
+    f = f[:, :ch, :cw]        # the padding's cells (the plain map has none of them)
+    if f.shape[1:] != (ch, cw):   # not with EfficientNet-Lite0's maps
+        f = np.pad(f, ((0, 0), (0, ch - f.shape[1]), (0, cw - f.shape[2])), mode="edge")
+    return np.ascontiguousarray(f, dtype=np.float32)
+
+
+def level_image(rgb: np.ndarray, s: float) -> np.ndarray:
+    """``rgb`` resized by ``s``, as the maps of :func:`dense_levels` see it (area
+    interpolation when shrinking, linear when enlarging; ``rgb`` itself at 1)."""
+    import cv2
+
+    if s == 1:
+        return rgb
+    return cv2.resize(np.asarray(rgb), None, fx=s, fy=s,
+                      interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
 
 
 def box_means(f: np.ndarray, side: int) -> np.ndarray:
@@ -488,8 +531,6 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     s : float, backbone-input pixels per prepared-image pixel (longer side brought into
         [``min_side``, ``max_side``])
     """
-    import cv2
-
     from .backbone import FrozenBackbone
 
     rgb = np.asarray(rgb)
@@ -507,8 +548,7 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     longer = max(rgb.shape[:2])
     s = min(1.0, params.max_side / longer) if longer >= params.min_side \
         else params.min_side / longer
-    im = rgb if s == 1 else cv2.resize(
-        rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    im = level_image(rgb, s)
     # half precision, as the dense step stores it for the scoring of stage I's RPs
     # (:func:`save_map`): the map in memory and the one read back are the same
     out = (hypercolumn(backbone, im, params.rotations).astype(np.float16).astype(np.float32),
@@ -583,8 +623,6 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     prepared-image pixel). The fine level is left out when it would enlarge the coarse
     one by less than 5 %.
     """
-    import cv2
-
     from .backbone import FrozenBackbone
 
     if backbone is None:
@@ -594,9 +632,8 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     longer = max(rgb.shape[:2])
     s_fine = min(s * params.fine_scale, params.fine_max_side / longer)
     if s_fine > 1.05 * s:
-        im = cv2.resize(np.asarray(rgb), None, fx=s_fine, fy=s_fine,
-                        interpolation=cv2.INTER_AREA if s_fine < 1 else cv2.INTER_LINEAR)
-        out.append((hypercolumn(backbone, im, params.rotations), float(s_fine)))
+        out.append((hypercolumn(backbone, level_image(rgb, s_fine), params.rotations),
+                    float(s_fine)))
     return out
 
 
@@ -734,7 +771,8 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     pats = []
     if params.whole_objects:
         ranked = iter_level_candidates(levels, rgb, params, backbone)
-        found = whole_objects(levels, 8.0, rgb, ranked, params)
+        found = whole_objects(levels, 8.0, rgb, ranked, params,
+                              _turned_maps(rgb, levels, params, backbone))
     else:
         f, s = levels[0]
         found = [(c.score, c.boxes / s, {}) for c in
@@ -748,6 +786,27 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
             Instance(bbox=tuple(float(v) for v in row), score=1.0, source="stage1")
             for row in b], extra={"source": "dense", **info}))
     return pats
+
+
+def _turned_maps(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
+                 params: DenseParams, backbone: Any
+                 ) -> Callable[[int], np.ndarray] | None:
+    """The ``turned`` of :func:`rescu.extension.objects.whole_objects`: each level's
+    :func:`turned_map`, made the first time the completion asks for it (one backbone
+    pass per level that has a group to complete); None without
+    ``params.completion_turn`` (or without completion)."""
+    if not (params.completion_turn and params.complete):
+        return None
+    made: dict[int, np.ndarray] = {}
+
+    def turned(level: int) -> np.ndarray:
+        if level not in made:
+            f, s = levels[level]
+            made[level] = turned_map(backbone, level_image(rgb, s), params.rotations,
+                                     (f.shape[1], f.shape[2]))
+        return made[level]
+
+    return turned
 
 
 def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
