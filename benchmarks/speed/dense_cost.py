@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
-                                          [--strip-px N] [--rotations R]
+                                          [--strip-px N] [--rotations R] [--completion-turn]
 
 Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
 chess, aerial cars; a synthetic rendering when absent), resizes each to
@@ -16,8 +16,10 @@ OpenCV threads (the pipeline's job: ``threads.stage2_features``, 1; ``rescu disc
 ``threads.in_process``, 2). ``--strip-px``: the backbone's first blocks run on strips of
 inputs over this many pixels (:data:`rescu.extension.backbone.STRIP_PX`; 0: never, one
 whole pass). ``--rotations``: ``dense.rotations`` instead of the config's (backbone
-passes per map). The map cache of :func:`rescu.extension.dense.dense_map` is emptied before
-each call, so every repeat passes the backbone.
+passes per map). ``--completion-turn``: ``dense.completion_turn`` on (one more backbone
+pass per map that has a group to complete). The map cache of
+:func:`rescu.extension.dense.dense_map` is emptied before each call, so every repeat passes
+the backbone.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--strip-px", type=int, default=None)
     ap.add_argument("--rotations", type=int, default=None,
                     help="dense.rotations (default: the config's)")
+    ap.add_argument("--completion-turn", action="store_true",
+                    help="dense.completion_turn on (default: the config's)")
     a = ap.parse_args(argv)
     import torch
 
@@ -80,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     params = DenseParams.from_dict(None)
     if a.rotations is not None:
         params = DenseParams.from_dict({**params.__dict__, "rotations": a.rotations})
+    if a.completion_turn:
+        params = DenseParams.from_dict({**params.__dict__, "completion_turn": True})
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
     find_dense(np.zeros((64, 64, 3), np.uint8), params, backbone)   # warm-up
     times = []
@@ -93,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"median {statistics.median(times):.2f} s, max {max(times):.2f} s over {len(times)} "
           f"image(s) at {a.megapixels} MP, {a.threads} thread(s); peak memory "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, strips of "
-          f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px, rotations {params.rotations}")
+          f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px, rotations {params.rotations}, "
+          f"completion turned {params.completion_turn}")
     return 0
 
 
