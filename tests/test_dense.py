@@ -240,8 +240,8 @@ def test_completion_finds_the_objects_lying_the_other_way():
     same cells), finds the bars lying along y, with their boxes turned; on the plain map
     alone they are not found."""
     from rescu.extension.backbone import FrozenBackbone
-    from rescu.extension.dense import hypercolumn, turned_map
-    from rescu.extension.objects import complete_group, complete_turned
+    from rescu.extension.turned import complete_turned, hypercolumn, turned_map
+    from rescu.extension.objects import complete_group
 
     img = np.full((203, 250, 3), 170, np.uint8)          # odd sizes: padded to 208 x 256
     along = [(20 + 70 * i, 30, 48, 16) for i in range(3)]          # x, y, w, h

@@ -121,7 +121,7 @@ class DenseParams:
     completion_turn : bool
         The completion also looks for the group's objects lying the other way: its
         prototype correlated over the map of the image turned by 90 degrees
-        (:func:`rescu.extension.objects.complete_turned`; one more backbone pass per map).
+        (:func:`rescu.extension.turned.complete_turned`; one more backbone pass per map).
     extent : bool
         Refine each RP's box extent (:func:`rescu.extension.objects.refine_extent`).
     extent_scales, extent_aspects, extent_shifts : tuple of float

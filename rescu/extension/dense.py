@@ -54,113 +54,17 @@ from ..boxes import cover_matrix
 from ..types import Instance, Pattern
 from .boxmaps import integral_map, map_score, unit_mean
 from .objects import colour_integrals, rect_sums, touching_sides
+from .turned import complete_turned, hypercolumn, level_image, turned_map
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
            "blob_boxes", "distinct_blobs", "integral_map", "touching_sides",
            "central_colours", "split_by_colour", "colour_for",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
-           "turned_map", "level_image", "level_candidates", "iter_level_candidates",
-           "find_dense", "score_and_split"]
+           "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
-def hypercolumn(backbone: Any, rgb: np.ndarray, rotations: int = 1) -> np.ndarray:
-    """The stride-8 and stride-16 maps of ``backbone`` on ``rgb``, concatenated.
-
-    With ``rotations`` 2 or 4 each half is the mean of the (unit) maps of the image turned
-    by 0 and 90 degrees, or by every right angle, each turned back: a car seen from
-    above lengthwise and one seen crosswise then get the same feature (the backbone
-    itself is not rotation invariant, and the dense source's grouping split the cars
-    of one photo by their orientation). The image is first padded (reflected) to a
-    multiple of 16 pixels, so that the turned maps' cells fall on the same pixels, and
-    the mean is cut to the plain map's cells.
-
-    Parameters
-    ----------
-    backbone : rescu.extension.backbone.FrozenBackbone
-    rgb : (H, W, 3) uint8
-    rotations : int
-        1 (one pass, the plain map), 2 or 4 backbone passes.
-
-    Returns
-    -------
-    (C, H // 8, W // 8) float32 (EfficientNet-Lite0's maps round down): each half
-    L2-normalised per location and scaled by 1 / sqrt(2), so every location has unit
-    norm.
-    """
-    import torch
-    import torch.nn.functional as F
-
-    if rotations not in (1, 2, 4):
-        raise ValueError(f"rotations must be 1, 2 or 4, got {rotations}")
-    if rotations == 1:
-        f8, f16 = backbone.multiscale_maps(rgb)
-        with torch.no_grad():
-            f8 = F.normalize(f8, dim=1)
-            f16 = F.normalize(f16, dim=1)
-    else:
-        h, w = rgb.shape[:2]
-        im = np.pad(rgb, ((0, -h % 16), (0, -w % 16), (0, 0)), mode="reflect")
-        s8 = s16 = None
-        for k in range(rotations):
-            a8, a16 = backbone.multiscale_maps(np.ascontiguousarray(np.rot90(im, k)))
-            with torch.no_grad():
-                a8 = torch.rot90(F.normalize(a8, dim=1), -k, (2, 3))
-                a16 = torch.rot90(F.normalize(a16, dim=1), -k, (2, 3))
-            s8 = a8 if s8 is None else s8 + a8
-            s16 = a16 if s16 is None else s16 + a16
-        with torch.no_grad():     # the plain map's cells: h // 8 x w // 8
-            f8 = F.normalize(s8[:, :, :h // 8, :w // 8], dim=1)
-            f16 = F.normalize(s16[:, :, :(h // 8 + 1) // 2, :(w // 8 + 1) // 2], dim=1)
-    with torch.no_grad():
-        f16 = F.interpolate(f16, size=f8.shape[2:], mode="bilinear", align_corners=False)
-        f = torch.cat([f8, f16], 1)[0] / np.sqrt(2.0)
-    return np.ascontiguousarray(f.numpy(), dtype=np.float32)
-
-
-def turned_map(backbone: Any, rgb: np.ndarray, rotations: int = 1,
-               cells: tuple[int, int] | None = None) -> np.ndarray:
-    """:func:`hypercolumn` of ``rgb`` turned by 90 degrees, turned back onto the cells of
-    ``rgb``'s own map: at each cell, the features of what lies there as it looks turned
-    (a car parked across the row looks like one parked along it). One backbone pass
-    (``rotations`` passes with ``rotations`` > 1). The image is first padded (reflected)
-    to a multiple of 16 pixels, as :func:`hypercolumn` does for its turned maps, so that
-    the cells fall on the same pixels.
-
-    Parameters
-    ----------
-    backbone : rescu.extension.backbone.FrozenBackbone
-    rgb : (H, W, 3) uint8, the image of the map (a level's, :func:`level_image`)
-    rotations : int, as :func:`hypercolumn`
-    cells : ``(h, w)`` of the plain map (None: ``(H // 8, W // 8)``)
-
-    Returns
-    -------
-    (C, h, w) float32, unit norm per cell
-    """
-    h, w = rgb.shape[:2]
-    im = np.pad(np.asarray(rgb), ((0, -h % 16), (0, -w % 16), (0, 0)), mode="reflect")
-    f = np.rot90(hypercolumn(backbone, np.ascontiguousarray(np.rot90(im, 1)), rotations),
-                 -1, axes=(1, 2))
-    ch, cw = cells if cells is not None else (h // 8, w // 8)
-    f = f[:, :ch, :cw]        # the padding's cells (the plain map has none of them)
-    if f.shape[1:] != (ch, cw):   # not with EfficientNet-Lite0's maps
-        f = np.pad(f, ((0, 0), (0, ch - f.shape[1]), (0, cw - f.shape[2])), mode="edge")
-    return np.ascontiguousarray(f, dtype=np.float32)
-
-
-def level_image(rgb: np.ndarray, s: float) -> np.ndarray:
-    """``rgb`` resized by ``s``, as the maps of :func:`dense_levels` see it (area
-    interpolation when shrinking, linear when enlarging; ``rgb`` itself at 1)."""
-    import cv2
-
-    if s == 1:
-        return rgb
-    return cv2.resize(np.asarray(rgb), None, fx=s, fy=s,
-                      interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-
-
 def box_means(f: np.ndarray, side: int) -> np.ndarray:
     """Mean of ``f`` (C, h, w) over the ``side x side`` window centred at each cell
     (reflected at the border) -> (C, h, w) float32."""
@@ -772,7 +676,7 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     if params.whole_objects:
         ranked = iter_level_candidates(levels, rgb, params, backbone)
         found = whole_objects(levels, 8.0, rgb, ranked, params,
-                              _turned_maps(rgb, levels, params, backbone))
+                              _turned_completion(rgb, levels, params, backbone))
     else:
         f, s = levels[0]
         found = [(c.score, c.boxes / s, {}) for c in
@@ -788,23 +692,27 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     return pats
 
 
-def _turned_maps(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
-                 params: DenseParams, backbone: Any
-                 ) -> Callable[[int], np.ndarray] | None:
-    """The ``turned`` of :func:`rescu.extension.objects.whole_objects`: each level's
-    :func:`turned_map`, made the first time the completion asks for it (one backbone
-    pass per level that has a group to complete); None without
-    ``params.completion_turn`` (or without completion)."""
+def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
+                       params: DenseParams, backbone: Any
+                       ) -> Callable[..., tuple[np.ndarray, np.ndarray]] | None:
+    """The ``turned`` of :func:`rescu.extension.objects.whole_objects`: ``(level, boxes,
+    integral) -> (boxes, is_turned)``, :func:`complete_turned` on that level's map and
+    its :func:`turned_map` (made on first use: one backbone pass per level with a group to
+    complete); None without ``params.completion_turn`` (or without completion)."""
     if not (params.completion_turn and params.complete):
         return None
     made: dict[int, np.ndarray] = {}
 
-    def turned(level: int) -> np.ndarray:
+    def turned(level: int, boxes: np.ndarray, integral: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        f, s = levels[level]
         if level not in made:
-            f, s = levels[level]
             made[level] = turned_map(backbone, level_image(rgb, s), params.rotations,
                                      (f.shape[1], f.shape[2]))
-        return made[level]
+        b, _, is_turned = complete_turned(f, made[level], 8.0, boxes,
+                                          params.completion_margin,
+                                          params.completion_floor, integral=integral)
+        return b, is_turned
 
     return turned
 

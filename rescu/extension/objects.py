@@ -76,9 +76,8 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
                 & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
     return out
 
-__all__ = ["similarity_map", "box_features", "complete_group", "complete_turned",
-           "distinctiveness", "whole_objects", "rp_confidence", "score_patterns",
-           "touching_sides", "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
+__all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
+           "whole_objects", "rp_confidence", "score_patterns", "touching_sides", "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
            "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
 
@@ -168,67 +167,6 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     keep = nms(out, sims, 0.2)
     order = keep[np.argsort(-sims[keep], kind="stable")]
     return out[order].reshape(-1, 4), sims[order], tau, sim
-
-
-def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np.ndarray,
-                    margin: float, floor: float, quantile: float = 20.0,
-                    integral: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`complete_group` on ``f``, and the same prototype correlated over
-    ``turned``, the map of the image turned by 90 degrees and turned back
-    (:func:`rescu.extension.dense.turned_map`), with the window turned too: objects of the
-    RP's kind lying the other way (a car parked across the row of the group's cars, seen
-    from above) look there like the group's objects do on ``f``. Their peaks above the
-    same threshold get the box turned (width and height swapped); the peaks of both maps
-    are suppressed together at IoU 0.2, the more similar kept.
-
-    The backbone is not rotation invariant: a car and a car turned by 90 degrees are less
-    alike on one map than two cars lying the same way, and turning every map into a mean
-    over orientations (``dense.rotations``) makes asphalt and roofs more like the cars too.
-    Here each map keeps its own orientation; only the prototype is looked for in both.
-
-    Parameters
-    ----------
-    f : (C, h, w) float32, unit norm per cell (:func:`rescu.extension.dense.hypercolumn`)
-    turned : (C, h, w) float32, the turned map on the same cells
-    cell_px, boxes, margin, floor, quantile, integral : as :func:`complete_group`
-
-    Returns
-    -------
-    boxes : (n, 4) ``[x, y, w, h]``, pixels of the map's input, best similarity first
-    sims : (n,) their similarity to the prototype (on the map each was found on)
-    is_turned : (n,) bool, found on ``turned`` (box turned)
-    """
-    from scipy.ndimage import maximum_filter
-
-    if turned.shape != f.shape:
-        raise ValueError(f"turned map {turned.shape} and map {f.shape} differ in shape")
-    ob, osims, tau, _ = complete_group(f, cell_px, boxes, margin, floor, quantile, integral)
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    if not len(b):
-        return ob, osims, np.zeros(len(ob), bool)
-    emb = box_features(f, cell_px, b, integral)
-    proto = emb.mean(0)
-    proto /= np.linalg.norm(proto) + 1e-9
-    bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
-    sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
-    sim = similarity_map(turned, proto, (sh, sw))          # the window turned
-    ry, rx = max(1, int(round(sw * 0.6))), max(1, int(round(sh * 0.6)))
-    peak = (sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1), mode="nearest")) \
-        & (sim >= tau)
-    ys, xs = np.nonzero(peak)
-    h, w = sim.shape
-    inside = ((ys + 0.5 >= 0.25 * sw) & (ys + 0.5 <= h - 0.25 * sw)
-              & (xs + 0.5 >= 0.25 * sh) & (xs + 0.5 <= w - 0.25 * sh))
-    ys, xs = ys[inside], xs[inside]
-    tb = np.c_[(xs + 0.5) * cell_px - bh / 2, (ys + 0.5) * cell_px - bw / 2,
-               np.full(len(xs), bh), np.full(len(xs), bw)]
-    allb = np.vstack([ob.reshape(-1, 4), tb])
-    alls = np.r_[osims, sim[ys, xs].astype(float)]
-    is_t = np.r_[np.zeros(len(ob), bool), np.ones(len(tb), bool)]
-    keep = nms(allb, alls, 0.2)
-    order = keep[np.argsort(-alls[keep], kind="stable")]
-    return allb[order].reshape(-1, 4), alls[order], is_t[order]
 
 
 # ----------------------------------------------------------------------------- extent
@@ -635,7 +573,7 @@ def score_term(score: float, scale: float) -> float:
 
 def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
                   rgb: np.ndarray, ranked: Iterable[Any], params: Any,
-                  turned: Callable[[int], np.ndarray] | None = None
+                  turned: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None
                   ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """RPs of whole objects from the dense source's ranked groups (steps 1-4 of the
     module docstring), each group on the map it was found on.
@@ -665,10 +603,9 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         (:func:`rescu.extension.dense.iter_level_candidates` classifies no more groups)
     params : :class:`rescu.discovery.sources.DenseParams`
     turned : callable or None
-        Level index -> the map of that level's image turned by 90 degrees and turned back
-        (:func:`rescu.extension.dense.turned_map`, made when first asked for): with
-        ``params.completion_turn`` the completion looks for the group's objects lying
-        the other way too (:func:`complete_turned`). None: not looked for.
+        With ``params.completion_turn``, ``(level, boxes, integral) -> (boxes,
+        is_turned)``, the completion that also finds the objects lying the other way
+        (:func:`rescu.extension.turned.complete_turned`); None: not looked for.
 
     Returns
     -------
@@ -690,9 +627,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         is_turned = None
         if params.complete and len(boxes):
             if turned is not None and params.completion_turn:
-                boxes, _, is_turned = complete_turned(
-                    f, turned(level), cell_px, boxes, params.completion_margin,
-                    params.completion_floor, integral=ii)
+                boxes, is_turned = turned(level, boxes, ii)
             else:
                 boxes = complete_group(f, cell_px, boxes, params.completion_margin,
                                        params.completion_floor, integral=ii)[0]
