@@ -77,7 +77,8 @@ def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
     return out
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
-           "whole_objects", "rp_confidence", "score_patterns", "touching_sides", "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
+           "whole_objects", "rp_confidence", "score_patterns", "touching_sides",
+           "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
            "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
 
@@ -250,8 +251,8 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     (width and height swapped, and the two shifts) where that box's contrast is larger
     turned: the same kind of object lying the other way (cars parked across a row,
     seen from above). The boxes marked ``turned`` (found lying the other way,
-    :func:`complete_turned`) always take the transform turned, in the choice too. Boxes
-    are clipped to the image.
+    :func:`rescu.extension.turned.complete_turned`) always take the transform turned, in
+    the choice too. Boxes are clipped to the image.
 
     Parameters
     ----------

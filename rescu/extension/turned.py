@@ -107,7 +107,8 @@ def turned_map(backbone: Any, rgb: np.ndarray, rotations: int = 1,
 
 
 def level_image(rgb: np.ndarray, s: float) -> np.ndarray:
-    """``rgb`` resized by ``s``, as the maps of :func:`dense_levels` see it (area
+    """``rgb`` resized by ``s``, as the maps of
+    :func:`rescu.extension.dense.dense_levels` see it (area
     interpolation when shrinking, linear when enlarging; ``rgb`` itself at 1)."""
     import cv2
 
@@ -121,7 +122,8 @@ def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np
                     margin: float, floor: float, quantile: float = 20.0,
                     integral: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`complete_group` on ``f``, and the same prototype correlated over
+    """:func:`rescu.extension.objects.complete_group` on ``f``, and the same prototype
+    correlated over
     ``turned``, the map of the image turned by 90 degrees and turned back
     (:func:`turned_map`), with the window turned too: objects of the
     RP's kind lying the other way (a car parked across the row of the group's cars, seen
@@ -136,9 +138,10 @@ def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np
 
     Parameters
     ----------
-    f : (C, h, w) float32, unit norm per cell (:func:`rescu.extension.dense.hypercolumn`)
+    f : (C, h, w) float32, unit norm per cell (:func:`hypercolumn`)
     turned : (C, h, w) float32, the turned map on the same cells
-    cell_px, boxes, margin, floor, quantile, integral : as :func:`complete_group`
+    cell_px, boxes, margin, floor, quantile, integral : as
+        :func:`rescu.extension.objects.complete_group`
 
     Returns
     -------
