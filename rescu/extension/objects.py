@@ -144,8 +144,6 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     tau : the threshold used
     sim : (h, w) the similarity map
     """
-    from scipy.ndimage import maximum_filter
-
     b = np.asarray(boxes, float).reshape(-1, 4)
     emb = box_features(f, cell_px, b, integral)
     proto = emb.mean(0)
@@ -154,20 +152,28 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
     sim = similarity_map(f, proto, (sw, sh))
     tau = max(float(floor), float(np.percentile(emb @ proto, quantile)) - float(margin))
-    ry, rx = max(1, int(round(sh * 0.6))), max(1, int(round(sw * 0.6)))
-    peak = (sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1), mode="nearest")) \
-        & (sim >= tau)
-    ys, xs = np.nonzero(peak)
-    h, w = sim.shape
-    inside = ((ys + 0.5 >= 0.25 * sh) & (ys + 0.5 <= h - 0.25 * sh)
-              & (xs + 0.5 >= 0.25 * sw) & (xs + 0.5 <= w - 0.25 * sw))
-    ys, xs = ys[inside], xs[inside]
-    sims = sim[ys, xs].astype(float)
-    out = np.c_[(xs + 0.5) * cell_px - bw / 2, (ys + 0.5) * cell_px - bh / 2,
-                np.full(len(xs), bw), np.full(len(xs), bh)]
+    out, sims = window_peaks(sim, (sw, sh), tau, cell_px, (bw, bh))
     keep = nms(out, sims, 0.2)
     order = keep[np.argsort(-sims[keep], kind="stable")]
     return out[order].reshape(-1, 4), sims[order], tau, sim
+
+
+def window_peaks(sim: np.ndarray, window: tuple[int, int], tau: float, cell_px: float,
+                 box: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Maxima of ``sim`` within 0.6 x the ``(w, h)`` cell ``window``, at least ``tau``, a
+    quarter window off the border: ``box`` (w, h) px boxes (n, 4) on them, their sims."""
+    from scipy.ndimage import maximum_filter
+
+    (sw, sh), (bw, bh), (h, w) = window, box, sim.shape
+    ry, rx = max(1, int(round(sh * 0.6))), max(1, int(round(sw * 0.6)))
+    ys, xs = np.nonzero((sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1),
+                                               mode="nearest")) & (sim >= tau))
+    inside = ((ys + 0.5 >= 0.25 * sh) & (ys + 0.5 <= h - 0.25 * sh)
+              & (xs + 0.5 >= 0.25 * sw) & (xs + 0.5 <= w - 0.25 * sw))
+    ys, xs = ys[inside], xs[inside]
+    out = np.c_[(xs + 0.5) * cell_px - bw / 2, (ys + 0.5) * cell_px - bh / 2,
+                np.full(len(xs), bw), np.full(len(xs), bh)]
+    return out, sim[ys, xs].astype(float)
 
 
 # ----------------------------------------------------------------------------- extent

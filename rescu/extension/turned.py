@@ -16,7 +16,7 @@ import numpy as np
 
 from ..boxes import nms
 from .boxmaps import box_features
-from .objects import complete_group, similarity_map
+from .objects import complete_group, similarity_map, window_peaks
 
 __all__ = ["hypercolumn", "level_image", "turned_map", "complete_turned"]
 
@@ -149,8 +149,6 @@ def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np
     sims : (n,) their similarity to the prototype (on the map each was found on)
     is_turned : (n,) bool, found on ``turned`` (box turned)
     """
-    from scipy.ndimage import maximum_filter
-
     if turned.shape != f.shape:
         raise ValueError(f"turned map {turned.shape} and map {f.shape} differ in shape")
     ob, osims, tau, _ = complete_group(f, cell_px, boxes, margin, floor, quantile, integral)
@@ -163,18 +161,9 @@ def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np
     bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
     sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
     sim = similarity_map(turned, proto, (sh, sw))          # the window turned
-    ry, rx = max(1, int(round(sw * 0.6))), max(1, int(round(sh * 0.6)))
-    peak = (sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1), mode="nearest")) \
-        & (sim >= tau)
-    ys, xs = np.nonzero(peak)
-    h, w = sim.shape
-    inside = ((ys + 0.5 >= 0.25 * sw) & (ys + 0.5 <= h - 0.25 * sw)
-              & (xs + 0.5 >= 0.25 * sh) & (xs + 0.5 <= w - 0.25 * sh))
-    ys, xs = ys[inside], xs[inside]
-    tb = np.c_[(xs + 0.5) * cell_px - bh / 2, (ys + 0.5) * cell_px - bw / 2,
-               np.full(len(xs), bh), np.full(len(xs), bw)]
+    tb, ts = window_peaks(sim, (sh, sw), tau, cell_px, (bh, bw))
     allb = np.vstack([ob.reshape(-1, 4), tb])
-    alls = np.r_[osims, sim[ys, xs].astype(float)]
+    alls = np.r_[osims, ts]
     is_t = np.r_[np.zeros(len(ob), bool), np.ones(len(tb), bool)]
     keep = nms(allb, alls, 0.2)
     order = keep[np.argsort(-alls[keep], kind="stable")]
