@@ -19,6 +19,38 @@ def run_parser(doc: str) -> argparse.ArgumentParser:
     return ap
 
 
+def sets_parser(doc: str, method: str = "rescu-ii") -> argparse.ArgumentParser:
+    """Parser of a study over several datasets of a finished run: ``results``,
+    ``--dataset`` (repeatable, into ``datasets``; None: the caller's default), ``--config``
+    and ``--method`` (the per-image JSON folder, default ``method``)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run")
+    ap.add_argument("--dataset", action="append", dest="datasets", default=None,
+                    help="a dataset of the run (repeat for several; default synthetic)")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
+    ap.add_argument("--method", default=method, help="per-image JSON folder")
+    return ap
+
+
+def set_predictions(ap: argparse.ArgumentParser, a: argparse.Namespace
+                    ) -> list[tuple[str, Path, Path]] | None:
+    """``(dataset, dataset folder, prediction folder)`` for each dataset of a
+    :func:`sets_parser` command line (``a.datasets``, default synthetic; predictions in
+    ``<results>/<dataset>/<method>/``); None, with a message, when one lacks its ground
+    truth or its predictions."""
+    out = []
+    for ds in a.datasets or ["synthetic"]:
+        a.dataset = ds
+        _, data = run_dataset(ap, a)
+        pred = a.results / ds / a.method
+        if not inputs_present((data / "annotations.json", "ground truth"),
+                              (pred, "predictions")):
+            return None
+        out.append((ds, data, pred))
+    return out
+
+
 def variants_parser(doc: str) -> argparse.ArgumentParser:
     """Parser of a study that re-runs one step with ``--set KEY=VALUE`` on a finished run:
     ``results``, ``--dataset`` (repeatable), ``--config``, ``--set``, ``--name``,

@@ -76,20 +76,12 @@ def rp_separations(data: Path, run: Path, method: str, source: str, probe: float
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
     import pandas as pd
 
-    from _cli import inputs_present, run_dataset
+    from _cli import inputs_present, run_dataset, sets_parser
     from rescu.discovery.sources import DenseParams
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", action="append", dest="datasets", default=None,
-                    help="a dataset of the run (repeat for several; default synthetic)")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
-    ap.add_argument("--method", default="rescu-i", help="per-image JSON folder")
+    ap = sets_parser(__doc__, method="rescu-i")
     ap.add_argument("--source", choices=["dense", "stage1"], default="dense")
     ap.add_argument("--probe", type=float, default=1.0 / 3.0,
                     help="central part of each box compared, in (0, 1] (default 1/3)")

@@ -133,27 +133,16 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import pandas as pd
 
-    import argparse
+    from _cli import set_predictions, sets_parser
 
-    from _cli import inputs_present, run_dataset
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", action="append", dest="datasets", default=None,
-                    help="a dataset of the run (repeat for several; default synthetic)")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
-    ap.add_argument("--method", default="rescu-ii", help="per-image JSON folder")
+    ap = sets_parser(__doc__)
     ap.add_argument("--dominant", choices=list(DOMINANT), default="code",
                     help="rule for the dominant RP (default: the code's, the most confident)")
     a = ap.parse_args(argv)
-    for ds in a.datasets or ["synthetic"]:
-        a.dataset = ds
-        _, data = run_dataset(ap, a)
-        pred = a.results / ds / a.method
-        if not inputs_present((data / "annotations.json", "ground truth"),
-                              (pred, "predictions")):
-            return 2
+    sets = set_predictions(ap, a)
+    if sets is None:
+        return 2
+    for ds, data, pred in sets:
         rows, imgs = rp_rows(data, pred, a.dominant)
         df = pd.DataFrame(rows, columns=["image", "kind", "source", "confidence", "reason",
                                          "n", "on_gt"])

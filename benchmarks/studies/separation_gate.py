@@ -77,32 +77,21 @@ def gate_figures(data: Path, pred: Path, thresholds: list[float], source: str
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
     import numpy as np
 
-    from _cli import f1, inputs_present, run_dataset
+    from _cli import f1, set_predictions, sets_parser
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results", type=Path, help="results folder of a finished run")
-    ap.add_argument("--dataset", action="append", dest="datasets", default=None,
-                    help="a dataset of the run (repeat for several; default synthetic)")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="config file merged over the defaults (rescu/defaults/config.yaml)")
-    ap.add_argument("--method", default="rescu-ii", help="per-image JSON folder")
+    ap = sets_parser(__doc__)
     ap.add_argument("--source", choices=["dense", "stage1", "both"], default="dense")
     ap.add_argument("--threshold", action="append", type=float, default=None,
                     help="separation threshold (repeat; default 0.01, 0.05, 0.1, 0.15)")
     a = ap.parse_args(argv)
     thresholds = a.threshold or [0.01, 0.05, 0.1, 0.15]
     rows: dict[str, list[tuple[float, float, float]]] = {}
-    for ds in a.datasets or ["synthetic"]:
-        a.dataset = ds
-        _, data = run_dataset(ap, a)
-        pred = a.results / ds / a.method
-        if not inputs_present((data / "annotations.json", "ground truth"),
-                              (pred, "predictions")):
-            return 2
+    sets = set_predictions(ap, a)
+    if sets is None:
+        return 2
+    for ds, data, pred in sets:
         rows[ds] = gate_figures(data, pred, thresholds, a.source)
     print(f"{a.method}, {a.source} RPs gated: any-RP instance P / R per dataset, mean F1")
     for k, t in enumerate(thresholds):
