@@ -14,8 +14,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "map_score",
-           "unit_mean", "centre_part", "OBJECT_PROBE", "separation"]
+__all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "group_prototype",
+           "map_score", "unit_mean", "centre_part", "OBJECT_PROBE", "separation"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -106,6 +106,21 @@ def box_features(f: np.ndarray, cell_px: float, boxes: np.ndarray,
         v = ii[:, y1, x1] - ii[:, y0, x1] - ii[:, y1, x0] + ii[:, y0, x0]
         emb[i] = v / (np.linalg.norm(v) + 1e-12)
     return emb
+
+
+def group_prototype(f: np.ndarray, cell_px: float, boxes: np.ndarray,
+                    integral: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, tuple[float, float], tuple[int, int]]:
+    """What a completion correlates: the unit mean of the (m >= 1) ``boxes``' features
+    (:func:`box_features`), their (m,) similarities to it, their median ``(w, h)`` in
+    pixels and that size in cells ``(sw, sh)`` (at least 1)."""
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    emb = box_features(f, cell_px, b, integral)
+    proto = emb.mean(0)
+    proto /= np.linalg.norm(proto) + 1e-9
+    bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
+    return proto, emb @ proto, (bw, bh), (max(1, int(round(bw / cell_px))),
+                                          max(1, int(round(bh / cell_px))))
 
 
 def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,

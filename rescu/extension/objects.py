@@ -42,7 +42,8 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from ..boxes import cover_matrix, nms
-from .boxmaps import OBJECT_PROBE, box_features, integral_map, map_score, separation
+from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
+                      separation)
 
 
 def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
@@ -117,7 +118,8 @@ def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
 
 
 def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: float,
-                   floor: float, quantile: float = 20.0, integral: np.ndarray | None = None
+                   floor: float, quantile: float = 20.0, integral: np.ndarray | None = None,
+                   prototype: tuple | None = None
                    ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Every instance of an RP, by correlating its prototype over the map.
 
@@ -136,6 +138,8 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     floor : ... and never below this
     quantile : percentile of the instances' similarities, in [0, 100]
     integral : :func:`integral_map` of ``f`` when already computed
+    prototype : :func:`rescu.extension.boxmaps.group_prototype` of ``boxes``, when
+        already computed
 
     Returns
     -------
@@ -144,14 +148,10 @@ def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: flo
     tau : the threshold used
     sim : (h, w) the similarity map
     """
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    emb = box_features(f, cell_px, b, integral)
-    proto = emb.mean(0)
-    proto /= np.linalg.norm(proto) + 1e-9
-    bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
-    sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
+    proto, own, (bw, bh), (sw, sh) = (prototype if prototype is not None else
+                                      group_prototype(f, cell_px, boxes, integral))
     sim = similarity_map(f, proto, (sw, sh))
-    tau = max(float(floor), float(np.percentile(emb @ proto, quantile)) - float(margin))
+    tau = max(float(floor), float(np.percentile(own, quantile)) - float(margin))
     out, sims = window_peaks(sim, (sw, sh), tau, cell_px, (bw, bh))
     keep = nms(out, sims, 0.2)
     order = keep[np.argsort(-sims[keep], kind="stable")]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..boxes import nms
-from .boxmaps import box_features
+from .boxmaps import group_prototype
 from .objects import complete_group, similarity_map, window_peaks
 
 __all__ = ["hypercolumn", "level_image", "turned_map", "complete_turned"]
@@ -151,15 +151,12 @@ def complete_turned(f: np.ndarray, turned: np.ndarray, cell_px: float, boxes: np
     """
     if turned.shape != f.shape:
         raise ValueError(f"turned map {turned.shape} and map {f.shape} differ in shape")
-    ob, osims, tau, _ = complete_group(f, cell_px, boxes, margin, floor, quantile, integral)
     b = np.asarray(boxes, float).reshape(-1, 4)
-    if not len(b):
+    pro = group_prototype(f, cell_px, b, integral) if len(b) else None
+    ob, osims, tau, _ = complete_group(f, cell_px, b, margin, floor, quantile, integral, pro)
+    if pro is None:
         return ob, osims, np.zeros(len(ob), bool)
-    emb = box_features(f, cell_px, b, integral)
-    proto = emb.mean(0)
-    proto /= np.linalg.norm(proto) + 1e-9
-    bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))
-    sw, sh = max(1, int(round(bw / cell_px))), max(1, int(round(bh / cell_px)))
+    proto, _, (bw, bh), (sw, sh) = pro
     sim = similarity_map(turned, proto, (sh, sw))          # the window turned
     tb, ts = window_peaks(sim, (sh, sw), tau, cell_px, (bh, bw))
     allb = np.vstack([ob.reshape(-1, 4), tb])
