@@ -13,6 +13,7 @@ Boxes are ``[x, y, w, h]`` in pixels (top-left corner, width, height), stacked a
 * :func:`cover_matrix` - intersection over the *smaller* area (1 when one box lies in
   the other; how parts of one object are told);
 * :func:`centre_in`, :func:`size_gate` - containment of centres, similar sizes;
+* :func:`touching_sides` - boxes that abut with no gap (a tiling);
 * :func:`greedy_keep`, :func:`nms`, :func:`suppress` - greedy suppression.
 """
 
@@ -21,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["intersection", "iou_matrix", "iod_matrix", "cover_matrix", "iou_matrix_xyxy",
-           "centre_in", "size_gate", "greedy_keep", "nms", "suppress"]
+           "centre_in", "size_gate", "touching_sides", "greedy_keep", "nms", "suppress"]
 
 
 def _boxes(a: np.ndarray) -> np.ndarray:
@@ -216,6 +217,38 @@ def size_gate(boxes: np.ndarray, inst: np.ndarray, tol: float) -> np.ndarray:
     rw = b[..., 2] / np.maximum(i[..., 2], 1e-9)
     rh = b[..., 3] / np.maximum(i[..., 3], 1e-9)
     return ((rw <= tol) & (rw >= 1 / tol) & (rh <= tol) & (rh >= 1 / tol)).any(1)
+
+
+def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
+    """On how many of its four sides each box abuts another box of the set.
+
+    A box abuts another on its right (left, below, above) when the other's centre lies
+    one median box width (height) to the right (...) within ``tolerance`` x the median
+    width and height on each axis: the boxes tile the plane there, with no gap.
+
+    Parameters
+    ----------
+    boxes : (n, 4) ``[x, y, w, h]``, any pixel unit
+    tolerance : fraction of the median box side, in (0, 0.5)
+
+    Returns
+    -------
+    (n,) float in {0, 1, 2, 3, 4}
+
+    >>> touching_sides(np.array([[0, 0, 10, 10], [10, 0, 10, 10], [40, 0, 10, 10]]), 0.35)
+    array([1., 1., 0.])
+    """
+    b = np.asarray(boxes, float).reshape(-1, 4)
+    if len(b) < 2:
+        return np.zeros(len(b))
+    side = np.maximum(np.median(b[:, 2:], axis=0), 1e-9)
+    c = b[:, :2] + b[:, 2:] / 2
+    d = (c[None, :, :] - c[:, None, :]) / side          # (n, n, 2) in box sides
+    out = np.zeros(len(b))
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        out += ((np.abs(d[..., 0] - dx) < tolerance)
+                & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
+    return out
 
 
 def greedy_keep(clash: np.ndarray, ok: np.ndarray | None = None) -> np.ndarray:

@@ -90,7 +90,7 @@ class DenseParams:
         more confident reported RP's (:func:`split_by_confidence`).
     max_touching : float
         A dense RP whose instances abut others of the RP on more than this many sides
-        on average (of 4; :func:`rescu.extension.dense.touching_sides`) tiles the plane
+        on average (of 4; :func:`rescu.boxes.touching_sides`) tiles the plane
         (board squares, floor tiles, brick) and is dropped; 4 keeps every RP.
     touch_tolerance : float
         A neighbour abuts a side when its centre lies one median box side away in that

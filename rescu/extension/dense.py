@@ -50,10 +50,10 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 
 from ..discovery.sources import DenseParams, is_whole_object
-from ..boxes import cover_matrix
+from ..boxes import cover_matrix, touching_sides
 from ..types import Instance, Pattern
 from .boxmaps import integral_map, map_score, unit_mean
-from .objects import colour_integrals, rect_sums, touching_sides
+from .objects import colour_integrals, rect_sums
 from .turned import complete_turned, hypercolumn, level_image, turned_map
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",

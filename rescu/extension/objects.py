@@ -41,44 +41,13 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..boxes import cover_matrix, nms
+from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
                       separation)
 
 
-def touching_sides(boxes: np.ndarray, tolerance: float) -> np.ndarray:
-    """On how many of its four sides each box abuts another box of the set.
-
-    A box abuts another on its right (left, below, above) when the other's centre lies
-    one median box width (height) to the right (...) within ``tolerance`` x the median
-    width and height on each axis: the boxes tile the plane there, with no gap.
-
-    Parameters
-    ----------
-    boxes : (n, 4) ``[x, y, w, h]``, any pixel unit
-    tolerance : fraction of the median box side, in (0, 0.5)
-
-    Returns
-    -------
-    (n,) float in {0, 1, 2, 3, 4}
-
-    >>> touching_sides(np.array([[0, 0, 10, 10], [10, 0, 10, 10], [40, 0, 10, 10]]), 0.35)
-    array([1., 1., 0.])
-    """
-    b = np.asarray(boxes, float).reshape(-1, 4)
-    if len(b) < 2:
-        return np.zeros(len(b))
-    side = np.maximum(np.median(b[:, 2:], axis=0), 1e-9)
-    c = b[:, :2] + b[:, 2:] / 2
-    d = (c[None, :, :] - c[:, None, :]) / side          # (n, n, 2) in box sides
-    out = np.zeros(len(b))
-    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        out += ((np.abs(d[..., 0] - dx) < tolerance)
-                & (np.abs(d[..., 1] - dy) < tolerance)).any(axis=1)
-    return out
-
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
-           "whole_objects", "rp_confidence", "score_patterns", "touching_sides",
+           "whole_objects", "rp_confidence", "score_patterns",
            "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
            "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
