@@ -282,8 +282,8 @@ def greedy_keep(clash: np.ndarray, ok: np.ndarray | None = None) -> np.ndarray:
     return np.array(keep, np.int64)
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, iou: float, by: str = "iou") -> np.ndarray:
-    """Greedy non-maximum suppression by IoU (or by the cover of the smaller box).
+def nms(boxes: np.ndarray, scores: np.ndarray, iou: float) -> np.ndarray:
+    """Greedy non-maximum suppression by IoU.
 
     Parameters
     ----------
@@ -292,32 +292,23 @@ def nms(boxes: np.ndarray, scores: np.ndarray, iou: float, by: str = "iou") -> n
     scores : (n,) float
         Higher is better; ties keep the earlier box first.
     iou : float
-        A box overlapping a kept one by more than this is dropped.
-    by : ``"iou"`` or ``"cover"``
-        The overlap: intersection over union (:func:`iou_matrix`), or over the smaller
-        box's area (:func:`cover_matrix`: two boxes that each half-cover one object are
-        on the same object, even where their IoU is low).
+        A box overlapping a kept one by more than this IoU is dropped.
 
     Returns
     -------
     (k,) int
         Indices of the kept boxes, best score first.
 
-    >>> b = np.array([[0, 0, 10, 10], [1, 0, 10, 10], [30, 0, 10, 10], [36, 0, 10, 10]])
-    >>> nms(b, np.array([0.5, 0.9, 0.1, 0.2]), 0.3).tolist()
-    [1, 3, 2]
-    >>> nms(b, np.array([0.5, 0.9, 0.1, 0.2]), 0.3, by="cover").tolist()
-    [1, 3]
+    >>> nms(np.array([[0, 0, 10, 10], [1, 0, 10, 10], [30, 0, 10, 10]]),
+    ...     np.array([0.5, 0.9, 0.1]), 0.3).tolist()
+    [1, 2]
     """
-    if by not in ("iou", "cover"):
-        raise ValueError(f"nms: by must be 'iou' or 'cover', got {by!r}")
     b = _boxes(boxes)
     order = np.argsort(-np.asarray(scores, float), kind="stable")
     if not len(b):
         return np.zeros(0, int)
     ranked = b[order]
-    overlap = iou_matrix(ranked, ranked) if by == "iou" else cover_matrix(ranked, ranked)
-    return order[greedy_keep(overlap > iou)].astype(int)
+    return order[greedy_keep(iou_matrix(ranked, ranked) > iou)].astype(int)
 
 
 def suppress(boxes: np.ndarray, order: np.ndarray, own: np.ndarray, others: np.ndarray,

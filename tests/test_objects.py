@@ -603,10 +603,13 @@ def test_the_dominant_rp_is_the_most_confident_when_rps_have_confidences():
     assert dominant_pattern([_pat([[0, 0, 1, 1]] * 9), _pat([[0, 0, 1, 1]] * 4)]) == 0
 
 
+@pytest.mark.xfail(strict=True, reason="known flaw (docs/results.md, 'One object, one box: "
+                   "not adopted'): one coin keeps a plain and a turned box, 25 boxes")
 def test_coins_photo_is_one_rp_with_one_box_per_coin():
     # scikit-image's coins.png: 24 coins in a 4 x 6 grid. The most confident dense RP
-    # holds a box on most of them and never two boxes on one coin (a plain and a turned
-    # match of one coin both survived an IoU test once given their extent)
+    # should hold a box on most of them and never two boxes on one coin; today one coin
+    # keeps a plain and a turned match (IoU 0.37 once given their extent, under the 0.5
+    # that makes two boxes one). Strict: passing means the flaw is gone, and the mark goes
     pytest.importorskip("skimage")
     from pathlib import Path
 

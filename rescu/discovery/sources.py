@@ -132,9 +132,7 @@ class DenseParams:
         larger turned (objects lying both ways, such as parked cars).
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
-        the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`);
-        of two boxes of one RP that overlap so once given their extent, the one of less
-        colour contrast is dropped (one object, one box).
+        the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
     part_area, part_reach : float
         Mode ``objects``: a dense RP holds parts of a stage-I RP's objects when at least
         ``part_cover`` of its boxes have their centre in a stage-I box grown

@@ -19,8 +19,7 @@ counters work once they hold a few exemplars:
    boxes, chosen where the colour inside the boxes differs most from a ring around
    them (Fisher ratio in CIELAB, :func:`colour_contrast`): the classical scale
    selection of a blob detector, done jointly over the instances. A coin's box grows
-   from its bright centre to the coin. Two boxes that then lie on one object (more than
-   ``part_cover`` of the smaller) become one: parts, or a turned and an upright match.
+   from its bright centre to the coin.
 3. **One RP per object** (:func:`suppress_parts`): a group whose boxes lie mostly
    inside (or around) the boxes of a better-ranked RP holds parts of the same objects
    and is dropped; its boxes that lie elsewhere are not enough to make an RP.
@@ -614,8 +613,8 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
                                  params.extent_shifts, integrals, params.extent_turn,
                                  is_turned)
-            # two boxes on one object (parts, or a turned and a plain match) become one
-            b = b[np.sort(nms(b, colour_contrast(integrals, b), params.part_cover, "cover"))]
+            # two instances on one object (two parts) become one box at the object's extent
+            b = b[np.sort(nms(b, colour_contrast(integrals, b), 0.5))]
         boxes = b * s
         if len(boxes) < params.min_instances:
             continue
