@@ -16,6 +16,7 @@ from typing import Any, Mapping
 
 from .io import InputError
 from .params import deep_merge  # noqa: F401  (part of this module's API)
+from .params import load_yaml
 
 DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
 DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
@@ -41,7 +42,7 @@ def _read_yaml(path: Any) -> Any:
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot be read ({e})") from None
     try:
-        return yaml.safe_load(text)
+        return load_yaml(text)
     except yaml.YAMLError as e:
         raise InputError(f"{path}: malformed YAML ({' '.join(str(e).split())})") from None
 

@@ -87,3 +87,15 @@ def test_orientation_modes_are_written_once_in_the_code():
     hits = [p for p in (REPO / "rescu").rglob("*.py")
             if '"wrapped", "relative", "paper"' in p.read_text()]
     assert [p.relative_to(REPO).as_posix() for p in hits] == ["rescu/discovery/urp.py"]
+
+
+@pytest.mark.parametrize("path", sorted(str(p.relative_to(REPO)) for p in
+                                        [*(REPO / "rescu" / "defaults").glob("*.yaml"),
+                                         *(REPO / "config").glob("*.yaml")]))
+def test_fast_yaml_reader_gives_the_safe_loaders_values(path: str) -> None:
+    """rescu.params.load_yaml (PyYAML's C parser where present) reads every shipped YAML
+    file as yaml.safe_load does."""
+    from rescu.params import load_yaml
+
+    text = (REPO / path).read_text()
+    assert load_yaml(text) == yaml.safe_load(text)
