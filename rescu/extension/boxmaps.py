@@ -161,6 +161,44 @@ def map_score(f: np.ndarray, cell_px: float, boxes: np.ndarray,
     return float(float(box_contrast(f, b, cell_px, integral).mean()) * rarity)
 
 
+def maximum_filter(a: np.ndarray, size: int | Sequence[int]) -> np.ndarray:
+    """The largest value of ``a`` in the window of ``size`` cells centred at each cell.
+
+    Equal to ``scipy.ndimage.maximum_filter(a, size, mode="nearest")`` (a window that
+    leaves the array takes the maximum of its part inside), without importing
+    ``scipy.ndimage`` (0.1-0.4 s of the dense step's process): one axis at a time, the
+    maximum of shifted copies.
+
+    Parameters
+    ----------
+    a : (...) array, any number of axes
+    size : odd int per axis (or one for every axis), >= 1
+
+    Returns
+    -------
+    array of ``a``'s shape and dtype
+
+    >>> maximum_filter(np.array([[1, 5, 2, 0], [0, 0, 0, 7]]), (1, 3)).tolist()
+    [[5, 5, 5, 2], [0, 0, 7, 7]]
+    """
+    out = np.array(a, copy=True)
+    sizes = [int(size)] * out.ndim if np.ndim(size) == 0 else [int(s) for s in size]
+    if len(sizes) != out.ndim or any(s < 1 or s % 2 == 0 for s in sizes):
+        raise ValueError(f"size must be odd and >= 1 per axis of a {out.ndim}-d array, "
+                         f"got {size!r}")
+    for axis, s in enumerate(sizes):
+        r, n = s // 2, out.shape[axis]
+        if r == 0 or n == 0:
+            continue
+        src = np.moveaxis(out, axis, 0)
+        pad = np.concatenate([np.repeat(src[:1], r, 0), src, np.repeat(src[-1:], r, 0)])
+        acc = src.copy()
+        for k in range(2 * r + 1):
+            np.maximum(acc, pad[k:k + n], out=acc)
+        out = np.moveaxis(acc, 0, axis)
+    return np.ascontiguousarray(out)
+
+
 def unit_mean(f: np.ndarray) -> np.ndarray:
     """The mean feature of ``f`` (C, h, w) over every cell, scaled to unit norm -> (C,)."""
     g = f.reshape(f.shape[0], -1).mean(1)

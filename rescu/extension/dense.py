@@ -52,7 +52,8 @@ import numpy as np
 from ..discovery.sources import DenseParams, is_whole_object
 from ..boxes import cover_matrix, touching_sides
 from ..types import Instance, Pattern
-from .boxmaps import integral_map, map_score, unit_mean
+from .boxmaps import integral_map, map_score, maximum_filter, unit_mean
+from .linkage import average_linkage_labels
 from .objects import colour_integrals, rect_sums
 from .turned import complete_turned, hypercolumn, level_image, turned_map
 
@@ -100,8 +101,6 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
     response : (n,) float, descending
     emb : (n, C) float32, the unit mean feature of each blob's window
     """
-    from scipy.ndimage import maximum_filter
-
     resp, means = [], []
     for a in sizes:
         mc = box_means(f, int(a))
@@ -113,7 +112,7 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
         resp.append((1.0 - (mc * mr).sum(0) / (nc * nr)) * nc)
         means.append(mc / nc)
     r = np.stack(resp)
-    peaks = np.argwhere((r == maximum_filter(r, size=3, mode="nearest")) & (r > 0))
+    peaks = np.argwhere((r == maximum_filter(r, 3)) & (r > 0))
     # a window that leaves the map is measured against reflected features: its contrast
     # is an artefact of the border, not an object (such blobs recur along every edge)
     a = np.asarray(sizes, float)[peaks[:, 0]] / 2.0
@@ -245,8 +244,6 @@ def split_by_colour(labels: np.ndarray, colours: np.ndarray, max_distance: float
     ...     [250, 0, 0], [245, 0, 0], [0, 0, 0]], float), 60.0, 2).tolist()
     [1, 1, 3, 3, 2]
     """
-    from scipy.cluster.hierarchy import fcluster, linkage
-
     labels = np.asarray(labels).copy()
     colours = np.asarray(colours, np.float64).reshape(len(labels), -1)
     nxt = int(labels.max()) + 1 if len(labels) else 0
@@ -254,8 +251,7 @@ def split_by_colour(labels: np.ndarray, colours: np.ndarray, max_distance: float
         m = np.flatnonzero(labels == lab)
         if len(m) < max(min_instances, 2):
             continue
-        sub = fcluster(linkage(colours[m], method="average", metric="euclidean"),
-                       t=max_distance, criterion="distance")
+        sub = average_linkage_labels(colours[m], max_distance, "euclidean")
         for k in np.unique(sub)[1:]:            # the first sub-group keeps the label
             labels[m[sub == k]] = nxt
             nxt += 1
@@ -286,15 +282,13 @@ def dense_candidates(f: np.ndarray, cell_px: float, params: DenseParams,
     -------
     list of :class:`DenseCandidate`, by descending score (ties: top-left first)
     """
-    from scipy.cluster.hierarchy import fcluster, linkage
-
     boxes, emb = distinct_blobs(f, cell_px, params, sizes)
     if len(boxes) < params.min_instances:
         return []
-    # average-linkage clustering on cosine distance, cut at 1 - min_similarity (the same
-    # partition as scikit-learn's AgglomerativeClustering, without its 1-s import)
-    labels = fcluster(linkage(np.asarray(emb, np.float64), method="average", metric="cosine"),
-                      t=1.0 - params.min_similarity, criterion="distance")
+    # average-linkage clustering on cosine distance, cut at 1 - min_similarity (the
+    # partition of scipy's linkage and fcluster, or scikit-learn's AgglomerativeClustering,
+    # without their imports: rescu.extension.linkage)
+    labels = average_linkage_labels(emb, 1.0 - params.min_similarity, "cosine")
     if colour_of is not None and params.max_colour_distance > 0:
         labels = split_by_colour(labels, colour_of(boxes), params.max_colour_distance,
                                  params.min_instances)

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
-                      separation)
+                      maximum_filter, separation)
 
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
@@ -131,12 +131,9 @@ def window_peaks(sim: np.ndarray, window: tuple[int, int], tau: float, cell_px: 
                  box: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Maxima of ``sim`` within 0.6 x the ``(w, h)`` cell ``window``, at least ``tau``, a
     quarter window off the border: ``box`` (w, h) px boxes (n, 4) on them, their sims."""
-    from scipy.ndimage import maximum_filter
-
     (sw, sh), (bw, bh), (h, w) = window, box, sim.shape
     ry, rx = max(1, int(round(sh * 0.6))), max(1, int(round(sw * 0.6)))
-    ys, xs = np.nonzero((sim == maximum_filter(sim, size=(2 * ry + 1, 2 * rx + 1),
-                                               mode="nearest")) & (sim >= tau))
+    ys, xs = np.nonzero((sim == maximum_filter(sim, (2 * ry + 1, 2 * rx + 1))) & (sim >= tau))
     inside = ((ys + 0.5 >= 0.25 * sh) & (ys + 0.5 <= h - 0.25 * sh)
               & (xs + 0.5 >= 0.25 * sw) & (xs + 0.5 <= w - 0.25 * sw))
     ys, xs = ys[inside], xs[inside]
