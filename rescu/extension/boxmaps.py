@@ -1,6 +1,7 @@
 """Box statistics on a frozen CNN's feature map: summed-area tables, the mean feature and
 the centre-surround contrast of pixel boxes, how much a set of boxes stands out, and whether
-neighbouring boxes are separate things (:func:`separation`)
+neighbouring boxes are separate things (:func:`separation`), and the local maxima of a map
+(:func:`maximum_filter`)
 (shared by the dense source, :mod:`rescu.extension.dense`, and the whole-object
 selection and confidence, :mod:`rescu.extension.objects`).
 
@@ -15,7 +16,8 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "group_prototype",
-           "map_score", "unit_mean", "centre_part", "OBJECT_PROBE", "separation"]
+           "prototype_of", "map_score", "maximum_filter", "unit_mean", "centre_part",
+           "OBJECT_PROBE", "separation"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -115,7 +117,14 @@ def group_prototype(f: np.ndarray, cell_px: float, boxes: np.ndarray,
     (:func:`box_features`), their (m,) similarities to it, their median ``(w, h)`` in
     pixels and that size in cells ``(sw, sh)`` (at least 1)."""
     b = np.asarray(boxes, float).reshape(-1, 4)
-    emb = box_features(f, cell_px, b, integral)
+    return prototype_of(box_features(f, cell_px, b, integral), b, cell_px)
+
+
+def prototype_of(emb: np.ndarray, boxes: np.ndarray, cell_px: float
+                 ) -> tuple[np.ndarray, np.ndarray, tuple[float, float], tuple[int, int]]:
+    """:func:`group_prototype` from the boxes' features ``emb`` (m, C) (:func:`box_features`
+    of ``boxes`` (m, 4) px), for a caller that also needs the features."""
+    b = np.asarray(boxes, float).reshape(-1, 4)
     proto = emb.mean(0)
     proto /= np.linalg.norm(proto) + 1e-9
     bw, bh = float(np.median(b[:, 2])), float(np.median(b[:, 3]))

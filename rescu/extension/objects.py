@@ -43,7 +43,7 @@ import numpy as np
 
 from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
-                      maximum_filter, separation)
+                      maximum_filter, prototype_of, separation)
 
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
@@ -383,11 +383,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     if len(b) < 2:
         return {"confidence": 0.0, "gap": -1.0, "contrast": 0.0}
     emb = box_features(f, cell_px, b, integral)
-    proto = emb.mean(0)
-    proto /= np.linalg.norm(proto) + 1e-9
-    side = (max(1, int(round(float(np.median(b[:, 2])) / cell_px))),
-            max(1, int(round(float(np.median(b[:, 3])) / cell_px))))
-    sims = emb @ proto                         # the instances' similarities
+    proto, sims, _, side = prototype_of(emb, b, cell_px)  # sims: the instances' similarities
     gap = distinctiveness(similarity_map(f, proto, side), sims, b, cell_px)
     con = float(np.median(colour_contrast(integrals, np.asarray(boxes, float).reshape(-1, 4))))
     conf = pattern_confidence(gap, len(b), con if objects else None,
