@@ -185,6 +185,22 @@ def test_combine_sources_drops_dense_instances_on_stage1_ones():
     assert [p.count for p in only] == [4, 3] and [p.id for p in only] == [0, 1]
 
 
+def test_combine_sources_keeps_one_box_per_object_of_a_dense_rp():
+    # a plain and a turned box on one coin: each covers over part_cover (0.5) of the
+    # other while their IoU is under 0.5; the weaker goes, the rest of the RP stays
+    coin = [Instance(bbox=(0, 0, 40, 40), score=0.9), Instance(bbox=(10, -10, 24, 60), score=0.6)]
+    rest = [Instance(bbox=(60 * k, 0, 40, 40), score=0.8) for k in (1, 2, 3)]
+    rp = Pattern(id=0, score=1.0, instances=coin + rest, extra={"source": "dense"})
+    out = combine_sources([], [rp], _params(mode="objects", min_instances=3))
+    assert [i.bbox for i in out[0].instances] == [(0, 0, 40, 40)] + [i.bbox for i in rest]
+    assert out[0].extra == rp.extra and len(rp.instances) == 5  # the input unchanged
+    # too few left: the RP goes; an RP without such pairs is passed on as it is
+    pair = Pattern(id=1, score=1.0, instances=coin, extra={"source": "dense"})
+    assert combine_sources([], [pair], _params(mode="objects", min_instances=2)) == []
+    alone = Pattern(id=2, score=1.0, instances=rest, extra={"source": "dense"})
+    assert combine_sources([], [alone], _params(mode="objects"))[0] is alone
+
+
 def _photo(rng):
     """A grey noisy floor with five red discs and four blue squares (40 px)."""
     img = np.clip(150 + rng.normal(0, 8, (360, 480, 3)), 0, 255).astype(np.uint8)

@@ -303,6 +303,8 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
                     ) -> list[Pattern]:
     """Stage I's RPs and the dense ones as one list (ids renumbered 0..).
 
+    Each dense RP first keeps one box per object (:func:`_one_box_per_object`: of two
+    boxes covering more than ``params.part_cover`` of each other, the stronger).
     ``params.mode == "dense"``: the dense RPs only. ``"both"``: stage I's RPs first, then
     each dense RP without its instances that overlap a stage-I instance (IOD above
     ``params.overlap_iod`` either way), kept when ``params.min_instances`` remain.
@@ -312,6 +314,7 @@ def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DensePa
     overlapping RPs keeps the objects is decided by their confidence, once they are
     scored (:func:`split_by_confidence`).
     """
+    dense = [q for q in (_one_box_per_object(d, params) for d in dense) if q is not None]
     if params.mode == "dense":
         out = list(dense)
     elif params.mode == "objects":
@@ -363,6 +366,36 @@ def _without_overlap(patterns: list[Pattern], first: list[Pattern], params: Dens
     return [p for p in out if p is not None]
 
 
+def _one_box_per_object(p: Pattern, params: DenseParams) -> Pattern | None:
+    """``p`` less each instance whose intersection with a stronger instance of ``p`` (a
+    higher instance score) is more than ``params.part_cover`` of the smaller box: two
+    boxes of one object (a plain and a turned box on one coin). None when fewer than
+    ``params.min_instances`` remain."""
+    b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
+    if len(b) < 2:
+        return p
+    order = np.argsort(-np.array([i.score for i in p.instances], float), kind="stable")
+    c = cover_matrix(b, b)
+    ok = np.zeros(len(b), bool)
+    for k in order:
+        ok[k] = not (c[k, ok] > params.part_cover).any()
+    return _kept(p, ok, params.min_instances)
+
+
+def _kept(p: Pattern, ok: np.ndarray, min_instances: int) -> Pattern | None:
+    """``p`` with the instances where ``ok`` (feature points follow them): ``p`` itself
+    when all are, None when fewer than ``min_instances`` are."""
+    if ok.all():
+        return p
+    if ok.sum() < min_instances:
+        return None
+    fp = p.feature_points
+    if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
+        fp = np.asarray(fp)[:, ok]
+    return Pattern(id=p.id, score=p.score, feature_points=fp, extra=dict(p.extra),
+                   instances=[i for i, k in zip(p.instances, ok) if k])
+
+
 def _less_overlap(p: Pattern, taken: np.ndarray, params: DenseParams) -> Pattern | None:
     """``p`` less its instances that overlap a box of ``taken`` (IOD above
     ``params.overlap_iod`` either way; feature points follow their instances): ``p``
@@ -370,15 +403,7 @@ def _less_overlap(p: Pattern, taken: np.ndarray, params: DenseParams) -> Pattern
     b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4)
     ok = (np.ones(len(b), bool) if not len(taken)
           else (cover_matrix(b, taken) <= params.overlap_iod).all(1))
-    if ok.all():
-        return p
-    if ok.sum() < params.min_instances:
-        return None
-    fp = p.feature_points
-    if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
-        fp = np.asarray(fp)[:, ok]
-    return Pattern(id=p.id, score=p.score, feature_points=fp, extra=dict(p.extra),
-                   instances=[i for i, k in zip(p.instances, ok) if k])
+    return _kept(p, ok, params.min_instances)
 
 
 def split_by_confidence(res: ImageResult, min_confidence: float,
