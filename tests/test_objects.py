@@ -603,55 +603,52 @@ def test_the_dominant_rp_is_the_most_confident_when_rps_have_confidences():
     assert dominant_pattern([_pat([[0, 0, 1, 1]] * 9), _pat([[0, 0, 1, 1]] * 4)]) == 0
 
 
-@pytest.mark.xfail(strict=True, reason="known flaw of the dense step (docs/results.md, 'One "
-                   "object, one box'): one coin keeps a plain and a turned box, 25 boxes; "
-                   "RESCU-I keeps one (the next test)")
-def test_coins_photo_is_one_rp_with_one_box_per_coin():
-    # scikit-image's coins.png: 24 coins in a 4 x 6 grid. The most confident dense RP
-    # should hold a box on most of them and never two boxes on one coin; today one coin
-    # keeps a plain and a turned match (IoU 0.37 once given their extent, under the 0.5
-    # that makes two boxes one). Strict: passing means the flaw is gone, and the mark goes
-    pytest.importorskip("skimage")
+def _coins_path():
+    """scikit-image's coins.png: 24 coins in a 4 x 6 grid (skipped without skimage)."""
     from pathlib import Path
 
-    import skimage
+    skimage = pytest.importorskip("skimage")
+    return Path(skimage.__file__).parent / "data" / "coins.png"
 
-    from rescu import core
+
+def _assert_one_box_per_coin(patterns, part_cover):
+    """The most confident RP holds a box on 20-24 of the coins, no two on one coin."""
     from rescu.boxes import cover_matrix
-    from rescu.config import load_config
 
-    cfg = load_config()
-    path = Path(skimage.__file__).parent / "data" / "coins.png"
-    prep = core.prepare_file(str(path), "coins.png", max_side=cfg["image"]["max_side"],
-                             min_side=cfg["image"]["min_side"])
-    res = core.find_dense(prep, cfg["dense"])
-    best = max(res.patterns, key=lambda q: q.extra["confidence"])
+    best = max(patterns, key=lambda q: q.extra["confidence"])
     b = np.array([i.bbox for i in best.instances])
     assert 20 <= len(b) <= 24, len(b)
     c = cover_matrix(b, b)
     np.fill_diagonal(c, 0.0)
-    assert c.max() <= cfg["dense"]["part_cover"], c.max()
+    assert c.max() <= part_cover, c.max()
+
+
+@pytest.mark.xfail(strict=True, reason="known flaw of the dense step (docs/results.md, 'One "
+                   "object, one box'): one coin keeps a plain and a turned box, 25 boxes; "
+                   "RESCU-I keeps one (the next test)")
+def test_coins_photo_is_one_rp_with_one_box_per_coin():
+    # The most confident dense RP should hold a box on most coins and never two boxes on
+    # one coin; today one coin keeps a plain and a turned match (IoU 0.37 once given
+    # their extent, under the 0.5 that makes two boxes one). Strict: passing means the
+    # flaw is gone, and the mark goes
+    from rescu import core
+    from rescu.config import load_config
+
+    path = _coins_path()
+    cfg = load_config()
+    prep = core.prepare_file(str(path), "coins.png", max_side=cfg["image"]["max_side"],
+                             min_side=cfg["image"]["min_side"])
+    _assert_one_box_per_coin(core.find_dense(prep, cfg["dense"]).patterns,
+                             cfg["dense"]["part_cover"])
 
 
 def test_coins_photo_rescu_i_reports_one_box_per_coin():
     # The dense step's RP above keeps a plain and a turned box on one coin; RESCU-I keeps
     # the stronger of two boxes of one dense RP that cover over part_cover of each other
     # (rescu.discovery.sources.combine_sources): 24 coins, 24 boxes, none on another.
-    pytest.importorskip("skimage")
-    from pathlib import Path
-
-    import skimage
-
     import rescu
-    from rescu.boxes import cover_matrix
     from rescu.config import load_config
 
-    cfg = load_config()
-    res = rescu.discover(Path(skimage.__file__).parent / "data" / "coins.png",
-                         method="rescu-i")
-    best = max(res.patterns, key=lambda q: q.extra["confidence"])
-    b = np.array([i.bbox for i in best.instances])
-    assert 20 <= len(b) <= 24, len(b)
-    c = cover_matrix(b, b)
-    np.fill_diagonal(c, 0.0)
-    assert c.max() <= cfg["dense"]["part_cover"], c.max()
+    path = _coins_path()
+    _assert_one_box_per_coin(rescu.discover(path, method="rescu-i").patterns,
+                             load_config()["dense"]["part_cover"])
