@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..boxes import cover_matrix
+from ..boxes import cover_matrix, greedy_keep
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, failure_record
 
@@ -375,10 +375,9 @@ def _one_box_per_object(p: Pattern, params: DenseParams) -> Pattern | None:
     if len(b) < 2:
         return p
     order = np.argsort(-np.array([i.score for i in p.instances], float), kind="stable")
-    c = cover_matrix(b, b)
+    ranked = b[order]
     ok = np.zeros(len(b), bool)
-    for k in order:
-        ok[k] = not (c[k, ok] > params.part_cover).any()
+    ok[order[greedy_keep(cover_matrix(ranked, ranked) > params.part_cover)]] = True
     return _kept(p, ok, params.min_instances)
 
 
