@@ -47,10 +47,16 @@ DOMINANT = {
     "count": lambda n, c: (n, c),
     "count-confidence": lambda n, c: (n * c, n),
     "count-confidence3": lambda n, c: (n * c ** 3, n),
+    "count-near-best": lambda n, c: (n, c),
 }
 """Rules for the dominant RP: ``code`` is :func:`rescu.scene.counting.dominant_pattern`
 (the most confident); the others rank an RP of ``n`` instances and confidence ``c`` by
-the key they give (ties: the earlier RP)."""
+the key they give (ties: the earlier RP). ``count-near-best`` ranks only the RPs whose
+confidence is at least :data:`NEAR_BEST` of the image's highest: the count decides
+between RPs the confidence hardly tells apart."""
+
+NEAR_BEST = 0.8
+"""``count-near-best``: the share of the highest confidence an RP needs to compete."""
 
 
 def pick_dominant(patterns: list[Any], rule: str = "code") -> int | None:
@@ -61,15 +67,20 @@ def pick_dominant(patterns: list[Any], rule: str = "code") -> int | None:
     >>> rp = lambda n, c: Pattern(id=0, score=1.0, extra={"confidence": c},
     ...                           instances=[Instance(bbox=(0, 0, 1, 1))] * n)
     >>> [pick_dominant([rp(3, 0.9), rp(20, 0.35)], r) for r in DOMINANT]
-    [0, 1, 1, 0]
+    [0, 1, 1, 0, 0]
+    >>> pick_dominant([rp(3, 0.9), rp(20, 0.75)], "count-near-best")
+    1
     """
     from rescu.scene.counting import dominant_pattern
 
     key = DOMINANT[rule]
     if key is None:
         return dominant_pattern(patterns)
-    ranked = [(key(p.count, float(p.extra.get("confidence", 0.0))), -k)
-              for k, p in enumerate(patterns) if p.count]
+    conf = [float(p.extra.get("confidence", 0.0)) for p in patterns]
+    floor = (NEAR_BEST * max((c for c, p in zip(conf, patterns) if p.count), default=0.0)
+             if rule == "count-near-best" else -1.0)
+    ranked = [(key(p.count, c), -k) for k, (p, c) in enumerate(zip(patterns, conf))
+              if p.count and c >= floor]
     return -max(ranked)[1] if ranked else None
 
 
