@@ -166,7 +166,8 @@ def test_profile_on_slurm_equals_local_run(slurm_env, tmp_path):
     assert len(groups) == 2, text[-3000:]  # one submission per image
     # every other job of the plan but its local rules (localrules: the tables) went
     # through sbatch on its own: counted from the run's own output, not a constant
-    alone = sum(n for r, n in counts.items() if r not in _grouped()) - len(local_jobs)
+    grouped = _grouped()
+    alone = sum(n for r, n in counts.items() if r not in grouped) - len(local_jobs)
     assert len(set(submitted)) == len(groups) + alone, (submitted, counts, local_jobs)
     assert "Falling back to 'sacct'" not in text  # job states came from squeue
 

@@ -51,12 +51,13 @@ DOMINANT = {
 }
 """Rules for the dominant RP: ``code`` is :func:`rescu.scene.counting.dominant_pattern`
 (the most confident); the others rank an RP of ``n`` instances and confidence ``c`` by
-the key they give (ties: the earlier RP). ``count-near-best`` ranks only the RPs whose
-confidence is at least :data:`NEAR_BEST` of the image's highest: the count decides
-between RPs the confidence hardly tells apart."""
+the key they give (ties: the earlier RP), among the RPs whose confidence is at least
+:data:`FLOOR` of the image's highest."""
 
-NEAR_BEST = 0.8
-"""``count-near-best``: the share of the highest confidence an RP needs to compete."""
+FLOOR = {"count-near-best": 0.8}
+"""Share of the image's highest confidence an RP needs to compete, by rule (0 when not
+given): with ``count-near-best`` the count decides only between RPs the confidence
+hardly tells apart."""
 
 
 def pick_dominant(patterns: list[Any], rule: str = "code") -> int | None:
@@ -77,10 +78,10 @@ def pick_dominant(patterns: list[Any], rule: str = "code") -> int | None:
     if key is None:
         return dominant_pattern(patterns)
     conf = [float(p.extra.get("confidence", 0.0)) for p in patterns]
-    floor = (NEAR_BEST * max((c for c, p in zip(conf, patterns) if p.count), default=0.0)
-             if rule == "count-near-best" else -1.0)
+    share = FLOOR.get(rule, 0.0)
+    floor = share * max((c for c, p in zip(conf, patterns) if p.count), default=0.0)
     ranked = [(key(p.count, c), -k) for k, (p, c) in enumerate(zip(patterns, conf))
-              if p.count and c >= floor]
+              if p.count and (share == 0.0 or c >= floor)]
     return -max(ranked)[1] if ranked else None
 
 
