@@ -293,9 +293,10 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
         feats = F.load_features(features_h5)
         gray = _prepared_gray(png if params.get("refine_boxes") else None, meta_path)
         done: list[tuple[Any, list[Pattern]]] = []
+        shared: dict[Any, Any] = {}      # matches and URP tables the variants have in common
         for name, over in overrides.items():
             p = S1.Stage1Params.from_dict({**params, **over})
-            o = S1.discover(feats, p)
+            o = S1.discover(feats, p, shared)
             res = empty_result(meta, f"rescu-i[{name}]", None)
             res.patterns = core.rescu_i_patterns(feats, o.rps, p, gray, float(meta["scale_factor"]))
             res.extra.update(chosen_params=o.chosen, chosen_by=o.chosen_by,

@@ -161,6 +161,28 @@ def test_deterministic():
         assert x.objective == y.objective
 
 
+def test_variants_sharing_matches_and_urp_tables_give_their_own_results():
+    """discover(..., shared) reuses the matches and URP tables of earlier calls on the same
+    features (the ablation's variants); each variant's result is the one it gets alone."""
+    img, _ = make_scene(n=4, rows=((30, 0), (150, 7)), h=250)
+    f = extract_features(img, SIFT)
+    variants = [Stage1Params(adaptive=()), Stage1Params(adaptive=("P_d",)),
+                Stage1Params(adaptive=("P_d", "P_s", "P_theta")),
+                Stage1Params(adaptive=("P_d",), orientation_mode="paper"),
+                Stage1Params(adaptive=())]
+    shared: dict = {}
+    for p in variants:
+        alone, together = discover(f, p), discover(f, p, shared)
+        assert alone.chosen == together.chosen and alone.chosen_by == together.chosen_by
+        assert [(r.objective, r.feature_index.tolist()) for r in alone.rps] == \
+            [(r.objective, r.feature_index.tolist()) for r in together.rps]
+    # one match table; one URP table per orientation mode and loosest P_d
+    assert sum(k[0] == "match" for k in shared if isinstance(k, tuple)) == 1
+    assert sum(k[0] == "urps" for k in shared if isinstance(k, tuple)) == 2
+    with pytest.raises(ValueError, match="shared dict"):
+        discover(extract_features(make_scene(n=3)[0], SIFT), variants[0], shared)
+
+
 @pytest.mark.parametrize("mode", ["wrapped", "relative", "paper"])
 def test_orientation_modes_find_the_row(mode):
     img, gt = make_scene()

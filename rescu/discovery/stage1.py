@@ -306,18 +306,29 @@ class URPTable:
         return self.abcd[best[order]]
 
 
-def search_context(features: Features, params: Stage1Params) -> tuple[SearchContext, float]:
+def search_context(features: Features, params: Stage1Params,
+                   shared: dict[Any, Any] | None = None) -> tuple[SearchContext, float]:
     """The per-image :class:`SearchContext` of stage I and the image diagonal (pixels).
 
     Matches the candidate correspondences (``params.match``) and carries the search
     parameters of ``params``. Used by :func:`discover`; public for benchmarks and tests
-    that time or probe one step.
+    that time or probe one step. ``shared``: as in :func:`discover` (the matches, the
+    RootSIFT descriptors and the k-d tree, which depend on the features and
+    ``params.match`` alone).
     """
-    xy = features.xy.astype(np.float64)
-    nbr, _ = match_candidates(features.descriptors, features.xy, features.scale, params.match)
+    key = ("match", params.match)
+    if shared is not None and key in shared:
+        xy, rs, nbr, tree = shared[key]
+    else:
+        xy = features.xy.astype(np.float64)
+        nbr, _ = match_candidates(features.descriptors, features.xy, features.scale,
+                                  params.match)
+        rs, tree = root_sift(features.descriptors), cKDTree(xy)
+        if shared is not None:
+            shared[key] = (xy, rs, nbr, tree)
     ctx = SearchContext(
         xy=xy, scale=features.scale.astype(np.float64), angle=features.angle.astype(np.float64),
-        rs=root_sift(features.descriptors), nbr=nbr, tree=cKDTree(xy),
+        rs=rs, nbr=nbr, tree=tree,
         affinity=params.affinity, desc_max_dist=params.match_max_dist, search=params)
     w, h = features.image_size
     return ctx, float(np.hypot(w, h))
@@ -522,7 +533,8 @@ def choose_parameters(ctx: SearchContext, table: URPTable, features: Features,
     return chosen if best_u > 0 else None
 
 
-def discover(features: Features, params: Stage1Params | None = None) -> Stage1Output:
+def discover(features: Features, params: Stage1Params | None = None,
+             shared: dict[Any, Any] | None = None) -> Stage1Output:
     """RESCU-I on one image's features.
 
     Parameters
@@ -530,6 +542,13 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
     features : Features
         SIFT features of the processed image.
     params : Stage1Params
+    shared : dict or None
+        For several calls on the same ``features`` with different parameters (the
+        ablation's variants): a dict the caller keeps between the calls, empty at the
+        first. The candidate correspondences and the tables of initial URPs go in it,
+        keyed by the parameters they depend on, and later calls whose parameters give the
+        same ones reuse them; the results are those of calls without it. Calls on other
+        features need another dict.
 
     Returns
     -------
@@ -554,11 +573,21 @@ def discover(features: Features, params: Stage1Params | None = None) -> Stage1Ou
         return Stage1Output([], fixed, 0.0, {"match": 0.0, "precompute": 0.0, "grid": 0.0,
                                              "search": 0.0})
     t0 = time.perf_counter()
-    ctx, diag = search_context(features, params)
+    if shared is not None and shared.setdefault("features", features) is not features:
+        raise ValueError("discover: a shared dict serves the features it was first used with")
+    ctx, diag = search_context(features, params, shared)
     t1 = time.perf_counter()
     grid = params.grid()
     pd_max = max(p["P_d"] for p in grid)
-    table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol, params.seed)
+    # the table depends on the matches, the affinity (orientation mode, bandwidths) and these
+    key = ("urps", params.match, params.affinity, pd_max * diag, params.spatial_k,
+           params.pos_tol, params.seed)
+    table = shared.get(key) if shared is not None else None
+    if table is None:
+        table = precompute_urps(ctx, pd_max * diag, params.spatial_k, params.pos_tol,
+                                params.seed)
+        if shared is not None:
+            shared[key] = table
     t2 = time.perf_counter()
     chosen, chosen_by = fixed, "fixed"
     if len(grid) > 1:
