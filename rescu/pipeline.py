@@ -439,7 +439,9 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     """RESCU-II once per stage-II ablation variant (e.g. another ``proposal_method``).
 
     Each variant is a mapping of ``stage2`` keys overriding ``params``. Features, head
-    and prediction are computed in memory (nothing but the JSONs is written);
+    and prediction are computed in memory (nothing but the JSONs is written), a backbone
+    pass over pixels that several variants pass over once
+    (:func:`rescu.extension.backbone.remembered_maps`);
     ``out_jsons`` maps each variant to its per-image result JSON (method
     ``rescu-ii[<variant>]``).
     """
@@ -457,15 +459,18 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     plist = {name: Stage2Params.variant(params, over) for name, over in variants.items()}
 
     def run() -> None:
+        from .extension.backbone import remembered_maps
+
         rgb, _ = read_prepared(png, meta_path)
-        for name, p in plist.items():
-            feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
-            ckpt, info = train_heads(feats, s1, p)
-            res = predict_stage2(feats, ckpt, s1, p)
-            res.method = f"rescu-ii[{name}]"
-            res.extra["stage2"] = info
-            res.extra["ablation"] = dict(variants[name])
-            io.write_json(out_jsons[name], res)
+        with remembered_maps():  # a pass over pixels that two variants share: made once
+            for name, p in plist.items():
+                feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
+                ckpt, info = train_heads(feats, s1, p)
+                res = predict_stage2(feats, ckpt, s1, p)
+                res.method = f"rescu-ii[{name}]"
+                res.extra["stage2"] = info
+                res.extra["ablation"] = dict(variants[name])
+                io.write_json(out_jsons[name], res)
 
     def empty(f: Failure) -> None:
         for name in variants:

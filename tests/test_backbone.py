@@ -161,3 +161,77 @@ def test_folded_batch_norms_give_the_published_network(lite0):
     # fuse=False keeps the published layers (benchmarks/speed/backbone_layout.py)
     raw = FrozenBackbone("efficientnet-lite0", feature_stride=16, fuse=False)
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in raw.model.modules())
+
+
+@pytest.mark.parametrize("k,pad", [(3, (0, 1, 0, 1)), (5, (1, 2, 1, 2)), (3, (1, 1, 1, 1))])
+@pytest.mark.parametrize("hw", [(20, 20), (21, 20), (20, 23), (7, 9)])
+def test_strided_conv_without_the_padding_copy_is_bit_for_bit_the_padded_one(k, pad, hw):
+    """A stride-2 depthwise convolution with TensorFlow's uneven "same" padding gives,
+    without padding a copy of its input, the very floats of padding first: every output
+    size, odd and even, both kernel sizes of EfficientNet-Lite, channels last or not."""
+    from rescu.extension.backbone import strided_conv_same
+
+    nn = torch.nn
+    c = 8
+    conv = nn.Conv2d(c, c, k, stride=2, groups=c, bias=True)
+    conv.static_padding = nn.ZeroPad2d(pad)
+    x = torch.randn(2, c, *hw, generator=torch.Generator().manual_seed(sum(hw) + k))
+    for t in (x, x.contiguous(memory_format=torch.channels_last)):
+        with torch.no_grad():
+            want = conv(conv.static_padding(t))
+            got = strided_conv_same(conv, t)
+        assert got.shape == want.shape
+        assert torch.equal(got, want)
+
+
+def test_unpadded_strided_convs_keep_the_maps_and_the_gradients(lite0):
+    """The backbone's stride-2 depthwise convolutions skip their padding layer
+    (rescu.extension.backbone.unpadded_strided_convs): maps and class probabilities are
+    those of the padding layers bit for bit; with gradients (fine-tuning) they pad."""
+    import copy
+
+    patched = [m for m in lite0.model.modules() if "forward" in vars(m)]
+    assert len(patched) == 4                       # EfficientNet-Lite0's stride-2 blocks
+    plain = copy.copy(lite0)
+    plain.model = copy.deepcopy(lite0.model)
+    for m in plain.model.modules():
+        vars(m).pop("forward", None)
+    rng = np.random.default_rng(8)
+    for shape in ((96, 160, 3), (97, 131, 3)):
+        img = rng.integers(0, 255, shape, dtype=np.uint8)
+        for a, b in zip(lite0.multiscale_maps(img), plain.multiscale_maps(img)):
+            assert torch.equal(a, b)
+    crops = rng.integers(0, 255, (3, 64, 64, 3), dtype=np.uint8)
+    assert np.array_equal(lite0.class_probabilities(crops), plain.class_probabilities(crops))
+    conv = patched[0]
+    x = torch.randn(1, conv.in_channels, 10, 12, requires_grad=True)
+    conv(x).sum().backward()
+    assert x.grad is not None and x.grad.shape == x.shape
+
+
+def test_remembered_maps_pass_the_backbone_once_per_distinct_image(lite0, monkeypatch):
+    """Under remembered_maps, image_features passes the backbone once per distinct image
+    (the stage-II ablation's variants pool other boxes from the same pixels) and gives the
+    features of passes made anew; outside it nothing is kept."""
+    from rescu.extension.backbone import image_features, remembered_maps
+
+    rng = np.random.default_rng(9)
+    img = rng.integers(0, 255, (80, 112, 3), dtype=np.uint8)
+    other = img.copy()
+    other[0, 0] ^= 1
+    boxes = [np.array([[4, 4, 40, 30], [50, 20, 40, 40]], np.float32)]
+    want = image_features(lite0, img, boxes, (1.0, 0.5))
+    calls = []
+    real = lite0.feature_map
+    monkeypatch.setattr(lite0, "feature_map", lambda x: calls.append(x.shape) or real(x))
+    with remembered_maps():
+        a = image_features(lite0, img, boxes, (1.0, 0.5))
+        b = image_features(lite0, img.copy(), boxes[:1] * 2, (1.0, 0.5))
+        with remembered_maps():                      # nested: the same memory
+            image_features(lite0, img, boxes, (1.0,))
+        image_features(lite0, other, boxes, (1.0,))   # other pixels: a pass of its own
+    assert len(calls) == 3
+    assert all(np.array_equal(x, y) for x, y in zip(want, a))
+    assert np.array_equal(b[0], a[0]) and np.array_equal(b[1], a[0])
+    image_features(lite0, img, boxes, (1.0,))          # after the block: a new pass
+    assert len(calls) == 4

@@ -20,10 +20,12 @@ Backbones:
 
 from __future__ import annotations
 
+import contextlib
 import glob
+import hashlib
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -129,6 +131,83 @@ def fold_same_padding(model) -> None:
                 m.static_padding = nn.Identity()
 
 
+def strided_conv_same(conv, x):
+    """A stride-2 convolution with TensorFlow's uneven "same" zero padding (``conv``'s
+    ``ZeroPad2d`` of ``(a, a + 1)`` or ``(a, a)`` per axis) on a (B, C, H, W) tensor,
+    without padding a copy of the input.
+
+    The convolution pads ``a`` on every side by itself, which gives each output of the
+    padded input but the last row and column where the extra zero is needed; those two
+    come from convolving the input's last few rows and columns, padded. The same sums of
+    the same products per output as padding first (the outputs are equal bit for bit,
+    ``tests/test_backbone.py``), and for a depthwise convolution, whose output is a
+    quarter of its input, about 1.8x faster: the padded copy of the input costs more
+    than the convolution itself.
+
+    Parameters
+    ----------
+    conv : torch.nn.Conv2d with stride 2, its padding 0 and a ``static_padding``
+        ``ZeroPad2d`` of ``(left, right, top, bottom)``, ``right - left`` and
+        ``bottom - top`` in {0, 1}
+    x : (B, C, H, W) float tensor
+
+    Returns
+    -------
+    (B, C', oh, ow) float tensor, what ``conv`` gives on the padded input:
+    ``oh = (H + top + bottom - kh) // 2 + 1``, ``ow`` alike
+    """
+    torch = _torch()
+    F = torch.nn.functional
+    left, right, top, bottom = conv.static_padding.padding
+    kh, kw = conv.kernel_size
+    h, w = int(x.shape[2]), int(x.shape[3])
+    oh, ow = (h + top + bottom - kh) // 2 + 1, (w + left + right - kw) // 2 + 1
+
+    def run(t, padding=(0, 0)):
+        return F.conv2d(t, conv.weight, conv.bias, conv.stride, padding, conv.dilation,
+                        conv.groups)
+
+    y = run(x, (top, left))            # symmetric: every output but the last row / column
+    n, m = int(y.shape[2]), int(y.shape[3])
+    if (n, m) == (oh, ow):
+        return y
+    out = torch.empty((y.shape[0], y.shape[1], oh, ow), dtype=y.dtype, device=y.device,
+                      memory_format=torch.channels_last
+                      if y.is_contiguous(memory_format=torch.channels_last)
+                      else torch.contiguous_format)
+    out[:, :, :n, :m] = y
+    if m < ow:                         # the last column's window: input columns c .. c+kw-1
+        c = 2 * (ow - 1) - left
+        out[:, :, :, ow - 1:] = run(F.pad(x[:, :, :, c:], (0, c + kw - w, top, bottom)))
+    if n < oh:
+        r = 2 * (oh - 1) - top
+        out[:, :, oh - 1:, :] = run(F.pad(x[:, :, r:, :], (left, right, 0, r + kh - h)))
+    return out
+
+
+def unpadded_strided_convs(model) -> None:
+    """Let each stride-2 depthwise convolution of an EfficientNet-Lite model skip its
+    padding layer (:func:`strided_conv_same`) when no gradient is needed, in place; with
+    gradients (fine-tuning) it pads as before. Same outputs, bit for bit."""
+    nn = _torch().nn
+    for m in model.modules():
+        pad = getattr(m, "static_padding", None)
+        if (isinstance(m, nn.Conv2d) and isinstance(pad, nn.ZeroPad2d)
+                and m.groups > 1 and m.groups == m.in_channels
+                and tuple(m.stride) == (2, 2) and tuple(m.padding) == (0, 0)
+                and tuple(m.dilation) == (1, 1)):
+            left, right, top, bottom = pad.padding
+            if right - left in (0, 1) and bottom - top in (0, 1):
+                m.forward = _strided_forward.__get__(m)
+
+
+def _strided_forward(self, x):
+    """``forward`` of a convolution :func:`unpadded_strided_convs` changed."""
+    if _torch().is_grad_enabled():
+        return self._conv_forward(self.static_padding(x), self.weight, self.bias)
+    return strided_conv_same(self, x)
+
+
 def inplace_activations(model) -> None:
     """Let each ReLU6 of a model overwrite its input (a convolution's fresh output, used
     nowhere else in EfficientNet-Lite) instead of allocating a new tensor. In place."""
@@ -155,7 +234,8 @@ class FrozenBackbone:
     fuse : bool
         EfficientNet-Lite0: fold its batch norms into the convolutions
         (:func:`fold_batch_norms`), its stride-1 convolutions' padding into them
-        (:func:`fold_same_padding`), and run its activations in place
+        (:func:`fold_same_padding`), let its stride-2 depthwise convolutions skip their
+        padding copy (:func:`unpadded_strided_convs`), and run its activations in place
         (:func:`inplace_activations`): the same network up to float rounding, faster
         (``benchmarks/speed/backbone_layout.py``). False keeps the published layers (for
         comparisons).
@@ -208,6 +288,7 @@ class FrozenBackbone:
             if fuse:
                 fold_batch_norms(model)
                 fold_same_padding(model)
+                unpadded_strided_convs(model)
                 inplace_activations(model)
         else:
             import torchvision
@@ -475,6 +556,38 @@ def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
     return f / np.maximum(n, 1e-12)
 
 
+#: Feature maps :func:`image_features` keeps while :func:`remembered_maps` is active
+#: (None: none kept), keyed by the backbone and the bytes of the image passed.
+_MAPS: dict[tuple[object, ...], object] | None = None
+
+
+@contextlib.contextmanager
+def remembered_maps() -> Iterator[None]:
+    """Within the block, :func:`image_features` passes the backbone over each distinct
+    image once: a map it made for the same backbone and the same pixels is used again
+    (the same tensor, so the same features). For work that pools other boxes from the
+    same images, such as the stage-II ablation's variants
+    (:func:`rescu.pipeline.stage2_ablation`). The maps are dropped at the block's end."""
+    global _MAPS
+    outer, _MAPS = _MAPS, ({} if _MAPS is None else _MAPS)
+    try:
+        yield
+    finally:
+        if outer is None:
+            _MAPS = None
+
+
+def _feature_map(backbone: FrozenBackbone, img: np.ndarray):
+    """``backbone.feature_map(img)``, remembered under :func:`remembered_maps`."""
+    if _MAPS is None:
+        return backbone.feature_map(img)
+    img = np.ascontiguousarray(img)
+    key = (id(backbone), backbone.stride, img.shape, hashlib.sha1(img.data).digest())
+    if key not in _MAPS:
+        _MAPS[key] = backbone.feature_map(img)
+    return _MAPS[key]
+
+
 def image_features(backbone: FrozenBackbone, rgb: np.ndarray, box_sets: Sequence[np.ndarray],
                    scales: Sequence[float] = (1.0,), pool_size: int = 2) -> list[np.ndarray]:
     """Pool several box sets from one image at several input scales (mean over scales).
@@ -502,7 +615,7 @@ def image_features(backbone: FrozenBackbone, rgb: np.ndarray, box_sets: Sequence
         nw, nh = max(16, int(round(w * s))), max(16, int(round(h * s)))
         img = rgb if (nw, nh) == (w, h) else cv2.resize(
             rgb, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-        fmap = backbone.feature_map(img)
+        fmap = _feature_map(backbone, img)
         fx, fy = nw / w, nh / h
         pooled = [pool_boxes(fmap, np.asarray(bs, np.float32).reshape(-1, 4)
                              * np.array([fx, fy, fx, fy], np.float32), (nw, nh), pool_size)
