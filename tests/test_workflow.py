@@ -543,3 +543,33 @@ def test_photo_only_dataset_runs_to_the_report(tmp_path):
     assert (res / "report" / "index.html").is_file()
     for table in ("rp_discovery", "counting", "ts", "vpd"):
         assert "no ground truth" in (res / "tables" / f"{table}.md").read_text(), table
+
+
+def test_run_step_hands_the_script_what_script_directive_would(tmp_path):
+    """workflow/run_step.py runs an adapter with a ``snakemake`` object built from the
+    job's JSON: named and positional inputs and outputs (a named list as a list), ``get``
+    with a default, parameters, wildcards, threads and the log; nothing of Snakemake is
+    imported in the job."""
+    script = tmp_path / "adapter.py"
+    script.write_text(
+        "import json, sys\n"
+        "s = snakemake\n"
+        "out = {'png': s.input.png, 'first': s.input[0], 'many': s.input.many,\n"
+        "       'missing': s.input.get('dense', 'none'), 'n_in': len(s.input),\n"
+        "       'outs': list(s.output), 'json': s.output.json, 'p': s.params.stage,\n"
+        "       'f': s.params.name, 'w': s.wildcards.image, 'threads': s.threads,\n"
+        "       'log': s.log[0], 'snakemake_imported': 'snakemake' in sys.modules}\n"
+        "open(s.output.json, 'w').write(json.dumps(out))\n")
+    job = {"input": {"items": ["a.png", "m1", "m2"], "names": {"png": [0, None],
+                                                           "many": [1, 3]}},
+           "output": {"items": [str(tmp_path / "o.json")], "names": {"json": [0, None]}},
+           "params": {"stage": {"k": [1, 2.5, None]}, "name": "x y"}, "threads": 2,
+           "wildcards": {"dataset": "d", "image": "im"}}
+    subprocess.run([sys.executable, str(REPO / "workflow" / "run_step.py"), str(script),
+                    json.dumps(job), str(tmp_path / "log.txt")], check=True)
+    got = json.loads((tmp_path / "o.json").read_text())
+    assert got == {"png": "a.png", "first": "a.png", "many": ["m1", "m2"],
+                   "missing": "none", "n_in": 3, "outs": [str(tmp_path / "o.json")],
+                   "json": str(tmp_path / "o.json"), "p": {"k": [1, 2.5, None]},
+                   "f": "x y", "w": "im", "threads": 2, "log": str(tmp_path / "log.txt"),
+                   "snakemake_imported": False}

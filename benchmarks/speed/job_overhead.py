@@ -8,7 +8,9 @@ Prints
    script imports ``rescu.pipeline``, sets up its log, limits threads, copies its input
    to its output): ``snakemake --cores 1`` with ``--jobs`` + 1 jobs against one with 1
    job, the difference over ``--jobs`` (Snakemake's scheduling of each job included,
-   its start-up not); and the seconds its ``benchmark:`` file records per job;
+   its start-up not); and the seconds its ``benchmark:`` file records per job. Once as
+   a ``script:`` rule, once run as the per-image rules run their scripts (``shell:``
+   through ``workflow/run_step.py``, ``step_params`` in ``workflow/rules/common.smk``);
 2. the seconds a fresh interpreter takes to import what each per-image step imports
    (median of 3);
 3. with ``--results`` (a finished run), the median seconds per job of every rule, from
@@ -40,6 +42,30 @@ rule noop:
     script: "noop.py"
 """
 
+# the same rule as the pipeline's per-image rules run their scripts (step_params)
+STEP_SNAKEFILE = """
+import json, shlex, sys
+
+def step(wildcards, input, output, threads):
+    job = {{"input": {{"items": list(input), "names": {{}}}},
+           "output": {{"items": list(output), "names": {{}}}}, "params": {{}},
+           "threads": threads, "wildcards": dict(wildcards.items())}}
+    return " ".join(shlex.quote(a) for a in (sys.executable, {runner!r}, "noop.py",
+                                             json.dumps(job)))
+
+rule all:
+    input: expand("out/{{i}}.txt", i=range({n}))
+
+rule noop:
+    input: "in.txt"
+    output: "out/{{i}}.txt"
+    params: step=step
+    log: "logs/{{i}}.log"
+    benchmark: "bench/{{i}}.tsv"
+    shell: "{{params.step}} {{log:q}}"
+"""
+FORMS = {"script:": SNAKEFILE, "shell: through workflow/run_step.py": STEP_SNAKEFILE}
+
 SCRIPT = """
 import shutil
 from rescu import pipeline
@@ -62,12 +88,13 @@ STEP_IMPORTS = {
 }
 
 
-def _run_noop(n: int) -> tuple[float, list[float]]:
+def _run_noop(n: int, snakefile: str = SNAKEFILE) -> tuple[float, list[float]]:
     """Seconds of one ``snakemake --cores 1`` process running ``n`` no-op jobs, and the
-    seconds each job's benchmark file records."""
+    seconds each job's benchmark file records (``snakefile``: one of :data:`FORMS`)."""
     with tempfile.TemporaryDirectory(prefix="rescu-noop-") as d:
         w = Path(d)
-        (w / "Snakefile").write_text(SNAKEFILE.format(n=n))
+        (w / "Snakefile").write_text(snakefile.format(
+            n=n, runner=str(REPO / "workflow" / "run_step.py")))
         (w / "noop.py").write_text(SCRIPT)
         (w / "in.txt").write_text("x\n")
         t0 = time.perf_counter()
@@ -82,12 +109,12 @@ def _run_noop(n: int) -> tuple[float, list[float]]:
         return total, bench
 
 
-def noop_jobs(n: int) -> tuple[float, float]:
+def noop_jobs(n: int, snakefile: str = SNAKEFILE) -> tuple[float, float]:
     """(wall seconds per job, median benchmark seconds per job) of no-op jobs: the
     difference between a run of ``n + 1`` jobs and one of 1 job, over ``n`` (Snakemake's
     start-up, DAG and scheduling of the run itself cancel out)."""
-    one, _ = _run_noop(1)
-    many, bench = _run_noop(n + 1)
+    one, _ = _run_noop(1, snakefile)
+    many, bench = _run_noop(n + 1, snakefile)
     print(f"  (snakemake process: 1 job {one:.1f} s, {n + 1} jobs {many:.1f} s)")
     return (many - one) / n, statistics.median(bench)
 
@@ -131,9 +158,10 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--rules-only needs --results")
     if a.rules_only:
         return print_rules(a.results, a.datasets)
-    print(f"no-op job ({a.jobs} jobs, snakemake --cores 1):")
-    per_job, bench = noop_jobs(a.jobs)
-    print(f"  wall per job {per_job:.2f} s; its benchmark file records {bench:.2f} s")
+    for form, snakefile in FORMS.items():
+        print(f"no-op job, {form} ({a.jobs} jobs, snakemake --cores 1):")
+        per_job, bench = noop_jobs(a.jobs, snakefile)
+        print(f"  wall per job {per_job:.2f} s; its benchmark file records {bench:.2f} s")
     print("fresh interpreter importing what a step imports (median of 3):")
     for name, stmt in STEP_IMPORTS.items():
         print(f"  {name:<20} {import_seconds(stmt):.2f} s")

@@ -9,14 +9,17 @@ rule caption:
     output:
         json=f"{RESULTS}/{{dataset}}/final/{{image}}.json",
     params:
-        caption=config["caption"],
-        claims=config["scene"]["claims"],
+        **step_params(
+            "caption",
+            caption=config["caption"],
+            claims=config["scene"]["claims"],
+        ),
     log:
         LOGS + "/{dataset}/caption/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/caption/{{image}}.tsv"
-    script:
-        "../scripts/caption.py"
+    shell:
+        STEP_SHELL
 
 
 rule overlay:
@@ -27,8 +30,11 @@ rule overlay:
     output:
         png=f"{RESULTS}/{{dataset}}/overlay/{{image}}.png",
     params:
-        mode=config["report"]["overlay"],
+        **step_params(
+            "overlay",
+            mode=config["report"]["overlay"],
+        ),
     log:
         LOGS + "/{dataset}/overlay/{image}.log",
-    script:
-        "../scripts/overlay.py"
+    shell:
+        STEP_SHELL

@@ -37,13 +37,60 @@ DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m,
 
 
 CODE_DIR = f"{RESULTS}/.code"
+RUN_STEP = BASEDIR / "workflow" / "run_step.py"
+
+
+def step_params(script, **params):
+    """The ``params`` of a per-image rule that runs ``workflow/scripts/<script>.py``
+    (``params: **step_params(script, name=value, ...)`` with ``shell: STEP_SHELL``): the
+    rule's parameters as they are, which Snakemake records and compares to rerun a job
+    whose parameters changed, and ``step``, a function Snakemake calls per job that
+    gives the command running the script: the Python running Snakemake runs it through
+    ``workflow/run_step.py`` with the job as JSON (the named inputs and outputs, the
+    parameters, threads and wildcards), as ``script:`` would but without importing
+    Snakemake in the job (about 0.15 s of each: ``benchmarks/speed/job_overhead.py``); the
+    script reads ``snakemake.params.<name>`` as under ``script:``. ``params``: JSON values
+    (config sections), or functions of the wildcards giving one.
+
+    Snakemake does not record a function's value as a parameter, nor a command's paths
+    as code (``STEP_SHELL`` is the rule's code, the same text wherever the checkout or
+    the Python lives); the script, the runner and the library files it runs are the
+    rule's code input (:func:`step_code`)."""
+    import json
+    import shlex
+
+    path = BASEDIR / "workflow" / "scripts" / f"{script}.py"
+    if not path.is_file():
+        raise ValueError(f"step_params: no workflow script {path}")
+    if "step" in params:
+        raise ValueError("step_params: 'step' is the parameter it adds")
+    head = " ".join(shlex.quote(str(a)) for a in (sys.executable, RUN_STEP, path))
+
+    def step(wildcards, input, output, threads):
+        def named(files):
+            return {"items": [str(f) for f in files],
+                    "names": {k: list(v) for k, v in files._names.items()}}
+
+        values = {k: v(wildcards) if callable(v) else v for k, v in params.items()}
+        job = json.dumps({"input": named(input), "output": named(output), "params": values,
+                          "threads": threads, "wildcards": dict(wildcards.items())},
+                         separators=(",", ":"))
+        return f"{head} {shlex.quote(job)}"
+
+    return {**params, "step": step}
+
+
+# the shell: of every rule with step_params; {log:q}: Snakemake quotes the log's path
+STEP_SHELL = "{params.step} {log:q}"
 
 
 def step_code(script):
     """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file,
     ``<results>/.code/<script>.txt``, listing with their SHA-256 every rescu/ source file
     the script runs (the script's imports and those inside the step functions it calls,
-    closed over the package's imports: :func:`rescu.imports.step_dependencies`).
+    closed over the package's imports: :func:`rescu.imports.step_dependencies`), the
+    script itself and ``workflow/run_step.py`` (which runs the per-image rules' scripts,
+    :func:`step_params`; Snakemake itself tracks a ``script:``, not a ``shell:``'s).
 
     The stamp is written here, while the workflow is read, and only when its text
     changes: editing one of those files gives the stamp a new time, which reruns the
@@ -60,6 +107,8 @@ def step_code(script):
     text = "".join(f"{hashlib.sha256(f.read_bytes()).hexdigest()}  "  # rescu/<module>.py,
                    f"{f.relative_to(PACKAGE_DIR.parent).as_posix()}\n"  # wherever installed
                    for f in step_dependencies(path))
+    text += "".join(f"{hashlib.sha256(f.read_bytes()).hexdigest()}  "
+                    f"{f.relative_to(BASEDIR).as_posix()}\n" for f in (path, RUN_STEP))
     stamp = Path(CODE_DIR) / f"{script}.txt"
     if not stamp.is_file() or stamp.read_text() != text:
         stamp.parent.mkdir(parents=True, exist_ok=True)

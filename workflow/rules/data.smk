@@ -63,13 +63,16 @@ rule prepare:
         png=f"{RESULTS}/{{dataset}}/prepared/{{image}}.png",
         meta=f"{RESULTS}/{{dataset}}/prepared/{{image}}.meta.json",
     params:
-        image_name=lambda w: DATASETS[w.dataset]["names"][w.image],
-        max_side=config["image"]["max_side"],
-        min_side=config["image"]["min_side"],
-        max_pixels=config["image"]["max_pixels"],
+        **step_params(
+            "prepare",
+            image_name=lambda w: DATASETS[w.dataset]["names"][w.image],
+            max_side=config["image"]["max_side"],
+            min_side=config["image"]["min_side"],
+            max_pixels=config["image"]["max_pixels"],
+        ),
     log:
         LOGS + "/{dataset}/prepare/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/prepare/{{image}}.tsv"
-    script:
-        "../scripts/prepare.py"
+    shell:
+        STEP_SHELL

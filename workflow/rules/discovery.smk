@@ -15,15 +15,18 @@ rule dense:
         # its coarse feature map (half precision), so that scoring in rescu_i needs no pass
         map=f"{RESULTS}/{{dataset}}/dense/{{image}}.map.h5",
     params:
-        dense=DENSE_STEP,
-        threads=config["threads"]["stage2_features"],
+        **step_params(
+            "dense",
+            dense=DENSE_STEP,
+            threads=config["threads"]["stage2_features"],
+        ),
     threads: config["threads"]["stage2_features"]
     log:
         LOGS + "/{dataset}/dense/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/dense/{{image}}.tsv"
-    script:
-        "../scripts/dense.py"
+    shell:
+        STEP_SHELL
 
 
 rule rescu_i:
@@ -37,14 +40,17 @@ rule rescu_i:
         json=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.rp.h5",
     params:
-        stage1=config["stage1"],
-        dense=config["dense"] if DENSE else None,
+        **step_params(
+            "stage1",
+            stage1=config["stage1"],
+            dense=config["dense"] if DENSE else None,
+        ),
     log:
         LOGS + "/{dataset}/rescu-i/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/rescu-i/{{image}}.tsv"
-    script:
-        "../scripts/stage1.py"
+    shell:
+        STEP_SHELL
 
 
 rule grasp:
@@ -56,13 +62,16 @@ rule grasp:
         json=f"{RESULTS}/{{dataset}}/grasp/{{image}}.json",
         h5=f"{RESULTS}/{{dataset}}/grasp/{{image}}.rp.h5",
     params:
-        grasp=config["grasp"],
+        **step_params(
+            "grasp",
+            grasp=config["grasp"],
+        ),
     log:
         LOGS + "/{dataset}/grasp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/grasp/{{image}}.tsv"
-    script:
-        "../scripts/grasp.py"
+    shell:
+        STEP_SHELL
 
 
 rule ablation:
@@ -78,13 +87,16 @@ rule ablation:
             variant=ablation_variants(),
         ),
     params:
-        stage1=config["stage1"],
-        variants=config["ablation"]["variants"],
-        rows=ablation_variants(),
-        dense=DENSE_STEP if ABLATION_SOURCES else None,
+        **step_params(
+            "ablation",
+            stage1=config["stage1"],
+            variants=config["ablation"]["variants"],
+            rows=ablation_variants(),
+            dense=DENSE_STEP if ABLATION_SOURCES else None,
+        ),
     log:
         LOGS + "/{dataset}/ablation/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/ablation/{{image}}.tsv"
-    script:
-        "../scripts/ablation.py"
+    shell:
+        STEP_SHELL

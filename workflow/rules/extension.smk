@@ -15,9 +15,12 @@ rule stage2_features:
         h5=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
     params:
-        stage2=stage2_upstream(),
-        threads=config["threads"]["stage2_features"],
-        head_threads=config["threads"]["stage2_head"],
+        **step_params(
+            "stage2_features",
+            stage2=stage2_upstream(),
+            threads=config["threads"]["stage2_features"],
+            head_threads=config["threads"]["stage2_head"],
+        ),
     threads: max(config["threads"]["stage2_features"], config["threads"]["stage2_head"])
     resources:
         mem_mb=4000,
@@ -25,8 +28,8 @@ rule stage2_features:
         LOGS + "/{dataset}/stage2_features/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_features/{{image}}.tsv"
-    script:
-        "../scripts/stage2_features.py"
+    shell:
+        STEP_SHELL
 
 
 rule stage2_predict:
@@ -39,15 +42,18 @@ rule stage2_predict:
     output:
         json=f"{RESULTS}/{{dataset}}/rescu-ii/{{image}}.json",
     params:
-        stage2=config["stage2"],
-        threads=config["threads"]["stage2_head"],
+        **step_params(
+            "stage2_predict",
+            stage2=config["stage2"],
+            threads=config["threads"]["stage2_head"],
+        ),
     threads: config["threads"]["stage2_head"]
     log:
         LOGS + "/{dataset}/stage2_predict/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict/{{image}}.tsv"
-    script:
-        "../scripts/stage2_predict.py"
+    shell:
+        STEP_SHELL
 
 
 # prediction-only variants (stage2_ablation.predict_variants, and the variants that change
@@ -67,16 +73,19 @@ if stage2_predict_variants():
                 variant=stage2_predict_variants(),
             ),
         params:
-            stage2=config["stage2"],
-            variants=stage2_predict_variants(),
-            threads=config["threads"]["stage2_head"],
+            **step_params(
+                "stage2_predict_ablation",
+                stage2=config["stage2"],
+                variants=stage2_predict_variants(),
+                threads=config["threads"]["stage2_head"],
+            ),
         threads: config["threads"]["stage2_head"]
         log:
             LOGS + "/{dataset}/stage2_predict_ablation/{image}.log",
         benchmark:
             f"{RESULTS}/benchmarks/{{dataset}}/stage2_predict_ablation/{{image}}.tsv"
-        script:
-            "../scripts/stage2_predict_ablation.py"
+        shell:
+            STEP_SHELL
 
 
 # variants with features and a head of their own; those that change only prediction go to
@@ -94,9 +103,12 @@ if stage2_ablation_variants():
                 variant=stage2_ablation_variants(),
             ),
         params:
-            stage2=config["stage2"],
-            variants=stage2_ablation_variants(),
-            threads=config["threads"]["stage2_features"],
+            **step_params(
+                "stage2_ablation",
+                stage2=config["stage2"],
+                variants=stage2_ablation_variants(),
+                threads=config["threads"]["stage2_features"],
+            ),
         threads: config["threads"]["stage2_features"]
         resources:
             mem_mb=4000,
@@ -104,5 +116,5 @@ if stage2_ablation_variants():
             LOGS + "/{dataset}/stage2_ablation/{image}.log",
         benchmark:
             f"{RESULTS}/benchmarks/{{dataset}}/stage2_ablation/{{image}}.tsv"
-        script:
-            "../scripts/stage2_ablation.py"
+        shell:
+            STEP_SHELL

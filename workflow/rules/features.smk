@@ -8,10 +8,13 @@ rule features:
     output:
         h5=f"{RESULTS}/{{dataset}}/features/{{image}}.h5",
     params:
-        features=config["features"],
+        **step_params(
+            "features",
+            features=config["features"],
+        ),
     log:
         LOGS + "/{dataset}/features/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/features/{{image}}.tsv"
-    script:
-        "../scripts/features.py"
+    shell:
+        STEP_SHELL

@@ -21,13 +21,16 @@ rule scene:
         json=f"{RESULTS}/{{dataset}}/scene/{{image}}.json",
         rectified=directory(f"{RESULTS}/{{dataset}}/rectified/{{image}}"),
     params:
-        scene=scene_params(),
+        **step_params(
+            "scene",
+            scene=scene_params(),
+        ),
     log:
         LOGS + "/{dataset}/scene/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/scene/{{image}}.tsv"
-    script:
-        "../scripts/scene.py"
+    shell:
+        STEP_SHELL
 
 
 rule scene_no_ac:
@@ -39,13 +42,16 @@ rule scene_no_ac:
         json=f"{RESULTS}/{{dataset}}/scene-noac/{{image}}.json",
         rectified=temp(directory(f"{RESULTS}/{{dataset}}/rectified-noac/{{image}}")),
     params:
-        scene=scene_params(ac_threshold_deg=0.0),
+        **step_params(
+            "scene",
+            scene=scene_params(ac_threshold_deg=0.0),
+        ),
     log:
         LOGS + "/{dataset}/scene_no_ac/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/scene_no_ac/{{image}}.tsv"
-    script:
-        "../scripts/scene.py"
+    shell:
+        STEP_SHELL
 
 
 rule line_vp:
@@ -55,13 +61,16 @@ rule line_vp:
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lsd/{{image}}.json",
     params:
-        scene={"vp": config["scene"]["vp"]},  # the baseline needs only the VP parameters
+        **step_params(
+            "line_vp",
+            scene={"vp": config["scene"]["vp"]},  # the baseline needs only the VP parameters
+        ),
     log:
         LOGS + "/{dataset}/line_vp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/line_vp/{{image}}.tsv"
-    script:
-        "../scripts/line_vp.py"
+    shell:
+        STEP_SHELL
 
 
 def vp_ground_truth(wildcards):
@@ -77,13 +86,16 @@ rule image_vp:
     output:
         json=f"{RESULTS}/{{dataset}}/scene-joint/{{image}}.json",
     params:
-        scene=config["scene"],
+        **step_params(
+            "image_vp",
+            scene=config["scene"],
+        ),
     log:
         LOGS + "/{dataset}/image_vp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/image_vp/{{image}}.tsv"
-    script:
-        "../scripts/image_vp.py"
+    shell:
+        STEP_SHELL
 
 
 rule image_vp_true_focal:
@@ -96,13 +108,16 @@ rule image_vp_true_focal:
     output:
         json=f"{RESULTS}/{{dataset}}/scene-joint-f/{{image}}.json",
     params:
-        scene=config["scene"],
+        **step_params(
+            "image_vp",
+            scene=config["scene"],
+        ),
     log:
         LOGS + "/{dataset}/image_vp_true_focal/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/image_vp_true_focal/{{image}}.tsv"
-    script:
-        "../scripts/image_vp.py"
+    shell:
+        STEP_SHELL
 
 
 rule peer_vp:
@@ -114,10 +129,13 @@ rule peer_vp:
     output:
         json=f"{RESULTS}/{{dataset}}/vp-lu/{{image}}.json",
     params:
-        peer=config["scene"]["peer_vp"],
+        **step_params(
+            "peer_vp",
+            peer=config["scene"]["peer_vp"],
+        ),
     log:
         LOGS + "/{dataset}/peer_vp/{image}.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{dataset}}/peer_vp/{{image}}.tsv"
-    script:
-        "../scripts/peer_vp.py"
+    shell:
+        STEP_SHELL
