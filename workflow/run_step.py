@@ -3,8 +3,10 @@
     python workflow/run_step.py SCRIPT JOB LOG
 
 Snakemake's ``script:`` directive starts each job's Python with a preamble that imports
-Snakemake (its I/O, logging and shell modules) to unpickle the job: about 0.15 s of every
-job on 2 cores, and a run of the paper's tables has about 4,700 jobs, most of them short.
+Snakemake (its I/O, logging and shell modules) to unpickle the job: a job that does
+nothing takes 0.26-0.30 s that way and 0.19-0.24 s through this file
+(``benchmarks/speed/job_overhead.py``), and a run of the paper's tables has about 4,700
+jobs, most of them short.
 The per-image rules therefore run their adapter through this file from ``shell:``
 (``step_params`` and ``STEP_SHELL`` in ``workflow/rules/common.smk``): ``JOB`` is the
 job as JSON (its inputs, outputs, parameters, threads and wildcards, written

@@ -48,8 +48,9 @@ def step_params(script, **params):
     gives the command running the script: the Python running Snakemake runs it through
     ``workflow/run_step.py`` with the job as JSON (the named inputs and outputs, the
     parameters, threads and wildcards), as ``script:`` would but without importing
-    Snakemake in the job (about 0.15 s of each: ``benchmarks/speed/job_overhead.py``); the
-    script reads ``snakemake.params.<name>`` as under ``script:``. ``params``: JSON values
+    Snakemake in the job (a job that does nothing: 0.19-0.24 s instead of 0.26-0.30 s,
+    ``benchmarks/speed/job_overhead.py``); the script reads ``snakemake.params.<name>``
+    as under ``script:``. ``params``: JSON values
     (config sections), or functions of the wildcards giving one.
 
     Snakemake does not record a function's value as a parameter, nor a command's paths
