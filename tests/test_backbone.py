@@ -235,3 +235,22 @@ def test_remembered_maps_pass_the_backbone_once_per_distinct_image(lite0, monkey
     assert np.array_equal(b[0], a[0]) and np.array_equal(b[1], a[0])
     image_features(lite0, img, boxes, (1.0,))          # after the block: a new pass
     assert len(calls) == 4
+
+
+def test_remembered_maps_never_hand_one_backbones_map_to_another():
+    """Backbones made and dropped one after the other inside remembered_maps (a
+    fine-tuned one per variant) each get their own map, even where Python gives a new
+    object the id of a dropped one."""
+    from rescu.extension import backbone as B
+
+    class Fake:
+        def __init__(self, value):
+            self.value = value
+
+        def feature_map(self, img):
+            return torch.full((1, 2, 4, 4), float(self.value))
+
+    img = np.zeros((64, 64, 3), np.uint8)
+    with B.remembered_maps():
+        maps = [float(B._feature_map(Fake(v), img)[0, 0, 0, 0]) for v in (1, 2, 3, 4)]
+    assert maps == [1.0, 2.0, 3.0, 4.0]

@@ -557,7 +557,8 @@ def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
 
 
 #: Feature maps :func:`image_features` keeps while :func:`remembered_maps` is active
-#: (None: none kept), keyed by the backbone and the bytes of the image passed.
+#: (None: none kept), keyed by the backbone and the bytes of the image passed; each with
+#: its backbone.
 _MAPS: dict[tuple[object, ...], object] | None = None
 
 
@@ -582,10 +583,13 @@ def _feature_map(backbone: FrozenBackbone, img: np.ndarray):
     if _MAPS is None:
         return backbone.feature_map(img)
     img = np.ascontiguousarray(img)
-    key = (id(backbone), backbone.stride, img.shape, hashlib.sha1(img.data).digest())
+    key = (id(backbone), img.shape, hashlib.sha1(img.data).digest())
     if key not in _MAPS:
-        _MAPS[key] = backbone.feature_map(img)
-    return _MAPS[key]
+        # the backbone is kept with its map: while it lives no other object takes its id
+        # (a fine-tuned backbone made per variant and dropped would otherwise pass for
+        # the next one)
+        _MAPS[key] = (backbone, backbone.feature_map(img))
+    return _MAPS[key][1]
 
 
 def image_features(backbone: FrozenBackbone, rgb: np.ndarray, box_sets: Sequence[np.ndarray],
