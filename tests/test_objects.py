@@ -127,6 +127,65 @@ def test_the_fine_map_finds_objects_too_small_for_the_coarse_one():
     assert (iou.max(1) > 0.5).mean() >= 0.9
 
 
+def _hits(pattern, truth):
+    """Discs hit by a box at IoU > 0.5, and boxes on a disc at IoU > 0.5."""
+    iou = iou_matrix(np.array([i.bbox for i in pattern.instances]), truth)
+    return int((iou.max(0) > 0.5).sum()), int((iou.max(1) > 0.5).sum())
+
+
+@pytest.mark.parametrize("r,rows,cols,gap", [(35, 3, 5, 110), (70, 2, 3, 200)],
+                         ids=["11 % of the side", "22 %"])
+def test_the_wide_maps_find_objects_too_large_for_the_coarse_one(r, rows, cols, gap):
+    # discs 70 and 140 px across in a 640 px photo (coins or cookies filling a tray): the
+    # coarse map sees the photo at 960 px, its largest blob (9 cells, 72 px) is a part
+    # of a disc, and without the wide maps no RP holds the discs. (Discs 100 px across,
+    # 3 x 4 of them, are a group on the quarter-scale map too, but below min_confidence
+    # with its ranking score: the classifier sees little object in these flat discs.)
+    img, truth = _discs(np.random.default_rng(0), rows, cols, r, gap)
+    p = _params(wide_scales=())
+    res = ImageResult(image="x", width=640, height=480, method="dense",
+                      patterns=find_dense(img, p))
+    split_by_confidence(res, p.min_confidence)
+    assert all(_hits(q, truth)[0] <= len(truth) // 4 for q in res.patterns)
+    p = _params()
+    assert p.wide_scales, "the default has wide maps"
+    res = ImageResult(image="x", width=640, height=480, method="dense",
+                      patterns=find_dense(img, p))
+    split_by_confidence(res, p.min_confidence)
+    assert res.patterns, "no RP"
+    best = res.patterns[0]
+    assert best.extra["level"] >= 2, best.extra          # a wide map's (0 coarse, 1 fine)
+    hit, on = _hits(best, truth)
+    assert hit >= len(truth) - 1 and on >= 0.9 * len(best.instances), (hit, on)
+
+
+def test_level_sizes_follow_each_maps_scale():
+    from rescu.extension.dense import level_sizes
+
+    p = _params(sizes=(4, 5), fine_sizes=(3,), wide_sizes=(6, 7))
+    f = np.zeros((1, 2, 2), np.float32)
+    assert level_sizes([(f, 1.5), (f, 3.0), (f, 0.75), (f, 0.4)], p) == \
+        [(4, 5), (3,), (6, 7), (6, 7)]
+    assert level_sizes([(f, 1.0), (f, 0.5)], p) == [(4, 5), (6, 7)]      # no fine map
+
+
+def test_a_group_not_shown_never_takes_the_objects_of_an_rp_that_is():
+    # a group of parts of the objects, more confident than the RP of the whole objects
+    # without its ranking score but below min_confidence with it, would take the objects
+    # and leave them with no RP reported
+    from rescu.extension.objects import _wins
+
+    p = _params(confidence_score_scale=0.03, min_confidence=0.3)
+    whole = (0.08, np.zeros((6, 4)), {"confidence": 0.6})      # shown: 0.6 x 0.93
+    parts = (0.01, np.zeros((12, 4)), {"confidence": 0.8})     # hidden: 0.8 x 0.28
+    assert not _wins(parts, [whole], p)
+    clear = (0.05, np.zeros((12, 4)), {"confidence": 0.8})     # shown: 0.8 x 0.81
+    assert _wins(clear, [whole], p)
+    assert not _wins(whole, [clear], p)                        # less confident
+    faint = (0.002, np.zeros((6, 4)), {"confidence": 0.5})     # hidden
+    assert _wins(parts, [faint], p)                            # neither shown: as before
+
+
 def test_specks_are_not_objects():
     # a grid of 5-px bright specks on a noisy floor (highlights, dust): enlarged, the fine
     # map would see them as blobs, but they are below min_object_px of the prepared image
@@ -584,7 +643,9 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("part_area", 0.0), ("part_reach", 0.5),
                                        ("extent_scales", []), ("confidence_gap_scale", 0),
                                        ("fine_scale", 0.5), ("fine_max_side", 32),
-                                       ("fine_sizes", []), ("rotations", 3), ("min_map_px", -1),
+                                       ("fine_sizes", []), ("wide_sizes", []),
+                                       ("wide_scales", [0.5, 1.0]), ("wide_scales", [0.0]),
+                                       ("rotations", 3), ("min_map_px", -1),
                                        ("min_object_px", -2), ("confidence_score_scale", -0.1),
                                        ("confidence_stage1_score_scale", -0.1),
                                        ("min_separation", 3.0), ("separation_reach", 0.0),

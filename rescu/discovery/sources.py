@@ -57,6 +57,13 @@ class DenseParams:
         Longer side of the fine map's input at most, pixels (bounds its cost).
     fine_sizes : tuple of int
         Blob sides on the fine map, feature cells.
+    wide_scales : tuple of float
+        Wide maps (:func:`rescu.extension.dense.dense_levels`) of the image reduced to
+        these fractions of the coarse map's scale, for objects too large for the coarse
+        map (its largest blob spans ``max(sizes)`` cells: about 7 % of the side of a photo
+        seen at ``min_side``); each in (0, 0.95]; empty: none.
+    wide_sizes : tuple of int
+        Blob sides on the wide map, feature cells.
     rotations : int
         Backbone passes per map, 1, 2 or 4: each map is the mean of the image's maps
         turned by 0 and 90 degrees (2) or by every right angle (4), each turned back
@@ -172,6 +179,8 @@ class DenseParams:
     fine_scale: float
     fine_max_side: int
     fine_sizes: tuple[int, ...]
+    wide_scales: tuple[float, ...]
+    wide_sizes: tuple[int, ...]
     rotations: int
     min_map_px: float
     min_object_px: float
@@ -219,6 +228,11 @@ class DenseParams:
         if not self.fine_sizes or any(int(s) < 1 for s in self.fine_sizes):
             raise ValueError("dense.fine_sizes must be positive cell counts, got "
                              f"{self.fine_sizes}")
+        if not self.wide_sizes or any(int(s) < 1 for s in self.wide_sizes):
+            raise ValueError("dense.wide_sizes must be positive cell counts, got "
+                             f"{self.wide_sizes}")
+        if any(not 0.0 < float(v) <= 0.95 for v in self.wide_scales):
+            raise ValueError(f"dense.wide_scales must lie in (0, 0.95], got {self.wide_scales}")
         if self.fine_scale < 1 or self.fine_max_side < 64:
             raise ValueError("dense.fine_scale must be >= 1 and fine_max_side >= 64, got "
                              f"{self.fine_scale}, {self.fine_max_side}")
@@ -290,10 +304,10 @@ class DenseParams:
     def from_dict(cls, d: Mapping[str, Any] | None) -> "DenseParams":
         """From the ``dense`` section (None: the defaults); unknown keys raise ValueError."""
         d = checked_mapping(cls, d, "dense parameter")
-        for k in ("sizes", "fine_sizes"):
+        for k in ("sizes", "fine_sizes", "wide_sizes"):
             if k in d:
                 d[k] = tuple(int(s) for s in d[k])
-        for k in ("extent_scales", "extent_aspects", "extent_shifts"):
+        for k in ("extent_scales", "extent_aspects", "extent_shifts", "wide_scales"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])
         return cls(**d)

@@ -62,7 +62,7 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
            "central_colours", "split_by_colour", "colour_for",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
-           "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
+           "level_sizes", "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -405,6 +405,10 @@ def objectness_for(rgb: np.ndarray, s: float, params: DenseParams, backbone: Any
     return lambda boxes: objectness(backbone, rgb, np.asarray(boxes, float) / s, params)
 
 
+#: A wide map (``dense.wide_scales``) whose input's shorter side would be under this many
+#: pixels (16 cells) is left out: its blobs' surrounds would be the whole map.
+WIDE_MIN_PX = 128
+
 _LAST_MAP: dict[tuple[Any, ...], tuple[np.ndarray, float]] = {}
 
 
@@ -502,24 +506,29 @@ def load_map(path: str | os.PathLike[str], params: DenseParams
 
 def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
                  ) -> list[tuple[np.ndarray, float]]:
-    """The maps the dense source looks for objects on: the coarse one (:func:`dense_map`)
-    and, with ``params.fine_scale > 1``, a fine one of the image enlarged ``fine_scale``
-    times more (its longer side at most ``params.fine_max_side``), for objects too small
-    to span two cells of the coarse map's stride-16 half.
+    """The maps the dense source looks for objects on: the coarse one (:func:`dense_map`);
+    with ``params.fine_scale > 1``, a fine one of the image enlarged ``fine_scale`` times
+    more (its longer side at most ``params.fine_max_side``), for objects too small to
+    span two cells of the coarse map's stride-16 half; for each of
+    ``params.wide_scales``, a wide one of the image reduced to that fraction of the
+    coarse map's scale, for objects too large for the coarse map's largest blob (coins or
+    cookies filling a tray: a tenth of the photo's side and more), left out when its
+    input's shorter side would be under :data:`WIDE_MIN_PX`.
 
     Parameters
     ----------
     rgb : (H, W, 3) uint8, the prepared image
     params : DenseParams (``backbone``, ``max_side``, ``min_side``, ``fine_scale``,
-        ``fine_max_side``, ``rotations``)
+        ``fine_max_side``, ``wide_scales``, ``rotations``)
     backbone : FrozenBackbone or None (None: ``params.backbone`` at stride 16, CPU)
 
     Returns
     -------
-    list of ``(f, s)``: the coarse level first; ``f`` (C, h, w) float32
-    (:func:`hypercolumn`) of ``rgb`` resized by ``s`` (backbone-input pixels per
-    prepared-image pixel). The fine level is left out when it would enlarge the coarse
-    one by less than 5 %.
+    list of ``(f, s)``: the coarse level first, then the fine one, then the wide ones;
+    ``f`` (C, h, w) float32 (:func:`hypercolumn`) of ``rgb`` resized by ``s``
+    (backbone-input pixels per prepared-image pixel). The fine level is left out when it
+    would enlarge the coarse one by less than 5 %. :func:`level_sizes` gives each
+    level's blob sides.
     """
     from .backbone import FrozenBackbone
 
@@ -532,7 +541,21 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     if s_fine > 1.05 * s:
         out.append((hypercolumn(backbone, level_image(rgb, s_fine), params.rotations),
                     float(s_fine)))
+    for w in params.wide_scales:
+        if min(rgb.shape[:2]) * s * w >= WIDE_MIN_PX:
+            out.append((hypercolumn(backbone, level_image(rgb, s * w), params.rotations),
+                        float(s * w)))
     return out
+
+
+def level_sizes(levels: Sequence[tuple[np.ndarray, float]], params: DenseParams
+                ) -> list[tuple[int, ...]]:
+    """The blob sides (cells) of each map of :func:`dense_levels`: ``params.sizes`` on the
+    coarse one (the first), ``params.fine_sizes`` on a map of a larger scale,
+    ``params.wide_sizes`` on one of a smaller scale."""
+    s0 = levels[0][1] if levels else 1.0
+    return [params.sizes if k == 0 else params.fine_sizes if s > s0 else params.wide_sizes
+            for k, (_, s) in enumerate(levels)]
 
 
 def _flat_candidates(f: np.ndarray, params: DenseParams,
@@ -558,8 +581,8 @@ def colour_for(rgb: np.ndarray, s: float, params: DenseParams,
 
 def level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.ndarray,
                      params: DenseParams, backbone: Any = None) -> list[DenseCandidate]:
-    """The groups of recurring blobs of every level (:func:`dense_candidates`, the coarse
-    map with ``params.sizes``, the fine one with ``params.fine_sizes``) that do not tile
+    """The groups of recurring blobs of every level (:func:`dense_candidates`, each map
+    with its blob sides, :func:`level_sizes`) that do not tile
     the plane, ranked together by contrast x rarity [x objectness], best first, at most
     ``params.max_candidates``: the whole of :func:`iter_level_candidates`.
 
@@ -602,9 +625,8 @@ def iter_level_candidates(levels: Sequence[tuple[np.ndarray, float]], rgb: np.nd
     integrals = colour_integrals(rgb) if params.max_colour_distance > 0 else None
     heap: list[tuple[float, int, float, float, int, bool]] = []
     cands: list[DenseCandidate] = []
-    for k, (f, s) in enumerate(levels):
-        for c in _flat_candidates(f, params, params.sizes if k == 0 else params.fine_sizes,
-                                  k, colour_for(rgb, s, params, integrals)):
+    for k, ((f, s), sizes) in enumerate(zip(levels, level_sizes(levels, params))):
+        for c in _flat_candidates(f, params, sizes, k, colour_for(rgb, s, params, integrals)):
             heap.append((-c.score, k, float(c.boxes[0, 1]), float(c.boxes[0, 0]),
                          len(cands), of[k] is None))
             cands.append(c)
@@ -650,7 +672,7 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``, with
     ``whole_objects`` also ``"confidence"`` (:func:`rescu.extension.objects.pattern_confidence`),
     ``"seeds"`` (blobs of the group), ``"gap"``, ``"separation"`` (when defined),
-    ``"extent"`` (the box transform) and ``"level"`` (the map: 0 coarse, 1 fine))
+    ``"extent"`` (the box transform) and ``"level"`` (the map's index in :func:`dense_levels`: 0 the coarse one))
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))

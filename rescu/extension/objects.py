@@ -626,7 +626,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             # the same objects as a kept RP (often the other map's view of them: parts
             # on the fine map, whole objects on the coarse one): the more confident wins
             info = rp_confidence(f, cell_px, s, b, integrals, params, integral=ii)
-            if info["confidence"] <= max(out[k][2]["confidence"] for k in rivals):
+            if not _wins((c.score, b, info), [out[k] for k in rivals], params):
                 continue
             out = [o for k, o in enumerate(out) if k not in rivals]
             hits = [h for k, h in enumerate(hits) if k not in rivals]
@@ -639,7 +639,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
             if share:
                 whole = whole or rp_confidence(f, cell_px, s, b, integrals, params,
                                                integral=ii)
-                if whole["confidence"] > max(out[k][2]["confidence"] for k in share):
+                if _wins((c.score, b, whole), [out[k] for k in share], params):
                     out = _give_up_objects(out, share, b, levels, cell_px, integrals, params,
                                            maps)
                     kept = b
@@ -663,6 +663,20 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     # whole objects
     return [(sc, kb, {**info, "confidence": _reported_confidence((sc, kb, info), params)})
             for sc, kb, info in out]
+
+
+def _wins(new: tuple[float, np.ndarray, dict[str, Any]],
+          kept: Sequence[tuple[float, np.ndarray, dict[str, Any]]], params: Any) -> bool:
+    """Whether a group of :func:`whole_objects` (``(score, boxes, info)``) takes the
+    objects it shares with the kept RPs ``kept``: when it is more confident than each of
+    them (the confidences without the ranking score, which compares groups within one
+    map only), and unless it would not be reported while one of them would
+    (:func:`_reported`): objects seen clearly as a reported RP are not handed to one
+    that is not shown (a group of parts, confident without its ranking score, which then
+    leaves the objects with no RP)."""
+    if new[2]["confidence"] <= max(o[2]["confidence"] for o in kept):
+        return False
+    return _reported(new, params) or not any(_reported(o, params) for o in kept)
 
 
 def _reported_confidence(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> float:
