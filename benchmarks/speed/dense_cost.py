@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
                                           [--strip-px N] [--rotations R] [--completion-turn]
+                                          [--wide-scales YAML]
 
 Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
 chess, aerial cars; a synthetic rendering when absent), resizes each to
@@ -17,7 +18,8 @@ OpenCV threads (the pipeline's job: ``threads.stage2_features``, 1; ``rescu disc
 inputs over this many pixels (:data:`rescu.extension.backbone.STRIP_PX`; 0: never, one
 whole pass). ``--rotations``: ``dense.rotations`` instead of the config's (backbone
 passes per map). ``--completion-turn``: ``dense.completion_turn`` on (one more backbone
-pass per map that has a group to complete). The map cache of
+pass per map that has a group to complete). ``--wide-scales``: ``dense.wide_scales``
+instead of the config's (``[]``: no wide maps). The map cache of
 :func:`rescu.extension.dense.dense_map` is emptied before each call, so every repeat passes
 the backbone.
 """
@@ -49,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="dense.rotations (default: the config's)")
     ap.add_argument("--completion-turn", action="store_true",
                     help="dense.completion_turn on (default: the config's)")
+    ap.add_argument("--wide-scales", default=None,
+                    help="dense.wide_scales as YAML, e.g. '[]' for no wide maps "
+                         "(default: the config's)")
     a = ap.parse_args(argv)
     import torch
 
@@ -86,6 +91,11 @@ def main(argv: list[str] | None = None) -> int:
         params = DenseParams.from_dict({**params.__dict__, "rotations": a.rotations})
     if a.completion_turn:
         params = DenseParams.from_dict({**params.__dict__, "completion_turn": True})
+    if a.wide_scales is not None:
+        import yaml
+
+        params = DenseParams.from_dict({**params.__dict__,
+                                        "wide_scales": yaml.safe_load(a.wide_scales)})
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
     find_dense(np.zeros((64, 64, 3), np.uint8), params, backbone)   # warm-up
     times = []
@@ -100,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
           f"image(s) at {a.megapixels} MP, {a.threads} thread(s); peak memory "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, strips of "
           f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px, rotations {params.rotations}, "
-          f"completion turned {params.completion_turn}")
+          f"completion turned {params.completion_turn}, wide maps {list(params.wide_scales)}")
     return 0
 
 
