@@ -62,7 +62,8 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
            "central_colours", "split_by_colour", "colour_for",
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
-           "level_sizes", "level_candidates", "iter_level_candidates", "find_dense", "score_and_split"]
+           "level_sizes", "level_candidates", "iter_level_candidates", "find_dense",
+           "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -672,7 +673,8 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     ``score`` = contrast x rarity x objectness; ``extra={"source": "dense"}``, with
     ``whole_objects`` also ``"confidence"`` (:func:`rescu.extension.objects.pattern_confidence`),
     ``"seeds"`` (blobs of the group), ``"gap"``, ``"separation"`` (when defined),
-    ``"extent"`` (the box transform) and ``"level"`` (the map's index in :func:`dense_levels`: 0 the coarse one))
+    ``"extent"`` (the box transform) and ``"level"`` (the map's index in
+    :func:`dense_levels`: 0 the coarse one))
 
     >>> import numpy as np
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
