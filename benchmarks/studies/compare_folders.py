@@ -52,26 +52,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_dominant(data: Path, folders: dict[str, Path]) -> None:
     """Per folder: the dominant RP against the largest GT RP (covered / precision /
-    mean relative count error, share within 35 %; :func:`rp_sources.rp_rows`)."""
-    import numpy as np
-    import pandas as pd
-
-    from rp_sources import rp_rows
+    mean relative count error, share within 35 %; :func:`rp_sources.dominant_summary`)."""
+    from rp_sources import dominant_summary, rp_rows
 
     print("\ndominant RP vs the largest GT RP: covered / precision / count error (within 35 %)")
     for label, folder in folders.items():
-        im = pd.DataFrame(rp_rows(data, folder)[1],
-                          columns=["image", "gt_count", "count", "covered", "on_largest"])
-        has = im[im.gt_count > 0]
-        if not len(has):
+        d = dominant_summary(rp_rows(data, folder)[1])
+        if d is None:
             print(f"  {label}: no image with a GT RP")
             continue
-        err = (has["count"] - has.gt_count).abs() / has.gt_count
-        prec = np.where(has["count"] > 0, has.on_largest / has["count"].clip(lower=1), np.nan)
-        p = f"{np.nanmean(prec):.3f}" if np.isfinite(prec).any() else "nan"
-        print(f"  {label}: {(has.covered / has.gt_count).mean():.3f} / {p} / "
-              f"{err.mean():.2f} ({(err <= 0.35).mean():.2f}), {len(has)} images")
-
+        print(f"  {label}: {d['covered']:.3f} / {d['precision']:.3f} / "
+              f"{d['count_error']:.2f} ({d['within_35']:.2f}), {d['images']} images")
 
 if __name__ == "__main__":
     raise SystemExit(main())

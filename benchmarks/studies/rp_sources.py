@@ -136,13 +136,32 @@ def rp_rows(data: Path, pred: Path, rule: str = "code"
     return rps, images
 
 
+def dominant_summary(images: list[dict[str, Any]]) -> dict[str, float] | None:
+    """Means over the images of :func:`rp_rows`' second list that have a GT RP: the share
+    of the largest GT RP's objects the dominant RP covers (``covered``), its
+    ``precision`` on them (over the images where it has instances; NaN where none has),
+    the relative ``count_error`` and the share of images ``within_35`` (%) of the
+    truth, and the number of ``images``; None when no image has a GT RP."""
+    import numpy as np
+    import pandas as pd
+
+    im = pd.DataFrame(images, columns=["image", "gt_count", "count", "covered", "on_largest"])
+    has = im[im.gt_count > 0]
+    if not len(has):
+        return None
+    err = (has["count"] - has.gt_count).abs() / has.gt_count
+    prec = np.where(has["count"] > 0, has.on_largest / has["count"].clip(lower=1), np.nan)
+    return {"images": len(has), "covered": float((has.covered / has.gt_count).mean()),
+            "precision": float(np.nanmean(prec)) if np.isfinite(prec).any() else float("nan"),
+            "count_error": float(err.mean()), "within_35": float((err <= 0.35).mean())}
+
+
 def _share(df: Any) -> str:
     n = int(df.n.sum())
     return f"{len(df):>5} RPs {n:>6} instances  on GT {df.on_gt.sum() / max(n, 1):.3f}"
 
 
 def main(argv: list[str] | None = None) -> int:
-    import numpy as np
     import pandas as pd
 
     from _cli import set_predictions, sets_parser
@@ -158,9 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         rows, imgs = rp_rows(data, pred, a.dominant)
         df = pd.DataFrame(rows, columns=["image", "kind", "source", "confidence", "reason",
                                          "n", "on_gt"])
-        im = pd.DataFrame(imgs, columns=["image", "gt_count", "count", "covered",
-                                         "on_largest"])
-        print(f"\n{ds} / {a.method}: {len(im)} images")
+        print(f"\n{ds} / {a.method}: {len(imgs)} images")
         rep = df[df.kind == "reported"]
         for src, g in rep.groupby("source"):
             print(f"  reported {src:<7} {_share(g)}")
@@ -171,16 +188,12 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"    confidence {lo:.1f}-{min(hi, 1.0):.1f} {_share(band)}")
         for why, g in df[df.kind == "set aside"].groupby("reason"):
             print(f"  set aside, {why:<15} {_share(g)}")
-        has = im[im.gt_count > 0]
-        if len(has):
-            err = (has["count"] - has.gt_count).abs() / has.gt_count
-            prec = np.where(has["count"] > 0, has.on_largest / has["count"].clip(lower=1),
-                            np.nan)
-            print(f"  dominant RP ({a.dominant}) vs the largest GT RP ({len(has)} images): "
-                  f"covers {(has.covered / has.gt_count).mean():.3f}, precision "
-                  f"{np.nanmean(prec) if np.isfinite(prec).any() else float('nan'):.3f}, "
-                  f"relative count error {err.mean():.3f}, within 0.35 on "
-                  f"{(err <= 0.35).mean():.2f}")
+        d = dominant_summary(imgs)
+        if d is not None:
+            print(f"  dominant RP ({a.dominant}) vs the largest GT RP ({d['images']} images): "
+                  f"covers {d['covered']:.3f}, precision {d['precision']:.3f}, "
+                  f"relative count error {d['count_error']:.3f}, within 0.35 on "
+                  f"{d['within_35']:.2f}")
     return 0
 
 
