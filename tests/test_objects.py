@@ -231,6 +231,21 @@ def test_extent_grows_a_box_to_the_object():
     assert np.median(colour_contrast(ii, truth)) > np.median(colour_contrast(ii, small))
 
 
+def test_a_thin_ring_fits_the_extent_to_the_whole_disc():
+    # blobs on the discs' centres, half a disc across: against the default ring (half the
+    # box's side, reaching the next disc) the extent stops on the discs' inner faces; a
+    # ring a quarter of the side wide grows the boxes to the whole discs
+    img, truth = _discs(np.random.default_rng(3))
+    c = truth[:, :2] + truth[:, 2:] / 2
+    small = np.c_[c - 11, np.full((len(truth), 2), 22.0)]
+    args = (img, small, (0.6, 0.75, 0.9, 1.0, 1.1, 1.3, 1.6, 2.0, 2.5),
+            (0.5, 0.7, 1.0, 1.4, 2.0), (-0.25, 0.0, 0.25))
+    wide, _ = refine_extent(*args)
+    thin, t = refine_extent(*args, ring=0.25)
+    assert np.median(np.diag(iou_matrix(wide, truth))) < 0.7
+    assert np.median(np.diag(iou_matrix(thin, truth))) > 0.9 and t[:2] == (2.0, 1.0)
+
+
 def test_extent_turns_the_boxes_of_objects_lying_the_other_way():
     """Cars seen from above, parked both ways: one transform for the RP (the wide one,
     most cars lie that way), and with ``turn`` each car across the row gets it turned."""
@@ -649,7 +664,8 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("min_object_px", -2), ("confidence_score_scale", -0.1),
                                        ("confidence_stage1_score_scale", -0.1),
                                        ("min_separation", 3.0), ("separation_reach", 0.0),
-                                       ("min_object_separation", -2.5)])
+                                       ("min_object_separation", -2.5), ("extent_ring", 0.0),
+                                       ("extent_ring", 3.0)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

@@ -137,6 +137,9 @@ class DenseParams:
     extent_turn : bool
         Each box may take the RP's transform turned by 90 degrees where its contrast is
         larger turned (objects lying both ways, such as parked cars).
+    extent_ring : float
+        Width of the ring the extent's contrast compares each box with, x the box's
+        sides (:func:`rescu.extension.objects.colour_contrast`).
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
         the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
@@ -207,6 +210,7 @@ class DenseParams:
     extent_aspects: tuple[float, ...]
     extent_shifts: tuple[float, ...]
     extent_turn: bool
+    extent_ring: float
     part_cover: float
     part_area: float
     part_reach: float
@@ -275,6 +279,8 @@ class DenseParams:
                 not self.extent_shifts:
             raise ValueError("dense.extent_scales and extent_aspects must be non-empty lists of "
                              "positive numbers, extent_shifts a non-empty list")
+        if not 0.0 < self.extent_ring <= 2.0:
+            raise ValueError(f"dense.extent_ring must be in (0, 2], got {self.extent_ring}")
         if not 0.0 < self.part_cover <= 1.0:
             raise ValueError(f"dense.part_cover must be in (0, 1], got {self.part_cover}")
         if not 0.0 < self.part_area <= 1.0:

@@ -211,14 +211,15 @@ def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
 def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
                   aspects: Sequence[float], shifts: Sequence[float],
                   integrals: tuple[np.ndarray, np.ndarray] | None = None,
-                  turn: bool = False, turned: np.ndarray | None = None
+                  turn: bool = False, turned: np.ndarray | None = None, ring: float = 0.5
                   ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     """The RP's boxes at the extent where they stand out most from their surroundings.
 
     One transform for all boxes (they show the same kind of object): side ``scale`` x the
     median box side, width / height ``aspect``, centre moved by ``shift`` x the new width
     and height; the transform with the largest median :func:`colour_contrast` over the
-    boxes that stay (mostly) inside the image wins. With ``turn`` and an elongated
+    boxes that stay (mostly) inside the image wins (against a ring ``ring`` x the box's
+    sides wide). With ``turn`` and an elongated
     transform (aspect not 1), each box then takes the transform turned by 90 degrees
     (width and height swapped, and the two shifts) where that box's contrast is larger
     turned: the same kind of object lying the other way (cars parked across a row,
@@ -235,6 +236,7 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     integrals : :func:`colour_integrals` of ``rgb`` when already computed
     turn : let each box take the transform turned by 90 degrees
     turned : (n,) bool or None, the boxes that take every transform turned
+    ring : the contrast's ring width / box side (``dense.extent_ring``)
 
     Returns
     -------
@@ -269,7 +271,7 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     tried = np.flatnonzero(inside.mean(1) >= 0.7)
     best, best_t, best_v = b, (1.0, 1.0, 0.0, 0.0), -1.0
     if len(tried):
-        v_all = colour_contrast(ii, nb[tried][inside[tried]])   # one call, every box
+        v_all = colour_contrast(ii, nb[tried][inside[tried]], ring)   # one call, every box
         ends = np.cumsum(inside[tried].sum(1))
         for k, lo, hi in zip(tried, np.r_[0, ends[:-1]], ends):
             v = float(np.median(v_all[lo:hi]))
@@ -280,7 +282,7 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
             tw, th = best[:, 3], best[:, 2]
             tb = np.stack([c[:, 0] + best_t[3] * tw - tw / 2, c[:, 1] + best_t[2] * th - th / 2,
                            tw, th], axis=1)
-            both = colour_contrast(ii, np.vstack([best, tb]))
+            both = colour_contrast(ii, np.vstack([best, tb]), ring)
             flip = both[len(b):] > both[:len(b)]
             best = np.where(flip[:, None], tb, best)
     x0 = np.clip(best[:, 0], 0, W)
@@ -605,9 +607,9 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if params.extent and len(b):
             b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
                                  params.extent_shifts, integrals, params.extent_turn,
-                                 is_turned)
+                                 is_turned, ring=params.extent_ring)
             # two instances on one object (two parts) become one box at the object's extent
-            b = b[np.sort(nms(b, colour_contrast(integrals, b), 0.5))]
+            b = b[np.sort(nms(b, colour_contrast(integrals, b, params.extent_ring), 0.5))]
         boxes = b * s
         if len(boxes) < params.min_instances:
             continue
