@@ -512,3 +512,39 @@ def test_rp_separation_of_objects_and_of_a_band(tmp_path, capsys):
     assert "below +0.010:    1 RPs      3 instances  on GT 0.000" in out
     with pytest.raises(SystemExit):
         rs.main([str(tmp_path), "--probe", "0"])
+
+
+def test_extent_fit_on_a_generated_set(tmp_path, capsys):
+    """extent_fit.py on a labelled set of one generated photo of discs: the thin ring
+    grows the half-size squares to the discs (the unit test's case, through the script);
+    a missing set is a message and exit 2."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_objects import _discs
+
+    ef = load("extent_fit")
+    img, truth = _discs(np.random.default_rng(3))
+    (tmp_path / "discs" / "images").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "discs" / "images" / "d.png"), img[..., ::-1])
+    coco = {"images": [{"id": 1, "file_name": "images/d.png", "width": 640, "height": 480}],
+            "annotations": [{"id": k, "image_id": 1, "category_id": 0, "bbox": b.tolist()}
+                            for k, b in enumerate(truth)],
+            "categories": [{"id": 0, "name": "disc"}]}
+    (tmp_path / "discs" / "annotations.json").write_text(json.dumps(coco))
+    assert ef.main(["--data", str(tmp_path), "--dataset", "discs", "--ring", "0.5",
+                    "--ring", "0.25", "--side", "640"]) == 0
+    out = capsys.readouterr().out
+    assert "discs: 1 images, 1 GT RPs" in out
+    row = out.strip().splitlines()[-1]
+    wide = float(row.split("ring 0.5: ")[1].split()[0])
+    thin = float(row.split("ring 0.25: ")[1].split()[0])
+    assert wide < 0.7 < 0.9 < thin, row
+    assert ef.main(["--data", str(tmp_path), "--dataset", "nothing"]) == 2
+    assert "not found" in capsys.readouterr().err
+    sq = ef.squares(np.array([[10.0, 20.0, 40.0, 10.0]]), 0.5)
+    assert np.allclose(sq, [[25.0, 20.0, 10.0, 10.0]])   # side sqrt(40 x 10) / 2, same centre
+    assert np.allclose(ef.diagonal_iou(truth, truth), 1.0)
