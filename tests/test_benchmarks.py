@@ -543,6 +543,14 @@ def test_extent_fit_on_a_generated_set(tmp_path, capsys):
     wide = float(row.split("ring 0.5: ")[1].split()[0])
     thin = float(row.split("ring 0.25: ")[1].split()[0])
     assert wide < 0.7 < 0.9 < thin, row
+    # the edge term grows them to the discs against the wide ring too
+    assert ef.main(["--data", str(tmp_path), "--dataset", "discs", "--ring", "0.5",
+                    "--edges", "1", "--side", "640"]) == 0
+    out = capsys.readouterr().out
+    assert "(edges 1)" in out
+    assert float(out.strip().splitlines()[-1].split("ring 0.5: ")[1].split()[0]) > 0.9
+    with pytest.raises(SystemExit):
+        ef.main(["--data", str(tmp_path), "--dataset", "discs", "--edges", "-1"])
     assert ef.main(["--data", str(tmp_path), "--dataset", "nothing"]) == 2
     assert "not found" in capsys.readouterr().err
     sq = ef.squares(np.array([[10.0, 20.0, 40.0, 10.0]]), 0.5)

@@ -246,6 +246,32 @@ def test_a_thin_ring_fits_the_extent_to_the_whole_disc():
     assert np.median(np.diag(iou_matrix(thin, truth))) > 0.9 and t[:2] == (2.0, 1.0)
 
 
+def test_edges_on_the_outline_grow_the_extent_to_the_whole_disc():
+    # the same blobs: with the edge term (dense.extent_edges) the extent grows them to the
+    # whole discs against the default ring too; the edge contrast peaks at the disc's box
+    from rescu.extension.objects import edge_contrast, extent_score, gradient_integral
+
+    img, truth = _discs(np.random.default_rng(3))
+    c = truth[:, :2] + truth[:, 2:] / 2
+    small = np.c_[c - 11, np.full((len(truth), 2), 22.0)]
+    args = (img, small, (0.6, 0.75, 0.9, 1.0, 1.1, 1.3, 1.6, 2.0, 2.5),
+            (0.5, 0.7, 1.0, 1.4, 2.0), (-0.25, 0.0, 0.25))
+    got, t = refine_extent(*args, edges=1.0)
+    assert np.median(np.diag(iou_matrix(got, truth))) > 0.9 and t[:2] == (2.0, 1.0)
+    plain, _ = refine_extent(*args, edges=0.0)
+    assert np.array_equal(plain, refine_extent(*args)[0])        # 0: the colour alone
+    g = gradient_integral(img)
+    side = truth[0, 2]
+
+    def around(k):
+        return np.c_[c - k * side / 2, np.full((len(c), 2), k * side)]
+
+    e = [float(np.median(edge_contrast(g, around(k)))) for k in (0.8, 1.0, 1.2)]
+    assert e[1] > max(e[0], e[2]), e
+    with pytest.raises(ValueError, match="gradient_integral"):
+        extent_score(colour_integrals(img), truth, 0.5, None, 1.0)
+
+
 def test_extent_turns_the_boxes_of_objects_lying_the_other_way():
     """Cars seen from above, parked both ways: one transform for the RP (the wide one,
     most cars lie that way), and with ``turn`` each car across the row gets it turned."""
@@ -665,7 +691,7 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("confidence_stage1_score_scale", -0.1),
                                        ("min_separation", 3.0), ("separation_reach", 0.0),
                                        ("min_object_separation", -2.5), ("extent_ring", 0.0),
-                                       ("extent_ring", 3.0)])
+                                       ("extent_ring", 3.0), ("extent_edges", -1.0)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

@@ -8,7 +8,9 @@ ring around them. Here every GT RP of every image (the boxes of one category, tw
 more) stands in for an RP found on the right objects: its boxes are replaced by squares
 of ``--start`` x their side (sqrt of the area), on the same centres, and the extent
 (the config's ``dense.extent_scales``, ``extent_aspects``, ``extent_shifts``) is asked
-to grow them back, once per ring width of ``--ring``. Prints, per dataset and ring, the
+to grow them back, once per ring width of ``--ring`` (with ``--edges W``, the score adds
+W x :func:`rescu.extension.objects.edge_contrast`, ``dense.extent_edges``). Prints, per
+dataset and ring, the
 mean IoU of each box with its GT box (mean over the GT RPs), and that of the squares it
 started from. The photo is resized to ``--side`` px on its longer side first (the
 pipeline's prepared images are 960-1600 px). Asserts nothing.
@@ -21,6 +23,8 @@ Usage (from the repository root; ``--data`` holds one folder per dataset)::
     python benchmarks/studies/extent_fit.py --data ../shared/data --dataset chess \\
         --dataset aerial_cars --dataset cmp_facade --dataset spb_facades \\
         --ring 0.5 --ring 0.25 --start 0.5 --start 0.75
+    python benchmarks/studies/extent_fit.py --data ../shared/data --dataset aerial_cars \
+        --ring 0.5 --edges 1
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from rescu.config import load_config
     from rescu.discovery.sources import DenseParams
-    from rescu.extension.objects import colour_integrals, refine_extent
+    from rescu.extension.objects import colour_integrals, gradient_integral, refine_extent
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
@@ -71,10 +75,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--start", action="append", type=float, default=None,
                     help="start squares' side / the GT box's (repeatable; default 0.5)")
     ap.add_argument("--side", type=int, default=1024, help="longer side of the photos, px")
+    ap.add_argument("--edges", type=float, default=0.0,
+                    help="weight of the edge contrast in the extent's score (default 0)")
     a = ap.parse_args(argv)
     rings, starts = a.ring or [0.5, 0.25], a.start or [0.5]
-    if min(rings) <= 0 or min(starts) <= 0:
-        ap.error("--ring and --start must be > 0")
+    if min(rings) <= 0 or min(starts) <= 0 or a.edges < 0:
+        ap.error("--ring and --start must be > 0, --edges >= 0")
     p = DenseParams.from_dict(load_config(None, stage2=False)["dense"])
     for ds in a.dataset:
         ann_path = a.data / ds / "annotations.json"
@@ -103,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             rgb = cv2.cvtColor(cv2.resize(bgr, None, fx=k, fy=k, interpolation=cv2.INTER_AREA),
                                cv2.COLOR_BGR2RGB)
             ii = colour_integrals(rgb)
+            grad = gradient_integral(rgb) if a.edges > 0 else None
             for gt in rps:
                 gt = gt * k
                 for s in starts:
@@ -110,10 +117,12 @@ def main(argv: list[str] | None = None) -> int:
                     fit[(s, "start")].append(float(diagonal_iou(sq, gt).mean()))
                     for r in rings:
                         got, _ = refine_extent(rgb, sq, p.extent_scales, p.extent_aspects,
-                                               p.extent_shifts, ii, ring=r)
+                                               p.extent_shifts, ii, ring=r, edges=a.edges,
+                                               gradients=grad)
                         fit[(s, r)].append(float(diagonal_iou(got, gt).mean()))
         n_rps = len(next(iter(fit.values()), []))
-        print(f"\n{ds}: {n_images} images, {n_rps} GT RPs; mean IoU with the GT boxes")
+        print(f"\n{ds}: {n_images} images, {n_rps} GT RPs; mean IoU with the GT boxes"
+              + (f" (edges {a.edges:g})" if a.edges else ""))
         for s in starts:
             row = "  ".join(f"ring {r}: {np.mean(fit[(s, r)]):.3f}" for r in rings)
             print(f"  start {s} (IoU {np.mean(fit[(s, 'start')]):.3f})  {row}")

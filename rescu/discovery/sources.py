@@ -140,6 +140,9 @@ class DenseParams:
     extent_ring : float
         Width of the ring the extent's contrast compares each box with, x the box's
         sides (:func:`rescu.extension.objects.colour_contrast`).
+    extent_edges : float
+        Weight of the edges on the boxes' outlines in the extent's score
+        (:func:`rescu.extension.objects.edge_contrast`); 0: the colour contrast alone.
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
         the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).
@@ -211,6 +214,7 @@ class DenseParams:
     extent_shifts: tuple[float, ...]
     extent_turn: bool
     extent_ring: float
+    extent_edges: float
     part_cover: float
     part_area: float
     part_reach: float
@@ -281,6 +285,8 @@ class DenseParams:
                              "positive numbers, extent_shifts a non-empty list")
         if not 0.0 < self.extent_ring <= 2.0:
             raise ValueError(f"dense.extent_ring must be in (0, 2], got {self.extent_ring}")
+        if not self.extent_edges >= 0:
+            raise ValueError(f"dense.extent_edges must be >= 0, got {self.extent_edges}")
         if not 0.0 < self.part_cover <= 1.0:
             raise ValueError(f"dense.part_cover must be in (0, 1], got {self.part_cover}")
         if not 0.0 < self.part_area <= 1.0:

@@ -17,9 +17,10 @@ counters work once they hold a few exemplars:
    found when they look like the others.
 2. **Extent** (:func:`refine_extent`): one scale, aspect and shift for all of the RP's
    boxes, chosen where the colour inside the boxes differs most from a ring around
-   them (Fisher ratio in CIELAB, :func:`colour_contrast`): the classical scale
-   selection of a blob detector, done jointly over the instances. A coin's box grows
-   from its bright centre to the coin.
+   them (Fisher ratio in CIELAB, :func:`colour_contrast`; optionally plus the edges on
+   the boxes' outlines, :func:`edge_contrast`): the classical scale selection of a blob
+   detector, done jointly over the instances. A coin's box grows from its bright centre
+   to the coin.
 3. **One RP per object** (:func:`suppress_parts`): a group whose boxes lie mostly
    inside (or around) the boxes of a better-ranked RP holds parts of the same objects
    and is dropped; its boxes that lie elsewhere are not enough to make an RP.
@@ -48,7 +49,8 @@ from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map,
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
            "whole_objects", "rp_confidence", "score_patterns",
-           "colour_integrals", "rect_sums", "colour_contrast", "refine_extent",
+           "colour_integrals", "rect_sums", "colour_contrast", "gradient_integral",
+           "edge_contrast", "extent_score", "refine_extent",
            "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
 
 
@@ -208,10 +210,74 @@ def colour_contrast(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray,
     return ((mi - mo) ** 2).sum(1) / (vi + vo + 25.0)
 
 
+def gradient_integral(rgb: np.ndarray) -> np.ndarray:
+    """Summed-area table of an image's gradient magnitude (3 x 3 Sobel on its grey
+    levels), (H + 1, W + 1) float64."""
+    import cv2
+
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float64)
+    g = np.hypot(cv2.Sobel(grey, cv2.CV_64F, 1, 0, ksize=3),
+                 cv2.Sobel(grey, cv2.CV_64F, 0, 1, ksize=3))
+    return cv2.integral(g)
+
+
+def edge_contrast(gradients: np.ndarray, boxes: np.ndarray, band: float = 0.1) -> np.ndarray:
+    """How much stronger the image's edges are on each box's outline than around it.
+
+    ``(g_band - g_out) / (g_out + 10)``: the mean gradient magnitude in the band
+    straddling the box's border (``band`` x its width and height on each side of it)
+    against that in the ring just outside the band (the next ``2 x band``), over the
+    latter (10: a floor of a few grey levels per pixel). A box whose outline follows an
+    object's silhouette (a car's outline, a window's frame) scores high; one inside the
+    object or around it, where the border crosses texture or plain background, low.
+
+    Parameters
+    ----------
+    gradients : :func:`gradient_integral` of the image
+    boxes : (n, 4) ``[x, y, w, h]``, pixels of that image
+    band : half the band's width / box side
+
+    Returns
+    -------
+    (n,) float
+    """
+    H, W = gradients.shape[0] - 1, gradients.shape[1] - 1
+    b = np.asarray(boxes, float).reshape(-1, 4)
+
+    def sums(g: float) -> tuple[np.ndarray, np.ndarray]:
+        # sum and area of the box grown by g x its sides on each side (g < 0: shrunk)
+        x0 = np.clip(np.round(b[:, 0] - g * b[:, 2]), 0, W - 1).astype(int)
+        y0 = np.clip(np.round(b[:, 1] - g * b[:, 3]), 0, H - 1).astype(int)
+        x1 = np.clip(np.round(b[:, 0] + (1 + g) * b[:, 2]), x0 + 1, W).astype(int)
+        y1 = np.clip(np.round(b[:, 1] + (1 + g) * b[:, 3]), y0 + 1, H).astype(int)
+        return rect_sums(gradients, x0, y0, x1, y1), ((x1 - x0) * (y1 - y0)).astype(float)
+
+    s_in, a_in = sums(-band)
+    s_mid, a_mid = sums(band)
+    s_out, a_out = sums(3 * band)
+    g_band = (s_mid - s_in) / np.maximum(a_mid - a_in, 1.0)
+    g_out = (s_out - s_mid) / np.maximum(a_out - a_mid, 1.0)
+    return (g_band - g_out) / (g_out + 10.0)
+
+
+def extent_score(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray, ring: float,
+                 gradients: np.ndarray | None = None, edges: float = 0.0) -> np.ndarray:
+    """What :func:`refine_extent` maximises: :func:`colour_contrast` against a ring
+    ``ring`` x the box's sides wide, plus ``edges`` x :func:`edge_contrast` when
+    ``edges`` > 0 (``gradients`` then required). (n,) float."""
+    v = colour_contrast(integrals, boxes, ring)
+    if edges > 0:
+        if gradients is None:
+            raise ValueError("extent_score: edges > 0 needs the gradient_integral")
+        v = v + edges * edge_contrast(gradients, boxes)
+    return v
+
+
 def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
                   aspects: Sequence[float], shifts: Sequence[float],
                   integrals: tuple[np.ndarray, np.ndarray] | None = None,
-                  turn: bool = False, turned: np.ndarray | None = None, ring: float = 0.5
+                  turn: bool = False, turned: np.ndarray | None = None, ring: float = 0.5,
+                  edges: float = 0.0, gradients: np.ndarray | None = None
                   ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     """The RP's boxes at the extent where they stand out most from their surroundings.
 
@@ -219,7 +285,8 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     median box side, width / height ``aspect``, centre moved by ``shift`` x the new width
     and height; the transform with the largest median :func:`colour_contrast` over the
     boxes that stay (mostly) inside the image wins (against a ring ``ring`` x the box's
-    sides wide). With ``turn`` and an elongated
+    sides wide; with ``edges`` > 0 plus that weight x :func:`edge_contrast`,
+    :func:`extent_score`). With ``turn`` and an elongated
     transform (aspect not 1), each box then takes the transform turned by 90 degrees
     (width and height swapped, and the two shifts) where that box's contrast is larger
     turned: the same kind of object lying the other way (cars parked across a row,
@@ -237,6 +304,10 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     turn : let each box take the transform turned by 90 degrees
     turned : (n,) bool or None, the boxes that take every transform turned
     ring : the contrast's ring width / box side (``dense.extent_ring``)
+    edges : weight of :func:`edge_contrast` in the score (``dense.extent_edges``; 0: the
+        colour contrast alone)
+    gradients : :func:`gradient_integral` of ``rgb`` when already computed (made here
+        when ``edges`` > 0 and None)
 
     Returns
     -------
@@ -247,6 +318,8 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     if not len(b):
         return b, (1.0, 1.0, 0.0, 0.0)
     ii = colour_integrals(rgb) if integrals is None else integrals
+    if edges > 0 and gradients is None:
+        gradients = gradient_integral(rgb)
     H, W = rgb.shape[:2]
     c = b[:, :2] + b[:, 2:] / 2
     side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
@@ -271,7 +344,7 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
     tried = np.flatnonzero(inside.mean(1) >= 0.7)
     best, best_t, best_v = b, (1.0, 1.0, 0.0, 0.0), -1.0
     if len(tried):
-        v_all = colour_contrast(ii, nb[tried][inside[tried]], ring)   # one call, every box
+        v_all = extent_score(ii, nb[tried][inside[tried]], ring, gradients, edges)  # every box
         ends = np.cumsum(inside[tried].sum(1))
         for k, lo, hi in zip(tried, np.r_[0, ends[:-1]], ends):
             v = float(np.median(v_all[lo:hi]))
@@ -282,7 +355,7 @@ def refine_extent(rgb: np.ndarray, boxes: np.ndarray, scales: Sequence[float],
             tw, th = best[:, 3], best[:, 2]
             tb = np.stack([c[:, 0] + best_t[3] * tw - tw / 2, c[:, 1] + best_t[2] * th - th / 2,
                            tw, th], axis=1)
-            both = colour_contrast(ii, np.vstack([best, tb]), ring)
+            both = extent_score(ii, np.vstack([best, tb]), ring, gradients, edges)
             flip = both[len(b):] > both[:len(b)]
             best = np.where(flip[:, None], tb, best)
     x0 = np.clip(best[:, 0], 0, W)
@@ -588,6 +661,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
     transform of :func:`refine_extent`, the map)
     """
     integrals = colour_integrals(rgb)
+    gradients = gradient_integral(rgb) if params.extent and params.extent_edges > 0 else None
     maps = _Integrals(levels)        # each map's summed-area table, made once when needed
     out: list[tuple[float, np.ndarray, dict[str, Any]]] = []
     for c in ranked:
@@ -607,9 +681,11 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
         if params.extent and len(b):
             b, t = refine_extent(rgb, b, params.extent_scales, params.extent_aspects,
                                  params.extent_shifts, integrals, params.extent_turn,
-                                 is_turned, ring=params.extent_ring)
+                                 is_turned, ring=params.extent_ring,
+                                 edges=params.extent_edges, gradients=gradients)
             # two instances on one object (two parts) become one box at the object's extent
-            b = b[np.sort(nms(b, colour_contrast(integrals, b, params.extent_ring), 0.5))]
+            b = b[np.sort(nms(b, extent_score(integrals, b, params.extent_ring, gradients,
+                                              params.extent_edges), 0.5))]
         boxes = b * s
         if len(boxes) < params.min_instances:
             continue
