@@ -231,15 +231,21 @@ def test_extent_grows_a_box_to_the_object():
     assert np.median(colour_contrast(ii, truth)) > np.median(colour_contrast(ii, small))
 
 
+def _blobs_on_disc_centres():
+    """The disc grid, and :func:`refine_extent`'s first five arguments for blobs half a
+    disc across on the discs' centres with the default's transforms."""
+    img, truth = _discs(np.random.default_rng(3))
+    c = truth[:, :2] + truth[:, 2:] / 2
+    small = np.c_[c - 11, np.full((len(truth), 2), 22.0)]
+    return img, truth, (img, small, (0.6, 0.75, 0.9, 1.0, 1.1, 1.3, 1.6, 2.0, 2.5),
+                        (0.5, 0.7, 1.0, 1.4, 2.0), (-0.25, 0.0, 0.25))
+
+
 def test_a_thin_ring_fits_the_extent_to_the_whole_disc():
     # blobs on the discs' centres, half a disc across: against the default ring (half the
     # box's side, reaching the next disc) the extent stops on the discs' inner faces; a
     # ring a quarter of the side wide grows the boxes to the whole discs
-    img, truth = _discs(np.random.default_rng(3))
-    c = truth[:, :2] + truth[:, 2:] / 2
-    small = np.c_[c - 11, np.full((len(truth), 2), 22.0)]
-    args = (img, small, (0.6, 0.75, 0.9, 1.0, 1.1, 1.3, 1.6, 2.0, 2.5),
-            (0.5, 0.7, 1.0, 1.4, 2.0), (-0.25, 0.0, 0.25))
+    img, truth, args = _blobs_on_disc_centres()
     wide, _ = refine_extent(*args)
     thin, t = refine_extent(*args, ring=0.25)
     assert np.median(np.diag(iou_matrix(wide, truth))) < 0.7
@@ -249,13 +255,10 @@ def test_a_thin_ring_fits_the_extent_to_the_whole_disc():
 def test_edges_on_the_outline_grow_the_extent_to_the_whole_disc():
     # the same blobs: with the edge term (dense.extent_edges) the extent grows them to the
     # whole discs against the default ring too; the edge contrast peaks at the disc's box
-    from rescu.extension.objects import edge_contrast, extent_score, gradient_integral
+    from rescu.extension.extent import edge_contrast, extent_score, gradient_integral
 
-    img, truth = _discs(np.random.default_rng(3))
+    img, truth, args = _blobs_on_disc_centres()
     c = truth[:, :2] + truth[:, 2:] / 2
-    small = np.c_[c - 11, np.full((len(truth), 2), 22.0)]
-    args = (img, small, (0.6, 0.75, 0.9, 1.0, 1.1, 1.3, 1.6, 2.0, 2.5),
-            (0.5, 0.7, 1.0, 1.4, 2.0), (-0.25, 0.0, 0.25))
     got, t = refine_extent(*args, edges=1.0)
     assert np.median(np.diag(iou_matrix(got, truth))) > 0.9 and t[:2] == (2.0, 1.0)
     plain, _ = refine_extent(*args, edges=0.0)
