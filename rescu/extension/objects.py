@@ -15,12 +15,12 @@ counters work once they hold a few exemplars:
    ``completion_floor``), suppressed at the instance size, are its instances. Objects
    that the blob detector missed (weaker contrast, a neighbour's ring in the way) are
    found when they look like the others.
-2. **Extent** (:func:`rescu.extension.extent.refine_extent`): one scale, aspect and shift for all of the RP's
-   boxes, chosen where the colour inside the boxes differs most from a ring around
-   them (Fisher ratio in CIELAB, :func:`colour_contrast`; optionally plus the edges on
-   the boxes' outlines, :func:`edge_contrast`): the classical scale selection of a blob
-   detector, done jointly over the instances. A coin's box grows from its bright centre
-   to the coin.
+2. **Extent** (:func:`rescu.extension.extent.refine_extent`): one scale, aspect and
+   shift for all of the RP's boxes, chosen where the colour inside the boxes differs
+   most from a ring around them (Fisher ratio in CIELAB, :func:`colour_contrast`;
+   optionally plus the edges on the boxes' outlines, :func:`edge_contrast`): the
+   classical scale selection of a blob detector, done jointly over the instances. A
+   coin's box grows from its bright centre to the coin.
 3. **One RP per object** (:func:`suppress_parts`): a group whose boxes lie mostly
    inside (or around) the boxes of a better-ranked RP holds parts of the same objects
    and is dropped; its boxes that lie elsewhere are not enough to make an RP.
