@@ -555,4 +555,3 @@ def test_extent_fit_on_a_generated_set(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     sq = ef.squares(np.array([[10.0, 20.0, 40.0, 10.0]]), 0.5)
     assert np.allclose(sq, [[25.0, 20.0, 10.0, 10.0]])   # side sqrt(40 x 10) / 2, same centre
-    assert np.allclose(ef.diagonal_iou(truth, truth), 1.0)

@@ -38,18 +38,6 @@ from pathlib import Path
 sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
 
-def diagonal_iou(a: "np.ndarray", b: "np.ndarray") -> "np.ndarray":  # noqa: F821
-    """(n,) IoU of ``a[i]`` with ``b[i]``, boxes ``[x, y, w, h]`` (n, 4)."""
-    import numpy as np
-
-    ix = np.clip(np.minimum(a[:, 0] + a[:, 2], b[:, 0] + b[:, 2])
-                 - np.maximum(a[:, 0], b[:, 0]), 0, None)
-    iy = np.clip(np.minimum(a[:, 1] + a[:, 3], b[:, 1] + b[:, 3])
-                 - np.maximum(a[:, 1], b[:, 1]), 0, None)
-    inter = ix * iy
-    return inter / np.maximum(a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter, 1e-9)
-
-
 def squares(gt: "np.ndarray", start: float) -> "np.ndarray":  # noqa: F821
     """Squares of ``start`` x each box's side (sqrt of its area) on the boxes' centres."""
     import numpy as np
@@ -63,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import numpy as np
 
+    from rescu.boxes import iou_matrix
     from rescu.config import load_config
     from rescu.discovery.sources import DenseParams
     from rescu.extension.extent import colour_integrals, gradient_integral, refine_extent
@@ -114,12 +103,12 @@ def main(argv: list[str] | None = None) -> int:
                 gt = gt * k
                 for s in starts:
                     sq = squares(gt, s)
-                    fit[(s, "start")].append(float(diagonal_iou(sq, gt).mean()))
+                    fit[(s, "start")].append(float(np.diag(iou_matrix(sq, gt)).mean()))
                     for r in rings:
                         got, _ = refine_extent(rgb, sq, p.extent_scales, p.extent_aspects,
                                                p.extent_shifts, ii, ring=r, edges=a.edges,
                                                gradients=grad)
-                        fit[(s, r)].append(float(diagonal_iou(got, gt).mean()))
+                        fit[(s, r)].append(float(np.diag(iou_matrix(got, gt)).mean()))
         n_rps = len(next(iter(fit.values()), []))
         print(f"\n{ds}: {n_images} images, {n_rps} GT RPs; mean IoU with the GT boxes"
               + (f" (edges {a.edges:g})" if a.edges else ""))
