@@ -555,3 +555,38 @@ def test_extent_fit_on_a_generated_set(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     sq = ef.squares(np.array([[10.0, 20.0, 40.0, 10.0]]), 0.5)
     assert np.allclose(sq, [[25.0, 20.0, 10.0, 10.0]])   # side sqrt(40 x 10) / 2, same centre
+
+
+def test_box_fit_counts_boxes_and_the_share_of_the_object_they_cover(tmp_path, capsys):
+    """box_fit.py on one labelled image and a run's JSON: which instances pass IOD > 0.5,
+    which lie on an object with the wrong box, the median share of the object the boxes
+    on objects cover, and ``--source`` keeping one source's RPs; a missing set is exit 2."""
+    import json
+
+    bf = load("box_fit")
+    (tmp_path / "data" / "set").mkdir(parents=True)
+    coco = {"images": [{"id": 1, "file_name": "images/x.png", "width": 200, "height": 100}],
+            "annotations": [{"id": k, "image_id": 1, "category_id": 0, "bbox": b}
+                            for k, b in enumerate([[0, 0, 40, 40], [100, 0, 40, 40]])],
+            "categories": [{"id": 0, "name": "thing"}]}
+    (tmp_path / "data" / "set" / "annotations.json").write_text(json.dumps(coco))
+    run = tmp_path / "run" / "set" / "rescu-ii"
+    run.mkdir(parents=True)
+    inst = lambda *boxes: [{"bbox": list(b)} for b in boxes]  # noqa: E731
+    res = {"patterns": [
+        {"source": "dense", "instances": inst((10, 10, 20, 20), (100, 0, 40, 40))},
+        {"instances": inst((0, 0, 60, 60), (150, 50, 10, 10))}]}
+    (run / "x.json").write_text(json.dumps(res))
+    args = [str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--dataset", "set",
+            "--folder", "rescu-ii"]
+    assert bf.main(args) == 0
+    out = capsys.readouterr().out
+    # the 60-px box holds the first object's centre, 2.25 times its area: on it, failing
+    assert "hold 4 instances: 2 pass IOD > 0.5, 1 more have their centre" in out
+    assert "3 have their centre on a GT object; median area / the object's: 1.00" in out
+    assert bf.main(args + ["--source", "dense"]) == 0
+    out = capsys.readouterr().out
+    assert "hold 2 instances: 2 pass" in out
+    assert "median area / the object's: 0.62" in out       # 0.25 and 1
+    assert bf.main([str(tmp_path / "run"), "--data", str(tmp_path), "--dataset", "set"]) == 2
+    assert "not found" in capsys.readouterr().err
