@@ -84,6 +84,24 @@ def step_params(script, **params):
 # the shell: of every rule with step_params; {log:q}: Snakemake quotes the log's path
 STEP_SHELL = "{params.step} {log:q}"
 
+# Scheduling priorities (rule ``priority:``; 0 for the others): among the jobs ready to run,
+# Snakemake starts those of higher priority first. An image's chain of jobs is long
+# (prepare, dense, rescu_i, stage2_features, ... one after the other), and a run whose last
+# image is prepared late ends with that image's chain running alone on one core while the
+# other idles. Every image is prepared first, then the long jobs and those that unblock
+# them run; the short per-image jobs (scene, VPs, captions, overlays) and the tables fill
+# the cores at the end. Priorities order the jobs only: they change no output and no
+# job's parameters.
+PRIORITY = {
+    "prepare": 4,
+    "dense": 3,
+    "features": 3,
+    "rescu_i": 2,
+    "stage2_features": 2,
+    "stage2_ablation": 2,
+    "ablation": 1,
+}
+
 
 def step_code(script):
     """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file,

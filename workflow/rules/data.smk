@@ -70,6 +70,7 @@ rule prepare:
             min_side=config["image"]["min_side"],
             max_pixels=config["image"]["max_pixels"],
         ),
+    priority: PRIORITY["prepare"]
     log:
         LOGS + "/{dataset}/prepare/{image}.log",
     benchmark:

@@ -21,6 +21,7 @@ rule dense:
             threads=config["threads"]["stage2_features"],
         ),
     threads: config["threads"]["stage2_features"]
+    priority: PRIORITY["dense"]  # an image's longest job: first (common.smk)
     log:
         LOGS + "/{dataset}/dense/{image}.log",
     benchmark:
@@ -45,6 +46,7 @@ rule rescu_i:
             stage1=config["stage1"],
             dense=config["dense"] if DENSE else None,
         ),
+    priority: PRIORITY["rescu_i"]
     log:
         LOGS + "/{dataset}/rescu-i/{image}.log",
     benchmark:
@@ -94,6 +96,7 @@ rule ablation:
             rows=ablation_variants(),
             dense=DENSE_STEP if ABLATION_SOURCES else None,
         ),
+    priority: PRIORITY["ablation"]
     log:
         LOGS + "/{dataset}/ablation/{image}.log",
     benchmark:

@@ -24,6 +24,7 @@ rule stage2_features:
     threads: max(config["threads"]["stage2_features"], config["threads"]["stage2_head"])
     resources:
         mem_mb=4000,
+    priority: PRIORITY["stage2_features"]
     log:
         LOGS + "/{dataset}/stage2_features/{image}.log",
     benchmark:
@@ -112,6 +113,7 @@ if stage2_ablation_variants():
         threads: config["threads"]["stage2_features"]
         resources:
             mem_mb=4000,
+        priority: PRIORITY["stage2_ablation"]
         log:
             LOGS + "/{dataset}/stage2_ablation/{image}.log",
         benchmark:

@@ -12,6 +12,7 @@ rule features:
             "features",
             features=config["features"],
         ),
+    priority: PRIORITY["features"]
     log:
         LOGS + "/{dataset}/features/{image}.log",
     benchmark:
