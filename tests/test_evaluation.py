@@ -207,6 +207,36 @@ def test_paired_wilcoxon() -> None:
         E.paired_wilcoxon([1, 2], [1])
 
 
+def test_paired_wilcoxon_is_scipys_p_value_exactly() -> None:
+    """The sign-flip enumeration gives the very p-value of scipy.stats.wilcoxon on small
+    samples with ties and zero differences (where SciPy runs its permutation test), and
+    SciPy's own path is used elsewhere (no ties, or more than 13 pairs)."""
+    import warnings
+
+    from scipy.stats import wilcoxon
+
+    rng = np.random.default_rng(5)
+    checked = 0
+    for t in range(120):
+        n = 13 if t == 0 else int(rng.integers(1, 11))  # SciPy's test costs 2^n statistics
+        a = np.round(rng.random(n) * rng.choice([1, 5, 100]), int(rng.integers(0, 3)))
+        b = np.round(rng.random(n) * rng.choice([1, 5, 100]), int(rng.integers(0, 3)))
+        k = int(rng.integers(0, n + 1))
+        if rng.random() < 0.5:
+            b[:k] = a[:k]                                   # zero differences
+        if np.all(a == b):
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            expected = float(wilcoxon(a, b).pvalue)
+        assert E.paired_wilcoxon(a, b) == (expected, n), (a - b)
+        checked += E._sign_flip_pvalue(a - b) is not None
+    assert checked > 40                                     # the enumeration ran
+    assert E._sign_flip_pvalue(np.arange(1.0, 15.0)) is None          # 14 pairs
+    assert E._sign_flip_pvalue(np.array([1.0, -2.0, 3.0])) is None    # no ties, no zero
+    assert E._sign_flip_pvalue(np.array([1.0, -1.0, 0.0, 2.0])) is not None
+
+
 @settings(max_examples=12, deadline=None)
 @given(st.lists(st.tuples(st.floats(0, 1), st.floats(0, 1)), min_size=1, max_size=12))
 def test_summary_mean_matches_numpy_and_p_symmetric(pairs) -> None:
