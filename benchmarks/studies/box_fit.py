@@ -25,22 +25,26 @@ from pathlib import Path
 
 import numpy as np
 
+# the checkout's rescu package
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from rescu.boxes import iod_matrix  # noqa: E402
+
+
+def _centre_on(det: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """(n, m) bool: the centre of ``det[i]`` strictly inside ``gt[j]`` (``[x, y, w, h]``)."""
+    cx, cy = det[:, 0] + det[:, 2] / 2, det[:, 1] + det[:, 3] / 2
+    return ((cx[:, None] > gt[:, 0]) & (cx[:, None] < gt[:, 0] + gt[:, 2])
+            & (cy[:, None] > gt[:, 1]) & (cy[:, None] < gt[:, 1] + gt[:, 3]))
+
 
 def fit(det: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n,) bool twice: IOD > 0.5 against some GT box; centre inside a GT box but not
     passing. ``det`` (n, 4), ``gt`` (m, 4), ``[x, y, w, h]``."""
     if not len(det) or not len(gt):
         return np.zeros(len(det), bool), np.zeros(len(det), bool)
-    gx0, gy0 = gt[:, 0], gt[:, 1]
-    gx1, gy1 = gt[:, 0] + gt[:, 2], gt[:, 1] + gt[:, 3]
-    ix = np.clip(np.minimum(det[:, None, 0] + det[:, None, 2], gx1)
-                 - np.maximum(det[:, None, 0], gx0), 0, None)
-    iy = np.clip(np.minimum(det[:, None, 1] + det[:, None, 3], gy1)
-                 - np.maximum(det[:, None, 1], gy0), 0, None)
-    ok = (ix * iy / np.maximum(det[:, 2] * det[:, 3], 1e-9)[:, None]).max(1) > 0.5
-    cx, cy = det[:, 0] + det[:, 2] / 2, det[:, 1] + det[:, 3] / 2
-    on = ((cx[:, None] > gx0) & (cx[:, None] < gx1)
-          & (cy[:, None] > gy0) & (cy[:, None] < gy1)).any(1)
+    ok = iod_matrix(det, gt).max(1) > 0.5
+    on = _centre_on(det, gt).any(1)
     return ok, on & ~ok
 
 
@@ -55,10 +59,7 @@ def area_share(det: np.ndarray, gt: np.ndarray) -> np.ndarray:
     out = np.full(len(det), np.nan)
     if not len(det) or not len(gt):
         return out
-    cx, cy = det[:, 0] + det[:, 2] / 2, det[:, 1] + det[:, 3] / 2
-    inside = ((cx[:, None] > gt[:, 0]) & (cx[:, None] < gt[:, 0] + gt[:, 2])
-              & (cy[:, None] > gt[:, 1]) & (cy[:, None] < gt[:, 1] + gt[:, 3]))
-    area = np.where(inside, gt[:, 2] * gt[:, 3], np.inf).min(1)
+    area = np.where(_centre_on(det, gt), gt[:, 2] * gt[:, 3], np.inf).min(1)
     hit = np.isfinite(area)
     out[hit] = det[hit, 2] * det[hit, 3] / np.maximum(area[hit], 1e-9)
     return out
