@@ -584,10 +584,31 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
             ckpt, f = attempt("stage2-train", lambda: stage2_train(feats2, s1, p))
             if f is None:
                 kept["head"] = ckpt
-                res, f = attempt("stage2-predict", lambda: stage2_predict(feats2, ckpt, s1, p))
+                res, f = attempt("stage2-predict", lambda: _one_box(
+                    prep, s1, stage2_predict(feats2, ckpt, s1, p), cfg))
     if f is not None:
         return degraded_result(s1, "rescu-ii", f)
     kept["rescu-ii"] = res = as_written(res)
+    return res
+
+
+def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
+             cfg: dict[str, Any]) -> ImageResult:
+    """RESCU-II's ``res`` with one box per object, as RESCU-I's and as the pipeline's
+    prediction step gives it (:func:`rescu.extension.objects.one_box_per_object` on the
+    dense source's map, which the dense step made in this process); ``res`` as it is
+    without the dense source or after a failed dense step."""
+    d = cfg["dense"]
+    if not d["enabled"] or s1.extra.get("dense_failure"):
+        return res
+    from .extension.dense import DenseParams, dense_map
+    from .extension.objects import one_box_per_object
+
+    dp = DenseParams.from_dict(d)
+    if dp.mode == "objects" and dp.min_object_separation > -2.0:
+        with _threads(cfg, "in_process"):
+            fmap = dense_map(prep.rgb, dp)
+        one_box_per_object(res, fmap, prep.scale_factor, dp)
     return res
 
 

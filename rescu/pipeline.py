@@ -371,10 +371,36 @@ def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
     return _guard("stage2-train", _h5_failure(feats_h5), run, empty)
 
 
+def _one_box(res: Any, s1: Any, meta: dict[str, Any], dense_map_h5: str | None,
+             dense_params: dict[str, Any] | None) -> None:
+    """RESCU-II's result ``res`` with one box per object, as RESCU-I's
+    (:func:`rescu.extension.objects.one_box_per_object` on the map the dense step kept),
+    in place. Nothing without the dense source (no map or no ``dense`` section), after
+    a failed dense step (``s1``'s ``dense_failure``: its file holds no map), or with an
+    unreadable map file (logged: stage II's instances are then all kept)."""
+    if dense_map_h5 is None or dense_params is None or s1.extra.get("dense_failure"):
+        return
+    from .extension.dense import DenseParams, load_map
+    from .extension.objects import one_box_per_object
+
+    dp = DenseParams.from_dict(dense_params)
+    if dp.mode != "objects" or dp.min_object_separation <= -2.0:
+        return
+    try:
+        fmap = load_map(dense_map_h5, dp)
+    except io.InputError as e:
+        log.warning("%s; RESCU-II keeps every box stage II found", e)
+        return
+    if fmap is not None:
+        one_box_per_object(res, fmap, float(meta["scale_factor"]), dp)
+
+
 def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,
-                   meta_path: str, params: dict[str, Any]) -> Failure | None:
+                   meta_path: str, params: dict[str, Any], dense_map_h5: str | None = None,
+                   dense_params: dict[str, Any] | None = None) -> Failure | None:
     """RESCU-II instances: stage-I instances plus the head's positive proposals
-    (:func:`rescu.core.stage2_predict`)."""
+    (:func:`rescu.core.stage2_predict`), one box per object on the dense step's map
+    (:func:`_one_box`)."""
     from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
@@ -382,8 +408,10 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
 
     def run() -> None:
         feats, _ = io.read_h5(feats_h5)
-        io.write_json(out_json, core.stage2_predict(feats, ckpt, io.read_result(stage1_json),
-                                                    params))
+        s1 = io.read_result(stage1_json)
+        res = core.stage2_predict(feats, ckpt, s1, params)
+        _one_box(res, s1, meta, dense_map_h5, dense_params)
+        io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:
         # a failure in stage II (features, train or here): keep stage I's patterns
@@ -396,7 +424,9 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
 
 def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
                             meta_path: str, out_jsons: dict[str, str], params: dict[str, Any],
-                            variants: dict[str, dict[str, Any]]) -> Failure | None:
+                            variants: dict[str, dict[str, Any]],
+                            dense_map_h5: str | None = None,
+                            dense_params: dict[str, Any] | None = None) -> Failure | None:
     """RESCU-II once per prediction-only variant, from the run's own features and head.
 
     Each variant is a nested mapping of ``stage2`` keys in the ``predict`` section only
@@ -421,6 +451,7 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
         s1 = io.read_result(stage1_json)
         for name, p in plist.items():
             res = core.stage2_predict(feats, ckpt, s1, p, method=f"rescu-ii[{name}]")
+            _one_box(res, s1, meta, dense_map_h5, dense_params)
             res.extra["ablation"] = dict(variants[name])
             io.write_json(out_jsons[name], res)
 
@@ -435,7 +466,9 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
 
 
 def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[str, str],
-                    params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> Failure | None:
+                    params: dict[str, Any], variants: dict[str, dict[str, Any]],
+                    dense_map_h5: str | None = None,
+                    dense_params: dict[str, Any] | None = None) -> Failure | None:
     """RESCU-II once per stage-II ablation variant (e.g. another ``proposal_method``).
 
     Each variant is a mapping of ``stage2`` keys overriding ``params``. Features, head
@@ -467,6 +500,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
                 feats = compute_stage2_features(rgb, float(meta["scale_factor"]), s1, p)
                 ckpt, info = train_heads(feats, s1, p)
                 res = predict_stage2(feats, ckpt, s1, p)
+                _one_box(res, s1, meta, dense_map_h5, dense_params)
                 res.method = f"rescu-ii[{name}]"
                 res.extra["stage2"] = info
                 res.extra["ablation"] = dict(variants[name])

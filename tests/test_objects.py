@@ -653,6 +653,68 @@ def test_whole_objects_that_abut_are_separate_and_a_rim_of_boxes_is_one_structur
     assert [c["dropped"] for c in res.extra["candidate_patterns"]] == ["one structure"]
 
 
+def test_two_boxes_on_one_object_do_not_make_separate_objects_one_structure():
+    """Boxes on separate objects, one object holding two of them (a chess piece's head and
+    base): the pair's half-way box lies on that object, like a sample of one structure.
+    When most instances have no neighbour within reach, that pair does not decide: the
+    RP is kept. When the close ones are the majority (two of three), it is judged."""
+    rng = np.random.default_rng(6)
+    f = 0.05 * rng.normal(size=(8, 24, 80))
+    f[0] += 1
+    at = [4, 16, 28, 40, 52, 64]                       # objects 3 cells wide, 6 tall, apart
+    for x in at:
+        f[3, 8:14, x:x + 3] += 2
+    head, base = [at[0] * 8, 64, 24, 24], [at[0] * 8, 88, 24, 24]
+    boxes = [[x * 8, 76, 24, 24] for x in at[1:]] + [head, base]
+    f = (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32)
+    flat = colour_integrals(np.full((192, 640, 3), 90, np.uint8))
+    p = _params()
+    many = rp_confidence(f, 8.0, 1.0, np.array(boxes, float), flat, p)
+    few = rp_confidence(f, 8.0, 1.0, np.array(boxes[-3:], float), flat, p)
+    assert "separation" not in many, many                   # 2 of 7 have a neighbour
+    assert few["separation"] < p.min_object_separation, few  # 2 of 3: one structure
+    res = ImageResult(image="x", width=640, height=192, method="rescu-i",
+                      patterns=[_pat(boxes, source="dense", **many)])
+    split_by_confidence(res, 0.0, p)
+    assert len(res.patterns) == 1 and not res.extra.get("candidate_patterns")
+
+
+def test_one_box_per_object_after_the_split():
+    """RESCU-I (mode objects) reports one box per object: an RP of the pieces' bases,
+    each just below a head of a more confident RP with no gap between the two on the
+    map, loses them and leaves the report; an RP of other objects, with wall between
+    them and the pieces, keeps its boxes. ``min_object_separation: -2`` keeps all."""
+    from rescu.extension.dense import score_and_split
+
+    rng = np.random.default_rng(7)
+    f = 0.05 * rng.normal(size=(8, 24, 100))
+    f[0] += 1
+    pieces, others = [4, 16, 28, 40], [46, 56, 66]    # others[0] within reach of a head
+    for x in pieces:                                   # 3 cells wide, 6 tall
+        f[3, 8:14, x:x + 3] += 2
+    for x in others:
+        f[5, 8:11, x:x + 3] += 2
+    f = (f / np.linalg.norm(f, axis=0, keepdims=True)).astype(np.float32)
+    heads = [[x * 8, 64, 24, 24] for x in pieces]
+    bases = [[x * 8, 88, 24, 24] for x in pieces]
+    apart = [[x * 8, 64, 24, 24] for x in others]
+
+    def run(**over):
+        res = ImageResult(image="x", width=800, height=192, method="rescu-i", patterns=[
+            _pat(bases, confidence=0.6, source="dense"), _pat(heads, confidence=0.9),
+            _pat(apart, confidence=0.5, source="dense")])
+        found = ImageResult(image="x", width=800, height=192, method="dense")
+        params = {**_params(mode="objects").__dict__, **over}
+        score_and_split(res, found, params, np.zeros((192, 800, 3), np.uint8),
+                        {"scale_factor": 1.0}, fmap=(f, 1.0))
+        return res
+
+    res = run()
+    assert [p.count for p in res.patterns] == [4, 3]
+    assert [c["dropped"] for c in res.extra["candidate_patterns"]] == ["same objects"]
+    assert [p.count for p in run(min_object_separation=-2.0).patterns] == [4, 4, 3]
+
+
 def test_split_by_confidence_drops_parts_of_a_more_confident_rp():
     coins = _pat([[0, 0, 40, 40], [60, 0, 40, 40], [120, 0, 40, 40], [180, 0, 40, 40]],
                  confidence=0.9, source="dense")

@@ -66,14 +66,16 @@ def nested(over: dict[str, Any]) -> dict[str, Any]:
 
 
 def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
-                    tuple[str, str] | None]
+                    tuple[str, str] | None, tuple[str | None, dict[str, Any] | None]]
          ) -> tuple[str, str, float, int | None]:
     """Stage II of one image through the pipeline's own three steps (features and head in
     a temporary folder), or only its prediction step from ``reuse`` = (the run's
     features HDF5, head checkpoint); ``threads`` is the config's ``threads`` section
     (each step with its rule's thread count); returns (stem, status, seconds, fine-tuning
-    epochs or None). Runs in a worker; a failing image gets the pipeline's empty result."""
-    png, meta, s1_json, out_json, params, threads, reuse = job
+    epochs or None). ``dense`` = (the dense step's map file, the ``dense`` section), both
+    None without the dense source: RESCU-II keeps one box per object as the pipeline's
+    step does. Runs in a worker; a failing image gets the pipeline's empty result."""
+    png, meta, s1_json, out_json, params, threads, reuse, dense = job
     t = time.time()
     stem = Path(out_json).stem
     from rescu import pipeline
@@ -81,15 +83,17 @@ def _one(job: tuple[str, str, str, str, dict[str, Any], dict[str, int],
     epochs = None
     if reuse is not None:
         pipeline.limit_threads(threads["stage2_head"], torch=True)
-        fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params)
+        fail = pipeline.stage2_predict(reuse[0], reuse[1], s1_json, out_json, meta, params,
+                                       *dense)
     else:
-        fail, epochs = _all_steps(png, meta, s1_json, out_json, params, threads)
+        fail, epochs = _all_steps(png, meta, s1_json, out_json, params, threads, dense)
     status = "ok" if fail is None else f"failed in {fail.get('stage')}: {fail.get('message')}"
     return stem, status, time.time() - t, epochs
 
 
 def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[str, Any],
-               threads: dict[str, int]) -> tuple[dict[str, Any] | None, int | None]:
+               threads: dict[str, int], dense: tuple[str | None, dict[str, Any] | None]
+               ) -> tuple[dict[str, Any] | None, int | None]:
     """The pipeline's three stage-II steps, features and head in a temporary folder, each
     with its rule's thread count (``threads``: the config's ``threads`` section); returns
     (the failure record or None, fine-tuning epochs or None)."""
@@ -104,7 +108,8 @@ def _all_steps(png: str, meta: str, s1_json: str, out_json: str, params: dict[st
         pipeline.limit_threads(threads["stage2_features"], torch=True)
         fail = (pipeline.stage2_features(png, meta, s1_json, h5, params)
                 or head(pipeline.stage2_train, h5, s1_json, ckpt, params)
-                or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params))
+                or head(pipeline.stage2_predict, h5, ckpt, s1_json, out_json, meta, params,
+                        *dense))
         epochs = None
         if params.get("finetune") and fail is None:
             from rescu.extension.proposal_features import finetune_record
@@ -164,9 +169,13 @@ def main(argv: list[str] | None = None) -> int:
 
     threads = {k: cfg["threads"][k] if a.threads is None else a.threads
                for k in ("stage2_features", "stage2_head")}
+    def dense(s: str) -> tuple[str | None, dict[str, Any] | None]:
+        m = run / "dense" / f"{s}.map.h5"
+        return (str(m), cfg["dense"]) if cfg["dense"]["enabled"] and m.exists() else (None, None)
+
     jobs = [(str(run / "prepared" / f"{s}.png"), str(run / "prepared" / f"{s}.meta.json"),
              str(run / "rescu-i" / f"{s}.json"), str(out / f"{s}.json"), params, threads,
-             reuse(s))
+             reuse(s), dense(s))
             for s in stems if not (out / f"{s}.json").exists()]
     if jobs and predict_only:
         n = sum(j[-1] is not None for j in jobs)

@@ -8,7 +8,7 @@ backbone code: the RESCU-I step only combines the RPs the ``dense`` step wrote.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -498,6 +498,42 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     res.extra["candidate_patterns"] = [dict(p.to_json(), id=k, dropped=why)
                                        for k, (p, why) in enumerate(dropped)]
     res.extra["n_candidate_patterns"] = len(dropped)
+
+
+def drop_second_boxes(res: ImageResult, second: Sequence[np.ndarray],
+                      params: DenseParams) -> None:
+    """One box per object: each reported RP of ``res`` loses its instances that
+    ``second`` marks (one (n_k,) bool array per RP, in ``res.patterns``' order; a second
+    box on an object that another box already holds,
+    :func:`rescu.extension.boxmaps.second_boxes`), feature points following them, in
+    place. An RP left with fewer than ``params.min_instances`` moves to
+    ``res.extra["candidate_patterns"]`` (``"same objects"``); ids are renumbered.
+
+    >>> from rescu.types import Instance, Pattern
+    >>> rp = lambda n: Pattern(id=0, score=1.0, extra={"confidence": 0.5},
+    ...     instances=[Instance(bbox=(20.0 * k, 0, 10, 10)) for k in range(n)])
+    >>> r = ImageResult(image="x", width=99, height=9, method="rescu-i",
+    ...                 patterns=[rp(4), rp(3)])
+    >>> drop_second_boxes(r, [np.array([0, 0, 1, 0], bool), np.array([0, 1, 1], bool)],
+    ...                   DenseParams.from_dict(None))
+    >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
+    ([3], ['same objects'])
+    """
+    kept: list[Pattern] = []
+    moved = []
+    for p, flags in zip(res.patterns, second):
+        q = _kept(p, ~np.asarray(flags, bool), params.min_instances)
+        if q is None:
+            moved.append(p)
+        else:
+            kept.append(q)
+    for k, p in enumerate(kept):
+        p.id = k
+    res.patterns = kept
+    cands = list(res.extra.get("candidate_patterns", []))
+    cands += [dict(p.to_json(), dropped="same objects") for p in moved]
+    res.extra["candidate_patterns"] = [dict(c, id=k) for k, c in enumerate(cands)]
+    res.extra["n_candidate_patterns"] = len(cands)
 
 
 def read_dense(path: str) -> ImageResult:

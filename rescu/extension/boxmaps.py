@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "group_prototype",
            "prototype_of", "map_score", "maximum_filter", "unit_mean", "centre_part",
-           "OBJECT_PROBE", "separation"]
+           "OBJECT_PROBE", "separation", "second_boxes"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -267,10 +267,16 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
         below 1, ``proto`` and ``sims`` are those of the instances' central parts,
         computed here (the arguments are not used)
 
+    Samples of one structure lie next to one another: nearly every one has a neighbour
+    within ``reach``. When fewer than half the instances have one, the RP's instances
+    are mostly apart from one another, and its few close pairs (two boxes on one object,
+    its head and its base, or two objects parked close) cannot say that the whole RP
+    samples one structure: no verdict.
+
     Returns
     -------
     The median dip in [-2, 2] over the instances with a near neighbour; None when fewer
-    than two have one (no evidence either way).
+    than two, or fewer than half the instances, have one (no evidence either way).
 
     >>> f = np.zeros((2, 4, 12), np.float32); f[0] = 1.0
     >>> f[:, :, 1::4] = np.array([0.0, 1.0])[:, None, None]   # objects every 4 cells
@@ -288,6 +294,12 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     True
     >>> separation(g, 8.0, abut, proto, sims, 5.0, probe=1 / 3)   # its centre: the gap
     1.0
+    >>> apart = np.array([[8.0, 8, 8, 8], [16, 8, 8, 8], [40, 24, 8, 8], [72, 24, 8, 8],
+    ...                   [88, 0, 8, 8]])       # one close pair (in the band), three apart
+    >>> separation(f, 8.0, apart, proto, np.ones(5), 2.5) is None
+    True
+    >>> separation(f, 8.0, apart[:3], proto, np.ones(3), 2.5)     # two of three: judged
+    0.0
     """
     b = np.asarray(boxes, float).reshape(-1, 4)
     if len(b) < 2:
@@ -298,7 +310,7 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     np.fill_diagonal(d, np.inf)
     j = d.argmin(1)
     near = np.where(d[np.arange(len(b)), j] < reach * (side + side[j]) / 2)[0]
-    if len(near) < 2:
+    if len(near) < max(2, len(b) / 2):    # mostly apart: a few close pairs do not decide
         return None
     wh = (b[near, 2:] + b[j[near], 2:]) / 2
     mid = np.c_[(c[near] + c[j[near]]) / 2 - wh / 2, np.maximum(wh, cell_px)]
@@ -311,3 +323,67 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
         s, mid, integral = emb @ proto, centre_part(mid, probe, cell_px), ii
     m = box_features(f, cell_px, mid, integral) @ np.asarray(proto, float)
     return float(np.median((s[near] + s[j[near]]) / 2 - m))
+
+
+def second_boxes(f: np.ndarray, cell_px: float, groups: Sequence[np.ndarray], reach: float,
+                 floor: float, probe: float = OBJECT_PROBE,
+                 integral: np.ndarray | None = None) -> list[np.ndarray]:
+    """Which boxes are a second box on an object that an earlier box already holds (a
+    chess piece's head and its base, a window's pane and its frame).
+
+    Boxes are read in order: the groups (RPs, most confident first), each in its own
+    order. A box is *second* when its nearest earlier box that is kept (of an earlier
+    group or of its own) lies within ``reach`` x the two boxes' mean side, and the box
+    half-way between them resembles the two: their mean similarity to the pair's own
+    prototype, minus that of the half-way box, is below ``floor`` (the *dip* of
+    :func:`separation`, for one pair, on the central ``probe`` of each box). Between two
+    objects the half-way box holds the gap; between two parts of one object it holds
+    more of the object. The first box on an object is kept.
+
+    Parameters
+    ----------
+    f : (C, h, w) float32, feature map (unit norm per cell)
+    cell_px : pixels of the map's input per cell
+    groups : (n_i, 4) ``[x, y, w, h]`` arrays, pixels of the map's input
+    reach : boxes farther apart than this x their mean side are not compared
+    floor : a dip below this makes the later box second; -2: none is
+    probe : the central part of each box compared, fraction of its sides in (0, 1]
+    integral : :func:`integral_map` of ``f`` when already computed
+
+    Returns
+    -------
+    one (n_i,) bool array per group, True for a second box
+
+    >>> f = np.zeros((2, 4, 16), np.float32); f[0] = 1.0
+    >>> f[:, :, 1:4] = np.array([0.0, 1.0])[:, None, None]   # one object 3 cells wide
+    >>> f[:, :, 7:10] = np.array([0.0, 1.0])[:, None, None]  # another, wall between
+    >>> head, base = [8.0, 0, 24, 16], [8, 16, 24, 16]       # two boxes on the first
+    >>> other = [56.0, 0, 24, 32]                            # within reach of head
+    >>> [g.tolist() for g in second_boxes(f, 8.0, [np.array([head, other]),
+    ...                                             np.array([base])], 2.5, 0.1)]
+    [[False, False], [True]]
+    >>> [g.tolist() for g in second_boxes(f, 8.0, [np.array([head, other])], 2.5, 0.1)]
+    [[False, False]]
+    """
+    ii = integral_map(f) if integral is None else integral
+    sizes = [len(np.asarray(g).reshape(-1, 4)) for g in groups]
+    flags = [np.zeros(n, bool) for n in sizes]
+    kept = np.zeros((0, 4))
+    for k, g in enumerate(groups):
+        for i, b in enumerate(np.asarray(g, float).reshape(-1, 4)):
+            if len(kept) and floor > -2.0:
+                c, kc = b[:2] + b[2:] / 2, kept[:, :2] + kept[:, 2:] / 2
+                d = np.linalg.norm(kc - c, axis=1)
+                j = int(d.argmin())
+                if d[j] < reach * (np.sqrt(b[2] * b[3]) + np.sqrt(kept[j, 2] * kept[j, 3])) / 2:
+                    wh = (b[2:] + kept[j, 2:]) / 2
+                    mid = np.r_[(c + kc[j]) / 2 - wh / 2, np.maximum(wh, cell_px)]
+                    emb = box_features(f, cell_px, centre_part(
+                        np.array([b, kept[j], mid]), probe, cell_px), ii)
+                    proto = emb[:2].mean(0)
+                    proto = proto / (np.linalg.norm(proto) + 1e-9)
+                    if float(emb[:2].mean(0) @ proto - emb[2] @ proto) < floor:
+                        flags[k][i] = True
+                        continue
+            kept = np.vstack([kept, b])
+    return flags

@@ -743,8 +743,12 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     backbone pass, only when a pattern needs it); those below ``dense.min_confidence``,
     sitting on a more confident RP's objects, or left with too few instances by one move
     to ``candidate_patterns``, the others are reported most confident first
-    (:func:`rescu.discovery.sources.split_by_confidence`), in place. Nothing in the other
-    modes or after a failed dense step (``found``'s failure).
+    (:func:`rescu.discovery.sources.split_by_confidence`), in place. Then one box per
+    object: a reported instance whose nearest earlier one (of a more confident RP, or
+    earlier in its own) is a box on the same object, with no gap between the two on the
+    map, is dropped (``dense.min_object_separation`` -2: off;
+    :func:`rescu.extension.objects.one_box_per_object`). Nothing in the other modes or
+    after a failed dense step (``found``'s failure).
 
     Parameters
     ----------
@@ -758,13 +762,17 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
         :func:`load_map`); None: made here when needed
     """
     from ..discovery.sources import split_by_confidence
-    from .objects import score_patterns
+    from .objects import one_box_per_object, score_patterns
 
     dp = DenseParams.from_dict(dense_params)
     if dp.mode != "objects" or found.extra.get("failure"):
         return
+    if any("confidence" not in p.extra for p in res.patterns) or (
+            res.patterns and dp.min_object_separation > -2.0):
+        fmap = dense_map(rgb, dp, backbone) if fmap is None else fmap
     if any("confidence" not in p.extra for p in res.patterns):
-        f, s = dense_map(rgb, dp, backbone) if fmap is None else fmap
-        score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, f, s)
+        score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, *fmap)
     split_by_confidence(res, dp.min_confidence, dp)
+    if fmap is not None:
+        one_box_per_object(res, fmap, float(meta["scale_factor"]), dp)
     res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))

@@ -44,7 +44,7 @@ import numpy as np
 
 from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
-                      maximum_filter, prototype_of, separation)
+                      maximum_filter, prototype_of, second_boxes, separation)
 from .extent import (colour_contrast, colour_integrals, edge_contrast, extent_score,
                      gradient_integral, rect_sums, refine_extent)
 
@@ -53,7 +53,8 @@ __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness"
            "whole_objects", "rp_confidence", "score_patterns",
            "colour_integrals", "rect_sums", "colour_contrast", "gradient_integral",
            "edge_contrast", "extent_score", "refine_extent",
-           "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects"]
+           "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects",
+           "one_box_per_object"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -634,3 +635,31 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
         b = np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * float(scale_factor)
         p.extra.update(rp_confidence(f, 8.0, s, b, integrals, params, objects=False,
                                      integral=ii))
+
+
+def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: float,
+                       params: Any) -> None:
+    """Drop the reported instances of ``res`` that are a second box on an object an
+    earlier one holds (RPs most confident first, as reported; each in its own order),
+    in place: :func:`rescu.extension.boxmaps.second_boxes` at ``params.separation_reach``
+    and ``params.min_object_separation`` on the central thirds of the boxes, then
+    :func:`rescu.discovery.sources.drop_second_boxes`. RESCU-I after its split, and
+    RESCU-II after stage II has added its instances. Nothing unless ``params.mode`` is
+    ``objects`` and ``params.min_object_separation`` > -2.
+
+    Parameters
+    ----------
+    res : :class:`rescu.types.ImageResult` (instances in original pixels)
+    fmap : :func:`rescu.extension.dense.dense_map` of the prepared image ``(f (C, h, w), s)``
+    scale_factor : prepared pixels per original pixel
+    params : :class:`rescu.discovery.sources.DenseParams`
+    """
+    from ..discovery.sources import drop_second_boxes
+
+    if not res.patterns or params.mode != "objects" or params.min_object_separation <= -2.0:
+        return
+    k = float(scale_factor) * fmap[1]                 # original px -> map input px
+    groups = [np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * k
+              for p in res.patterns]
+    drop_second_boxes(res, second_boxes(fmap[0], 8.0, groups, params.separation_reach,
+                                        params.min_object_separation), params)

@@ -214,6 +214,14 @@ def dense_input(wildcards):
             "dense_map": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.map.h5"}
 
 
+def dense_map_input(wildcards):
+    """Stage II's prediction input when the dense source is on: the coarse feature map the
+    dense step kept (RESCU-II keeps one box per object, as RESCU-I does)."""
+    if not DENSE:
+        return {}
+    return {"dense_map": f"{RESULTS}/{wildcards.dataset}/dense/{wildcards.image}.map.h5"}
+
+
 def rp_methods():
     """Result folders of the RP discovery table, by row label (the dense source's own row
     when it is on)."""

@@ -35,6 +35,7 @@ rule stage2_features:
 
 rule stage2_predict:
     input:
+        unpack(dense_map_input),
         feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
         ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
         stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
@@ -46,6 +47,7 @@ rule stage2_predict:
         **step_params(
             "stage2_predict",
             stage2=config["stage2"],
+            dense=config["dense"] if DENSE else None,
             threads=config["threads"]["stage2_head"],
         ),
     threads: config["threads"]["stage2_head"]
@@ -63,6 +65,7 @@ if stage2_predict_variants():
 
     rule stage2_predict_ablation:
         input:
+            unpack(dense_map_input),
             feats=f"{RESULTS}/{{dataset}}/stage2/{{image}}.feats.h5",
             ckpt=f"{RESULTS}/{{dataset}}/stage2/{{image}}.head.h5",
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
@@ -77,6 +80,7 @@ if stage2_predict_variants():
             **step_params(
                 "stage2_predict_ablation",
                 stage2=config["stage2"],
+                dense=config["dense"] if DENSE else None,
                 variants=stage2_predict_variants(),
                 threads=config["threads"]["stage2_head"],
             ),
@@ -95,6 +99,7 @@ if stage2_ablation_variants():
 
     rule stage2_ablation:
         input:
+            unpack(dense_map_input),
             **prepared(),
             stage1=f"{RESULTS}/{{dataset}}/rescu-i/{{image}}.json",
             code=step_code("stage2_ablation"),
@@ -107,6 +112,7 @@ if stage2_ablation_variants():
             **step_params(
                 "stage2_ablation",
                 stage2=config["stage2"],
+                dense=config["dense"] if DENSE else None,
                 variants=stage2_ablation_variants(),
                 threads=config["threads"]["stage2_features"],
             ),

@@ -6,4 +6,5 @@ pipeline.limit_threads(snakemake.params.threads, torch=True)  # config threads, 
 variants = snakemake.params.variants
 outputs = dict(zip(variants, snakemake.output))  # output order = variant order
 pipeline.stage2_ablation(snakemake.input.png, snakemake.input.meta, snakemake.input.stage1,
-                         outputs, snakemake.params.stage2, variants)
+                         outputs, snakemake.params.stage2, variants,
+                         snakemake.input.get("dense_map"), snakemake.params.dense)

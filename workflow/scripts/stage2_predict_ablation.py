@@ -8,4 +8,5 @@ variants = snakemake.params.variants
 outputs = dict(zip(variants, snakemake.output))  # output order = variant order
 pipeline.stage2_predict_variants(snakemake.input.feats, snakemake.input.ckpt,
                                  snakemake.input.stage1, snakemake.input.meta, outputs,
-                                 snakemake.params.stage2, variants)
+                                 snakemake.params.stage2, variants,
+                                 snakemake.input.get("dense_map"), snakemake.params.dense)
