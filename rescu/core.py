@@ -602,10 +602,10 @@ def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
     if not d["enabled"] or s1.extra.get("dense_failure"):
         return res
     from .extension.dense import DenseParams, dense_map
-    from .extension.objects import one_box_per_object
+    from .extension.objects import one_box_applies, one_box_per_object
 
     dp = DenseParams.from_dict(d)
-    if dp.mode == "objects" and dp.min_object_separation > -2.0:
+    if one_box_applies(dp):
         with _threads(cfg, "in_process"):
             fmap = dense_map(prep.rgb, dp)
         one_box_per_object(res, fmap, prep.scale_factor, dp)

@@ -381,10 +381,10 @@ def _one_box(res: Any, s1: Any, meta: dict[str, Any], dense_map_h5: str | None,
     if dense_map_h5 is None or dense_params is None or s1.extra.get("dense_failure"):
         return
     from .extension.dense import DenseParams, load_map
-    from .extension.objects import one_box_per_object
+    from .extension.objects import one_box_applies, one_box_per_object
 
     dp = DenseParams.from_dict(dense_params)
-    if dp.mode != "objects" or dp.min_object_separation <= -2.0:
+    if not one_box_applies(dp):
         return
     try:
         fmap = load_map(dense_map_h5, dp)

@@ -232,6 +232,14 @@ def centre_part(boxes: np.ndarray, fraction: float, min_side: float) -> np.ndarr
     return np.c_[b[:, :2] + b[:, 2:] / 2 - wh / 2, wh]
 
 
+def _midway(a: np.ndarray, b: np.ndarray, cell_px: float) -> np.ndarray:
+    """The box of their mean size half-way between each pair of boxes ``a[k]``, ``b[k]``
+    ((n, 4) ``[x, y, w, h]`` each), at least one cell on each side: (n, 4)."""
+    wh = (a[:, 2:] + b[:, 2:]) / 2
+    centre = (a[:, :2] + a[:, 2:] / 2 + b[:, :2] + b[:, 2:] / 2) / 2
+    return np.c_[centre - wh / 2, np.maximum(wh, cell_px)]
+
+
 def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarray,
                sims: np.ndarray, reach: float, integral: np.ndarray | None = None,
                probe: float = 1.0) -> float | None:
@@ -312,8 +320,7 @@ def separation(f: np.ndarray, cell_px: float, boxes: np.ndarray, proto: np.ndarr
     near = np.where(d[np.arange(len(b)), j] < reach * (side + side[j]) / 2)[0]
     if len(near) < max(2, len(b) / 2):    # mostly apart: a few close pairs do not decide
         return None
-    wh = (b[near, 2:] + b[j[near], 2:]) / 2
-    mid = np.c_[(c[near] + c[j[near]]) / 2 - wh / 2, np.maximum(wh, cell_px)]
+    mid = _midway(b[near], b[j[near]], cell_px)
     s = np.asarray(sims, float)
     if probe < 1.0:
         ii = integral_map(f) if integral is None else integral
@@ -366,8 +373,7 @@ def second_boxes(f: np.ndarray, cell_px: float, groups: Sequence[np.ndarray], re
     [[False, False]]
     """
     ii = integral_map(f) if integral is None else integral
-    sizes = [len(np.asarray(g).reshape(-1, 4)) for g in groups]
-    flags = [np.zeros(n, bool) for n in sizes]
+    flags = [np.zeros(len(np.asarray(g).reshape(-1, 4)), bool) for g in groups]
     kept = np.zeros((0, 4))
     for k, g in enumerate(groups):
         for i, b in enumerate(np.asarray(g, float).reshape(-1, 4)):
@@ -376,8 +382,7 @@ def second_boxes(f: np.ndarray, cell_px: float, groups: Sequence[np.ndarray], re
                 d = np.linalg.norm(kc - c, axis=1)
                 j = int(d.argmin())
                 if d[j] < reach * (np.sqrt(b[2] * b[3]) + np.sqrt(kept[j, 2] * kept[j, 3])) / 2:
-                    wh = (b[2:] + kept[j, 2:]) / 2
-                    mid = np.r_[(c + kc[j]) / 2 - wh / 2, np.maximum(wh, cell_px)]
+                    mid = _midway(b[None], kept[j:j + 1], cell_px)[0]
                     emb = box_features(f, cell_px, centre_part(
                         np.array([b, kept[j], mid]), probe, cell_px), ii)
                     proto = emb[:2].mean(0)

@@ -762,17 +762,18 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
         :func:`load_map`); None: made here when needed
     """
     from ..discovery.sources import split_by_confidence
-    from .objects import one_box_per_object, score_patterns
+    from .objects import one_box_applies, one_box_per_object, score_patterns
 
     dp = DenseParams.from_dict(dense_params)
     if dp.mode != "objects" or found.extra.get("failure"):
         return
-    if any("confidence" not in p.extra for p in res.patterns) or (
-            res.patterns and dp.min_object_separation > -2.0):
+    unscored = any("confidence" not in p.extra for p in res.patterns)
+    boxes = bool(res.patterns) and one_box_applies(dp)
+    if unscored or boxes:
         fmap = dense_map(rgb, dp, backbone) if fmap is None else fmap
-    if any("confidence" not in p.extra for p in res.patterns):
+    if unscored:
         score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, *fmap)
     split_by_confidence(res, dp.min_confidence, dp)
-    if fmap is not None:
+    if boxes:
         one_box_per_object(res, fmap, float(meta["scale_factor"]), dp)
     res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))

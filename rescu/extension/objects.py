@@ -54,7 +54,7 @@ __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness"
            "colour_integrals", "rect_sums", "colour_contrast", "gradient_integral",
            "edge_contrast", "extent_score", "refine_extent",
            "suppress_parts", "pattern_confidence", "score_term", "without_parts", "on_objects",
-           "one_box_per_object"]
+           "one_box_applies", "one_box_per_object"]
 
 
 def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
@@ -637,6 +637,13 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
                                      integral=ii))
 
 
+def one_box_applies(params: Any) -> bool:
+    """Whether :func:`one_box_per_object` acts under ``params`` (DenseParams): mode
+    ``objects`` and ``min_object_separation`` above -2 (callers skip making or reading
+    the map otherwise)."""
+    return params.mode == "objects" and params.min_object_separation > -2.0
+
+
 def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: float,
                        params: Any) -> None:
     """Drop the reported instances of ``res`` that are a second box on an object an
@@ -656,7 +663,7 @@ def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: f
     """
     from ..discovery.sources import drop_second_boxes
 
-    if not res.patterns or params.mode != "objects" or params.min_object_separation <= -2.0:
+    if not res.patterns or not one_box_applies(params):
         return
     k = float(scale_factor) * fmap[1]                 # original px -> map input px
     groups = [np.array([i.bbox for i in p.instances], float).reshape(-1, 4) * k
