@@ -532,8 +532,10 @@ def whole_boxes(p):
 
 def test_a_stage_one_rp_is_scored_without_colour_contrast_and_with_the_maps_resolution():
     """Stage I's keypoint boxes on textured objects: their colour does not stand out from
-    a ring around them, yet they recur clearly; boxes smaller than the map's coarse
-    stride (two cells) lose confidence with their area."""
+    a ring around them, yet they recur clearly; boxes smaller or thinner than the map's
+    coarse stride (two cells) lose confidence: a sliver as long as the stride but a
+    quarter of it thick (a keypoint patch along an edge) as much as a box a quarter of
+    its area."""
     rng = np.random.default_rng(5)
     f = 0.05 * rng.normal(size=(8, 40, 60))
     f[0] += 1
@@ -551,6 +553,9 @@ def test_a_stage_one_rp_is_scored_without_colour_contrast_and_with_the_maps_reso
     small = boxes + [12, 12, -24, -24]                       # 8 px: half the stride
     tiny = rp_confidence(f, 8.0, 1.0, small, flat, p, objects=False)
     assert tiny["resolution"] == 0.25 and tiny["confidence"] <= 0.25
+    sliver = boxes + [0, 12, 0, -24]                         # 32 x 8 px: the same area
+    thin = rp_confidence(f, 8.0, 1.0, sliver, flat, p, objects=False)
+    assert thin["resolution"] == 0.25 and thin["confidence"] <= 0.25
 
 
 def test_a_stage_one_rp_that_barely_stands_out_in_the_map_loses_confidence():

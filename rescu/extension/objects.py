@@ -214,9 +214,11 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
     objects : whether the boxes have the extent of objects (the dense RPs). False for
         stage I's keypoint boxes (:func:`score_patterns`): the colour contrast is
         reported but not counted, and the confidence is multiplied by the *resolution*
-        ``min(1, side / (2 cell_px))**2``, ``side`` the boxes' median side in
-        backbone-input pixels: the map's coarser half has a stride of two cells, so it
-        cannot tell whether boxes smaller than that look alike (their gap is measured on
+        ``min(1, side / (2 cell_px))**2``, ``side`` the median of the boxes' shorter
+        sides in backbone-input pixels: the map's coarser half has a stride of two
+        cells, so it cannot tell whether boxes smaller than that look alike, nor boxes
+        thinner than that (a sliver along an edge, whose features are mostly those of
+        what lies beside it), however long (their gap is measured on
         the boxes themselves, where a dense RP's was measured on its blobs, at least
         that size, before its extent was refined). Such an RP also gets its *map score*
         (:func:`map_score`: its boxes' centre-surround contrast in ``f`` x their rarity,
@@ -249,7 +251,7 @@ def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
                               params.confidence_contrast_scale)
     out = {"gap": round(gap, 4), "contrast": round(con, 4)}
     if not objects:
-        side = float(np.median(np.sqrt(b[:, 2] * b[:, 3])))
+        side = float(np.median(np.minimum(b[:, 2], b[:, 3])))  # the shorter side
         out["resolution"] = round(min(1.0, side / (2.0 * cell_px)) ** 2, 4)
         out["map_score"] = round(map_score(f, cell_px, b, emb, integral), 4)
         conf *= out["resolution"] * score_term(out["map_score"],
