@@ -825,3 +825,27 @@ def test_coins_photo_rescu_i_reports_one_box_per_coin():
     path = _coins_path()
     _assert_one_box_per_coin(rescu.discover(path, method="rescu-i").patterns,
                              load_config()["dense"]["part_cover"])
+
+
+def test_one_box_per_object_keeps_a_rescu_ii_rps_feature_points_with_their_instances():
+    """A RESCU-II RP's feature points cover its stage-I instances only (the first
+    columns); when one box per object drops instances, the columns follow them, so the
+    scene step can still read the RP (it refused one whose points outnumbered its
+    instances, and misread one whose columns no longer matched)."""
+    from rescu.discovery.sources import drop_second_boxes
+    from rescu.scene.analyse import analyse_scene
+
+    xs = 60.0 * np.arange(7)
+    fp = np.stack([np.c_[xs + 5, np.full(7, 20.0)], np.c_[xs + 15, np.full(7, 30.0)]])
+    inst = ([Instance(bbox=(x, 10, 30, 30), source="stage1") for x in xs]
+            + [Instance(bbox=(x, 100, 30, 30), source="stage2") for x in xs[:3]])
+    res = ImageResult(image="x", width=640, height=200, method="rescu-ii", patterns=[
+        Pattern(id=0, score=1.0, instances=inst, feature_points=fp)])
+    drop = np.zeros(10, bool)
+    drop[[1, 4, 6, 8]] = True
+    drop_second_boxes(res, [drop], DenseParams.from_dict(None))
+    (p,) = res.patterns
+    assert p.count == 6 and p.feature_points.shape == (2, 4, 2)
+    np.testing.assert_array_equal(p.feature_points, fp[:, [0, 2, 3, 5]])
+    assert [i.bbox[0] for i in p.instances[:4]] == [0.0, 120.0, 180.0, 300.0]
+    analyse_scene(res)

@@ -408,15 +408,25 @@ def _one_box_per_object(p: Pattern, params: DenseParams) -> Pattern | None:
 
 
 def _kept(p: Pattern, ok: np.ndarray, min_instances: int) -> Pattern | None:
-    """``p`` with the instances where ``ok`` (feature points follow them): ``p`` itself
-    when all are, None when fewer than ``min_instances`` are."""
+    """``p`` with the instances where ``ok`` (feature points follow them: column n of
+    ``p.feature_points`` belongs to instance n, and a RESCU-II RP's later instances, stage
+    II's, have none): ``p`` itself when all are, None when fewer than ``min_instances``
+    are.
+
+    >>> from rescu.types import Instance
+    >>> p = Pattern(id=0, score=1.0, feature_points=np.arange(12.0).reshape(2, 3, 2),
+    ...             instances=[Instance(bbox=(10.0 * k, 0, 5, 5)) for k in range(5)])
+    >>> q = _kept(p, np.array([1, 0, 1, 0, 1], bool), 2)
+    >>> q.count, q.feature_points[0].tolist()
+    (3, [[0.0, 1.0], [4.0, 5.0]])
+    """
     if ok.all():
         return p
     if ok.sum() < min_instances:
         return None
     fp = p.feature_points
-    if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] == len(ok):
-        fp = np.asarray(fp)[:, ok]
+    if fp is not None and np.ndim(fp) == 3 and np.shape(fp)[1] <= len(ok):
+        fp = np.asarray(fp)[:, ok[:np.shape(fp)[1]]]
     return Pattern(id=p.id, score=p.score, feature_points=fp, extra=dict(p.extra),
                    instances=[i for i, k in zip(p.instances, ok) if k])
 
