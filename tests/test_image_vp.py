@@ -162,6 +162,34 @@ def test_image_step_sets_the_dominant_vp_and_keeps_the_rp_one() -> None:
     json.dumps(out.to_json())
 
 
+def test_the_joint_step_takes_the_reported_rps_vp_as_its_point_hypothesis(monkeypatch) -> None:
+    """Where the scene step's RP-only VP also read the rows of hidden stage-I RPs, the
+    joint estimator is offered the VP of the reported RPs (``reported_rp_vanishing_point``,
+    possibly none) instead; the RP-only VP is still kept as ``rp_vanishing_point``."""
+    import rescu.scene.image_vp as IV
+
+    offered: list[list[np.ndarray]] = []
+    monkeypatch.setattr(IV, "manhattan_vps",
+                        lambda *a, **k: offered.append(list(k["point_hypotheses"])))
+    rgb = np.zeros((H // 2, W // 2, 3), np.uint8)
+    with_hidden = VanishingPoint(np.array([0.0, 1.0, 0.0]), False, 9)
+    reported = VanishingPoint(np.array([0.6, 0.0, 0.8]), True, 4)
+    src = ImageResult(image="x.png", width=W, height=H, method="rescu-ii",
+                      vanishing_point=with_hidden,
+                      extra={"reported_rp_vanishing_point": reported.to_json()})
+    out = image_vanishing_points(rgb, 0.5, src)
+    assert out.extra["rp_vanishing_point"] == with_hidden.to_json()
+    (point,) = offered[-1]
+    np.testing.assert_allclose(np.cross(point, np.diag([0.5, 0.5, 1]) @ reported.homogeneous),
+                               0, atol=1e-12)
+    src.extra["reported_rp_vanishing_point"] = None
+    image_vanishing_points(rgb, 0.5, src)
+    assert offered[-1] == []
+    del src.extra["reported_rp_vanishing_point"]
+    image_vanishing_points(rgb, 0.5, src)
+    assert len(offered[-1]) == 1
+
+
 def test_image_step_on_a_blank_image_is_the_documented_empty_result() -> None:
     rp_vp = VanishingPoint(np.array([0.0, 1.0, 0.0]), False, 3)
     src = ImageResult(image="x.png", width=W, height=H, method="rescu-ii",

@@ -262,7 +262,8 @@ def test_rps_set_aside_as_one_structure_give_the_image_vp_only_when_the_reported
     r = result(scattered)
     assert SC.analyse_scene(r).vanishing_point is None
     r.extra["candidate_patterns"] = [aside, dict(aside, dropped="low confidence")]
-    out = SC.analyse_scene(r)
+    # the hidden RPs' rows off: the set-aside structure alone gives the VP
+    out = SC.analyse_scene(r, SC.SceneParams.from_dict({"vp": {"hidden_rows": False}}))
     assert [p.id for p in out.patterns] == [0] and out.dominant_pattern == 0
     assert vector_error(out.vanishing_point.homogeneous, H_PERSP @ [1.0, 0, 0],
                         (640, 480)) < 1.0
@@ -270,3 +271,36 @@ def test_rps_set_aside_as_one_structure_give_the_image_vp_only_when_the_reported
     r = result(frontal)
     r.extra["candidate_patterns"] = [aside]
     assert SC.analyse_scene(r).vanishing_point.homogeneous[2] == 0.0
+
+
+def test_the_rows_of_stage_one_rps_hidden_for_low_confidence_give_the_image_vp():
+    """Stage-I RPs that the confidence hid (``candidate_patterns``, ``"low confidence"``)
+    still have rows towards a VP: they give the RP-based image VP, also on an image with
+    no reported RP, and stay unreported. Not the dense source's hidden RPs, not with
+    ``vp.hidden_rows: false``."""
+    scattered = Pattern(id=0, score=0.9, instances=[
+        Instance((0.0, 0, 10, 10)), Instance((100.0, 37, 10, 10)), Instance((31.0, 200, 10, 10)),
+        Instance((300.0, 90, 10, 10)), Instance((170.0, 400, 10, 10))])
+    slivers = make_pattern(H_PERSP, np.arange(6.0), ny=2, noise=0.3)
+    hidden = dict(slivers.to_json(), dropped="low confidence", source="stage1")
+    r = result(scattered)
+    r.extra["candidate_patterns"] = [hidden]
+    out = SC.analyse_scene(r)
+    assert [p.id for p in out.patterns] == [0] and out.dominant_pattern == 0
+    assert out.patterns[0].vanishing_point is None
+    assert vector_error(out.vanishing_point.homogeneous, H_PERSP @ [1.0, 0, 0],
+                        (640, 480)) < 1.0
+    assert out.extra["candidate_patterns"] == [hidden]
+    # the reported RPs' own image VP (none here), for the joint estimator
+    assert out.extra["reported_rp_vanishing_point"] is None
+    off = SC.SceneParams.from_dict({"vp": {"hidden_rows": False}})
+    assert SC.analyse_scene(r, off).vanishing_point is None
+    r.extra["candidate_patterns"] = [dict(hidden, source="dense")]
+    assert SC.analyse_scene(r).vanishing_point is None
+    alone = result()
+    alone.extra["candidate_patterns"] = [hidden]
+    out = SC.analyse_scene(alone)
+    assert out.patterns == [] and out.dominant_pattern is None
+    assert vector_error(out.vanishing_point.homogeneous, H_PERSP @ [1.0, 0, 0],
+                        (640, 480)) < 1.0
+    assert SC.analyse_scene(alone, off).vanishing_point is None

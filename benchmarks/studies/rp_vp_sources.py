@@ -6,15 +6,19 @@ Usage::
 
 For every image of the dataset with ground-truth VPs, the scene step
 (:func:`rescu.core.analyse_scene`, the default ``scene`` section) runs again on the
-run's RESCU-II result (``rescu-ii/<image>.json``) with four sets of RPs:
+run's RESCU-II result (``rescu-ii/<image>.json``) with these sets of RPs:
 
 * ``reported``: the result's RPs (what the run's scene step used);
 * ``reported + hidden stage I``: also the stage-I RPs the confidence hid
   (``candidate_patterns`` dropped for ``"low confidence"``, not extended by stage II);
+* ``hidden only with a reported RP``: the same on the images with a reported RP, none
+  on the others;
+* ``reported, else hidden``: the reported RPs' VP, and where they give none the VP of
+  the reported and the hidden stage-I RPs together;
 * ``stage I only``: the reported and the hidden stage-I RPs, no dense RP;
 * ``reported, no dense``: the reported stage-I RPs alone.
 
-Prints per set the share of images with a VP, the share within 5 degrees of the closest
+Prints per variant the share of images with a VP, the share within 5 degrees of the closest
 GT VP (the dataset's focal length where it gives one, else the nominal) and the median
 error: how much of the RP-only VP's change under the whole-objects default comes from the
 hidden stage-I RPs and how much from the dense ones. Asserts nothing.
@@ -31,7 +35,8 @@ import numpy as np
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
-VARIANTS = ("reported", "reported + hidden stage I", "stage I only", "reported, no dense")
+VARIANTS = ("reported", "reported + hidden stage I", "hidden only with a reported RP",
+            "reported, else hidden", "stage I only", "reported, no dense")
 
 
 def _patterns(d: dict[str, Any], variant: str) -> list[dict[str, Any]]:
@@ -43,6 +48,8 @@ def _patterns(d: dict[str, Any], variant: str) -> list[dict[str, Any]]:
         return rep
     if variant == "reported + hidden stage I":
         return rep + hidden
+    if variant == "hidden only with a reported RP":
+        return rep + hidden if rep else []
     if variant == "stage I only":
         return [p for p in rep if p.get("source") != "dense"] + hidden
     return [p for p in rep if p.get("source") != "dense"]
@@ -75,13 +82,17 @@ def main(argv: list[str] | None = None) -> int:
         prep = core.prepare_file(str(root / name), **{
             k: cfg["image"][k] for k in ("max_side", "min_side", "max_pixels")})
         size, focal, pp, _ = _camera(g)
+        vps = {}
         for v in VARIANTS:
-            dd = copy.deepcopy(d)
-            dd["patterns"] = [dict(p, id=k) for k, p in enumerate(_patterns(d, v))]
-            dd["candidate_patterns"] = []
-            res = ImageResult.from_json(dd)
-            out, _ = core.analyse_scene(prep, res, cfg["scene"])
-            vp = out.vanishing_point
+            if v == "reported, else hidden":
+                vp = vps["reported"] or vps["reported + hidden stage I"]
+            else:
+                dd = copy.deepcopy(d)
+                dd["patterns"] = [dict(p, id=k) for k, p in enumerate(_patterns(d, v))]
+                dd["candidate_patterns"] = []
+                res = ImageResult.from_json(dd)
+                out, _ = core.analyse_scene(prep, res, cfg["scene"])
+                vp = vps[v] = out.vanishing_point
             errors[v].append(float("inf") if vp is None else closest_gt_error(
                 vp.homogeneous, g["vanishing_points"], "vector", size, focal, pp))
     print(f"{a.dataset}: RP-only VP from each set of RPs (images, with a VP, within 5 deg, "

@@ -12,7 +12,12 @@ returns a copy in which
   score, then earlier pattern; :func:`rescu.scene.counting.dominant_pattern`), None without
   patterns;
 * the image-level ``vanishing_point`` is the *dominant VP*: the VP shared by the most
-  RP instances; when the reported RPs give none, the RPs set aside as one structure
+  RP instances, read with ``vp.hidden_rows`` from the reported RPs and the stage-I RPs
+  the confidence hid (:func:`hidden_patterns`: the paper's stage III reads every RP
+  stage I found; they are never reported, and give the image VP even when no RP is
+  reported; the VP of the reported RPs alone is then kept as
+  ``extra["reported_rp_vanishing_point"]``, the joint image VP's point hypothesis,
+  :mod:`rescu.scene.image_vp`); when those give none, the RPs set aside as one structure
   (:func:`structure_patterns`) are read too (not with ``vp.joint_alpha = 0``). With
   ``vp.union_rows`` it is first sought among the rows of all patterns together
   (:func:`rescu.scene.vp.estimator.union_vanishing_point`: lines weighted by their
@@ -25,8 +30,9 @@ returns a copy in which
   is the dominant pattern's VP, and when that has none the VP of the largest other
   pattern. With ``vp.joint_alpha = 0``: the dominant pattern's own VP, else the VP with
   the largest support among the others. None when no pattern has a VP (nor the union
-  of their rows) — in particular an ImageResult with no patterns comes back with no VP,
-  no dominant pattern and nothing else changed (the documented empty result).
+  of their rows) — in particular an ImageResult with no patterns (and no hidden stage-I
+  RP) comes back with no VP, no dominant pattern and nothing else changed (the
+  documented empty result).
 
 ``method``, instances, scores and captions are unchanged. All coordinates are original
 pixels. :func:`rectify_pattern` warps the region of one pattern so that its VP goes to
@@ -240,25 +246,46 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     res.extra = copy.deepcopy(result.extra)
     dom = CNT.dominant_pattern(res.patterns)
     res.dominant_pattern = None if dom is None else int(res.patterns[dom].id)
-    res.vanishing_point = None
-    if dom is not None:
-        if params.vp.joint_alpha > 0:
-            res.vanishing_point = rp_image_vp(res.patterns, dom, size, params)
-            aside = structure_patterns(result) if res.vanishing_point is None else []
-            if aside:
-                # the rows of RPs set aside as one structure (a ledge, a kerb sampled
-                # along its length) point to a VP too: read when the reported RPs' do not
-                lined = res.patterns + [analyse_pattern(p, size, params) for p in aside]
-                res.vanishing_point = rp_image_vp(lined, dom, size, params)
-        elif res.patterns[dom].vanishing_point is not None:
-            res.vanishing_point = copy.deepcopy(res.patterns[dom].vanishing_point)
-        else:
-            cands = [(p.vanishing_point.support, p.count, float(p.score), -i)
-                     for i, p in enumerate(res.patterns) if p.vanishing_point is not None]
-            if cands:
-                i = -max(cands)[3]
-                res.vanishing_point = copy.deepcopy(res.patterns[i].vanishing_point)
+    res.vanishing_point = _image_rp_vp(result, res.patterns, [], dom, size, params)
+    res.extra.pop("reported_rp_vanishing_point", None)
+    # the rows of stage-I RPs the confidence hid point to VPs too (never reported)
+    hidden = ([analyse_pattern(p, size, params) for p in hidden_patterns(result)]
+              if params.vp.hidden_rows and params.vp.joint_alpha > 0 else [])
+    if hidden:
+        vp = res.vanishing_point
+        res.extra["reported_rp_vanishing_point"] = None if vp is None else vp.to_json()
+        res.vanishing_point = _image_rp_vp(result, res.patterns, hidden, dom, size, params)
     return res
+
+
+def _image_rp_vp(result: ImageResult, patterns: list[Pattern], hidden: list[Pattern],
+                 dom: int | None, size: tuple[int, int],
+                 params: SceneParams) -> VanishingPoint | None:
+    """The RP-based image VP (see the module docstring) of the analysed reported
+    ``patterns`` (``dom`` the dominant one's index, None without any) and the analysed
+    ``hidden`` stage-I RPs; ``result`` gives the RPs set aside as one structure."""
+    if params.vp.joint_alpha > 0:
+        if dom is None and not hidden:
+            return None
+        # the dominant pattern, or without a reported one the hidden one with most instances
+        first = dom if dom is not None else len(patterns) + CNT.dominant_pattern(hidden)
+        vp = rp_image_vp(patterns + hidden, first, size, params)
+        aside = structure_patterns(result) if vp is None else []
+        if aside:
+            # the rows of RPs set aside as one structure (a ledge, a kerb sampled
+            # along its length) point to a VP too: read when the others' do not
+            lined = patterns + hidden + [analyse_pattern(p, size, params) for p in aside]
+            vp = rp_image_vp(lined, first, size, params)
+        return vp
+    if dom is None:
+        return None
+    if patterns[dom].vanishing_point is not None:
+        return copy.deepcopy(patterns[dom].vanishing_point)
+    cands = [(p.vanishing_point.support, p.count, float(p.score), -i)
+             for i, p in enumerate(patterns) if p.vanishing_point is not None]
+    if cands:
+        return copy.deepcopy(patterns[-max(cands)[3]].vanishing_point)
+    return None
 
 
 def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True) -> Lines:
@@ -280,6 +307,44 @@ def pattern_implicit_lines(p: Pattern, params: SceneParams, spacing: bool = True
                            params.vp.precision_floor_px, equal)
 
 
+def _candidates(result: ImageResult, dropped: str, stage_one: bool) -> list[Pattern]:
+    """The RPs of ``extra["candidate_patterns"]`` dropped for ``dropped`` (with
+    ``stage_one``: not the dense source's), as patterns; unreadable entries skipped."""
+    out = []
+    for d in result.extra.get("candidate_patterns") or []:
+        if not isinstance(d, dict) or d.get("dropped") != dropped:
+            continue
+        if stage_one and d.get("source") == "dense":
+            continue
+        try:
+            out.append(Pattern.from_json(d))
+        except (KeyError, TypeError, ValueError):
+            continue
+    return out
+
+
+def hidden_patterns(result: ImageResult) -> list[Pattern]:
+    """The stage-I RPs that the confidence hid (``extra["candidate_patterns"]`` with
+    ``dropped`` ``"low confidence"`` and a ``source`` other than ``"dense"``), as patterns
+    in original pixels; entries that cannot be read are skipped. Keypoint patterns the
+    URP search verified but too small or thin for the feature map to vouch for them as
+    objects (:func:`rescu.extension.objects.rp_confidence`): not reported, but their rows
+    still lie along lines toward a VP (``scene.vp.hidden_rows``).
+
+    >>> r = ImageResult(image="x", width=10, height=10, method="rescu-ii", extra={
+    ...     "candidate_patterns": [
+    ...         {"id": 0, "score": 1.0, "dropped": "low confidence",
+    ...          "instances": [{"bbox": [0, 0, 2, 2]}]},
+    ...         {"id": 1, "score": 1.0, "dropped": "low confidence", "source": "dense",
+    ...          "instances": [{"bbox": [0, 0, 2, 2]}, {"bbox": [4, 0, 2, 2]}]},
+    ...         {"id": 2, "score": 1.0, "dropped": "same objects",
+    ...          "instances": [{"bbox": [0, 0, 2, 2]}] * 3}]})
+    >>> [p.count for p in hidden_patterns(r)]
+    [1]
+    """
+    return _candidates(result, "low confidence", stage_one=True)
+
+
 def structure_patterns(result: ImageResult) -> list[Pattern]:
     """The RPs that RESCU-I set aside as samples of one structure
     (``extra["candidate_patterns"]`` with ``dropped`` ``"one structure"``,
@@ -295,15 +360,7 @@ def structure_patterns(result: ImageResult) -> list[Pattern]:
     >>> [p.count for p in structure_patterns(r)]
     [1]
     """
-    out = []
-    for d in result.extra.get("candidate_patterns") or []:
-        if not isinstance(d, dict) or d.get("dropped") != "one structure":
-            continue
-        try:
-            out.append(Pattern.from_json(d))
-        except (KeyError, TypeError, ValueError):
-            continue
-    return out
+    return _candidates(result, "one structure", stage_one=False)
 
 
 def rp_image_vp(patterns: list[Pattern], dom: int, size: tuple[int, int],

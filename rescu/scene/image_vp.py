@@ -5,9 +5,9 @@ of every RP row (:func:`rescu.scene.analyse.pattern_implicit_lines`, feature tra
 a row) and the LSD segments of the image (:func:`rescu.scene.vp.lsd.lsd_segments`) vote
 in one estimator (:func:`rescu.scene.vp.manhattan.manhattan_vps`) for up to three
 mutually orthogonal VPs and the focal length; the RP-based VPs of the scene step (the
-image's and each pattern's) enter as point hypotheses. The result's image-level
-``vanishing_point`` becomes that estimator's dominant VP; the RP-only VP of the scene
-step is kept as ``rp_vanishing_point``, and the new fields are
+image's from the reported RPs and each pattern's) enter as point hypotheses. The
+result's image-level ``vanishing_point`` becomes that estimator's dominant VP; the
+RP-only VP of the scene step is kept as ``rp_vanishing_point``, and the new fields are
 
 * ``vanishing_points``: a list (dominant first) of ``{"homogeneous", "inside_image",
   "support", "direction" (unit 3D, camera frame: x right, y down, z forward),
@@ -59,6 +59,18 @@ def rp_row_lines(result: ImageResult, params: SceneParams = SceneParams()) -> Li
     return Lines.concat(parts) if parts else Lines.empty()
 
 
+def _reported_rp_vp(result: ImageResult) -> VanishingPoint | None:
+    """The scene step's RP-based image VP of the reported RPs: its
+    ``extra["reported_rp_vanishing_point"]`` where it also read the rows of hidden
+    stage-I RPs (``scene.vp.hidden_rows``), else its ``vanishing_point``. The rows of RPs
+    too small or thin for the map are less precise than the lines; they do not propose
+    VPs to the joint estimator."""
+    if "reported_rp_vanishing_point" not in result.extra:
+        return result.vanishing_point
+    v = result.extra["reported_rp_vanishing_point"]
+    return None if v is None else VanishingPoint.from_json(v)
+
+
 def _to_original(v: np.ndarray, scale_factor: float) -> np.ndarray:
     return _canonical(np.diag([1.0, 1.0, scale_factor]) @ np.asarray(v, float))
 
@@ -101,7 +113,7 @@ def image_vanishing_points(rgb: np.ndarray, scale_factor: float, result: ImageRe
     focal = focal_px if focal_px is not None else params.focal_px
     to_proc = np.diag([scale_factor, scale_factor, 1.0])
     points = [to_proc @ np.asarray(v.homogeneous, float)
-              for v in [result.vanishing_point] + [p.vanishing_point for p in result.patterns]
+              for v in [_reported_rp_vp(result)] + [p.vanishing_point for p in result.patterns]
               if v is not None]
     mh = manhattan_vps(cues, (w, h), params,
                        focal_px=None if focal is None else float(focal) * scale_factor,

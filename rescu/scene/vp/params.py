@@ -68,6 +68,15 @@ class VPParams:
         (:func:`rescu.scene.vp.estimator.union_vanishing_point`, checked against each
         pattern's own VP at level ``joint_alpha``); False: only the groups of patterns
         that share a VP (:func:`rescu.scene.vp.estimator.joint_vanishing_point`).
+    hidden_rows : bool
+        The RP-only image VP also reads the rows of the stage-I RPs that the confidence
+        hid (``candidate_patterns`` dropped for ``"low confidence"``, not the dense
+        source's; :func:`rescu.scene.analyse.hidden_patterns`), also on an image
+        with no reported RP: keypoint rows too small or thin for the map to vouch for
+        them as objects still lie along lines towards a VP, and the paper's stage III
+        reads every RP stage I found. They are not reported, counted or drawn, and the
+        joint image VP takes the RP-only VP only as a point hypothesis; False: the
+        reported RPs alone. Not with ``joint_alpha = 0``.
     spacing_alpha : float
         Level of the likelihood-ratio test that accepts the *spacing model* on rows that
         pass the translation-symmetry test (:func:`rescu.scene.vp.refine.spacing_refine_vp`:
@@ -94,6 +103,7 @@ class VPParams:
     register_centres: bool
     joint_alpha: float
     union_rows: bool
+    hidden_rows: bool
     spacing_alpha: float
     seed: int
 
