@@ -293,6 +293,9 @@ def test_the_rows_of_stage_one_rps_hidden_for_low_confidence_give_the_image_vp()
     assert out.extra["candidate_patterns"] == [hidden]
     # the reported RPs' own image VP (none here), for the joint estimator
     assert out.extra["reported_rp_vanishing_point"] is None
+    # recomputed from the analysed result (the studies' entry point): the same VP
+    np.testing.assert_array_equal(SC.image_rp_vp(out).homogeneous,
+                                  out.vanishing_point.homogeneous)
     off = SC.SceneParams.from_dict({"vp": {"hidden_rows": False}})
     assert SC.analyse_scene(r, off).vanishing_point is None
     r.extra["candidate_patterns"] = [dict(hidden, source="dense")]

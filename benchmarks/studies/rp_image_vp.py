@@ -7,11 +7,11 @@ Usage::
         [--weights track|count|one]
 
 For every image of each dataset in RESULTS_DIR that has ground-truth VPs, the image VP
-of the scene step (:func:`rescu.scene.analyse.rp_image_vp`) is computed again from the
-analysed patterns of its ``scene/`` JSON with the default ``scene.vp`` section changed by
-``--set key=value``, and prints per dataset: images, share with a VP, share within 5
-degrees of the closest GT VP (angle error with the dataset's focal length where it gives
-one, else the nominal), median error. ``--weights`` changes the vote of each implicit
+of the scene step (:func:`rescu.scene.analyse.image_rp_vp`) is computed again from the
+analysed patterns of its ``scene/`` JSON (and the hidden stage-I RPs it keeps) with the
+default ``scene.vp`` section changed by ``--set key=value``, and prints per dataset:
+images, share with a VP, share within 5 degrees of the closest GT VP (angle error with
+the dataset's focal length where it gives one, else the nominal), median error. ``--weights`` changes the vote of each implicit
 line in the union of all patterns' rows (:func:`rescu.scene.vp.estimator.union_vanishing_point`):
 its track length (the default), its pattern's instance count, or 1.
 """
@@ -29,19 +29,16 @@ from image_vp_sweep import truth_of
 from rescu import io
 from rescu.evaluation.vpd import _camera
 from rescu.params import config_defaults
-from rescu.scene import counting as CNT
-from rescu.scene.analyse import SceneParams, rp_image_vp
+from rescu.scene.analyse import SceneParams, image_rp_vp
 from rescu.scene.vp.errors import closest_gt_error
 
 
 def image_vp(src, params: SceneParams, weights: str):
-    """The RP-only image VP of one analysed result under ``params`` and ``weights``."""
-    dom = CNT.dominant_pattern(src.patterns)
-    if dom is None:
-        return None
+    """The RP-only image VP of one analysed result under ``params`` and ``weights``
+    (with ``vp.hidden_rows``, the rows of the stage-I RPs the confidence hid too)."""
     votes = None if weights == "track" else (
         lambda p, lines: np.full(len(lines), float(p.count) if weights == "count" else 1.0))
-    return rp_image_vp(src.patterns, dom, (int(src.width), int(src.height)), params, votes)
+    return image_rp_vp(src, params, votes)
 
 
 def main(argv: list[str] | None = None) -> int:

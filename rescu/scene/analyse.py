@@ -258,9 +258,25 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     return res
 
 
+def image_rp_vp(result: ImageResult, params: SceneParams = SceneParams(),
+                votes: Callable[[Pattern, Lines], np.ndarray] | None = None,
+                ) -> VanishingPoint | None:
+    """The RP-based image VP of a result whose patterns are already analysed (a scene
+    step's result; :func:`analyse_pattern`), as :func:`analyse_scene` finds it: from its
+    patterns and, with ``params.vp.hidden_rows``, the stage-I RPs the confidence hid
+    (:func:`hidden_patterns`), else the RPs set aside as one structure. ``votes``: as in
+    :func:`rp_image_vp` (a study of the weighting). None where they give no VP."""
+    size = (int(result.width), int(result.height))
+    hidden = ([analyse_pattern(p, size, params) for p in hidden_patterns(result)]
+              if params.vp.hidden_rows and params.vp.joint_alpha > 0 else [])
+    return _image_rp_vp(result, list(result.patterns), hidden,
+                        CNT.dominant_pattern(result.patterns), size, params, votes)
+
+
 def _image_rp_vp(result: ImageResult, patterns: list[Pattern], hidden: list[Pattern],
-                 dom: int | None, size: tuple[int, int],
-                 params: SceneParams) -> VanishingPoint | None:
+                 dom: int | None, size: tuple[int, int], params: SceneParams,
+                 votes: Callable[[Pattern, Lines], np.ndarray] | None = None,
+                 ) -> VanishingPoint | None:
     """The RP-based image VP (see the module docstring) of the analysed reported
     ``patterns`` (``dom`` the dominant one's index, None without any) and the analysed
     ``hidden`` stage-I RPs; ``result`` gives the RPs set aside as one structure."""
@@ -269,13 +285,13 @@ def _image_rp_vp(result: ImageResult, patterns: list[Pattern], hidden: list[Patt
             return None
         # the dominant pattern, or without a reported one the hidden one with most instances
         first = dom if dom is not None else len(patterns) + CNT.dominant_pattern(hidden)
-        vp = rp_image_vp(patterns + hidden, first, size, params)
+        vp = rp_image_vp(patterns + hidden, first, size, params, votes)
         aside = structure_patterns(result) if vp is None else []
         if aside:
             # the rows of RPs set aside as one structure (a ledge, a kerb sampled
             # along its length) point to a VP too: read when the others' do not
             lined = patterns + hidden + [analyse_pattern(p, size, params) for p in aside]
-            vp = rp_image_vp(lined, first, size, params)
+            vp = rp_image_vp(lined, first, size, params, votes)
         return vp
     if dom is None:
         return None
