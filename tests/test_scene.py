@@ -307,3 +307,10 @@ def test_the_rows_of_stage_one_rps_hidden_for_low_confidence_give_the_image_vp()
     assert vector_error(out.vanishing_point.homogeneous, H_PERSP @ [1.0, 0, 0],
                         (640, 480)) < 1.0
     assert SC.analyse_scene(alone, off).vanishing_point is None
+
+
+def test_a_vp_switch_that_is_not_true_or_false_is_refused():
+    with pytest.raises(ValueError, match="hidden_rows must be true or false"):
+        SC.SceneParams.from_dict({"vp": {"hidden_rows": "maybe"}})
+    with pytest.raises(ValueError, match="union_rows"):
+        SC.SceneParams.from_dict({"vp": {"union_rows": 1}})

@@ -23,25 +23,13 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
 from rescu import io  # noqa: E402
 from rescu.config import load_config  # noqa: E402
 from rescu.scene.analyse import SceneParams, analyse_scene, hidden_patterns  # noqa: E402
-
-
-def _value(text: str) -> object:
-    """A ``--set`` value: true / false, a number, else the text."""
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         key, sep, value = kv.partition("=")
         if not sep:
             ap.error(f"--set {kv!r}: expected KEY=VALUE")
-        vp[key] = _value(value)
+        vp[key] = yaml.safe_load(value)
     try:
         params = SceneParams.from_config(dict(section, vp=vp))
     except ValueError as e:

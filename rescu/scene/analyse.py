@@ -248,9 +248,7 @@ def analyse_scene(result: ImageResult, params: SceneParams = SceneParams()) -> I
     res.dominant_pattern = None if dom is None else int(res.patterns[dom].id)
     res.vanishing_point = _image_rp_vp(result, res.patterns, [], dom, size, params)
     res.extra.pop("reported_rp_vanishing_point", None)
-    # the rows of stage-I RPs the confidence hid point to VPs too (never reported)
-    hidden = ([analyse_pattern(p, size, params) for p in hidden_patterns(result)]
-              if params.vp.hidden_rows and params.vp.joint_alpha > 0 else [])
+    hidden = _analysed_hidden(result, size, params)
     if hidden:
         vp = res.vanishing_point
         res.extra["reported_rp_vanishing_point"] = None if vp is None else vp.to_json()
@@ -267,10 +265,18 @@ def image_rp_vp(result: ImageResult, params: SceneParams = SceneParams(),
     (:func:`hidden_patterns`), else the RPs set aside as one structure. ``votes``: as in
     :func:`rp_image_vp` (a study of the weighting). None where they give no VP."""
     size = (int(result.width), int(result.height))
-    hidden = ([analyse_pattern(p, size, params) for p in hidden_patterns(result)]
-              if params.vp.hidden_rows and params.vp.joint_alpha > 0 else [])
-    return _image_rp_vp(result, list(result.patterns), hidden,
+    return _image_rp_vp(result, list(result.patterns), _analysed_hidden(result, size, params),
                         CNT.dominant_pattern(result.patterns), size, params, votes)
+
+
+def _analysed_hidden(result: ImageResult, size: tuple[int, int],
+                     params: SceneParams) -> list[Pattern]:
+    """The stage-I RPs the confidence hid (:func:`hidden_patterns`), analysed, where the
+    image VP reads them (``vp.hidden_rows`` with ``vp.joint_alpha`` > 0); else none. Their
+    rows point to VPs too; they are never reported."""
+    if not (params.vp.hidden_rows and params.vp.joint_alpha > 0):
+        return []
+    return [analyse_pattern(p, size, params) for p in hidden_patterns(result)]
 
 
 def _image_rp_vp(result: ImageResult, patterns: list[Pattern], hidden: list[Pattern],

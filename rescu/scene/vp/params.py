@@ -126,6 +126,10 @@ class VPParams:
             raise ValueError("VPParams.spacing_alpha must be in [0, 1)")
         if self.min_row_instances < 2:
             raise ValueError("VPParams.min_row_instances must be >= 2")
+        for name in ("ml_refine", "register_centres", "union_rows", "hidden_rows"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"VPParams.{name} must be true or false, got "
+                                 f"{getattr(self, name)!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "VPParams":
