@@ -9,8 +9,10 @@ Prints
    to its output): ``snakemake --cores 1`` with ``--jobs`` + 1 jobs against one with 1
    job, the difference over ``--jobs`` (Snakemake's scheduling of each job included,
    its start-up not); and the seconds its ``benchmark:`` file records per job. Once as
-   a ``script:`` rule, once run as the per-image rules run their scripts (``shell:``
-   through ``workflow/run_step.py``, ``step_params`` in ``workflow/rules/common.smk``);
+   a ``script:`` rule, then run as the per-image rules run their scripts (``shell:``
+   through ``workflow/run_step.py``, ``step_params`` in ``workflow/rules/common.smk``),
+   without and with the step server (``--server``, :mod:`rescu.step_server`), and the
+   same two with a script that imports torch, as the steps that run the backbone do;
 2. the seconds a fresh interpreter takes to import what each per-image step imports
    (median of 3);
 3. with ``--results`` (a finished run), the median seconds per job of every rule, from
@@ -50,8 +52,8 @@ def step(wildcards, input, output, threads):
     job = {{"input": {{"items": list(input), "names": {{}}}},
            "output": {{"items": list(output), "names": {{}}}}, "params": {{}},
            "threads": threads, "wildcards": dict(wildcards.items())}}
-    return " ".join(shlex.quote(a) for a in (sys.executable, {runner!r}, "noop.py",
-                                             json.dumps(job)))
+    return " ".join(shlex.quote(a) for a in (sys.executable, {runner!r}, *{server!r},
+                                             "noop.py", json.dumps(job)))
 
 rule all:
     input: expand("out/{{i}}.txt", i=range({n}))
@@ -64,8 +66,6 @@ rule noop:
     benchmark: "bench/{{i}}.tsv"
     shell: "{{params.step}} {{log:q}}"
 """
-FORMS = {"script:": SNAKEFILE, "shell: through workflow/run_step.py": STEP_SNAKEFILE}
-
 SCRIPT = """
 import shutil
 from rescu import pipeline
@@ -74,6 +74,20 @@ pipeline.setup_logging(snakemake.log[0])
 pipeline.limit_threads(snakemake.threads)
 shutil.copy(snakemake.input[0], snakemake.output[0])
 """
+# the same, as a step that runs the backbone starts: it imports torch
+TORCH_SCRIPT = SCRIPT.replace("pipeline.limit_threads(snakemake.threads)",
+                              "pipeline.limit_threads(snakemake.threads, torch=True)")
+
+# form -> (Snakefile, run_step.py's options, script)
+FORMS = {
+    "script:": (SNAKEFILE, [], SCRIPT),
+    "shell: through workflow/run_step.py": (STEP_SNAKEFILE, [], SCRIPT),
+    "shell: through workflow/run_step.py --server (the step server)":
+        (STEP_SNAKEFILE, ["--server=30"], SCRIPT),
+    "shell: through workflow/run_step.py, importing torch": (STEP_SNAKEFILE, [], TORCH_SCRIPT),
+    "shell: through workflow/run_step.py --server, importing torch":
+        (STEP_SNAKEFILE, ["--server=30"], TORCH_SCRIPT),
+}
 
 STEP_IMPORTS = {
     "prepare / features": "from rescu import pipeline, io; from rescu.discovery import features",
@@ -88,14 +102,16 @@ STEP_IMPORTS = {
 }
 
 
-def _run_noop(n: int, snakefile: str = SNAKEFILE) -> tuple[float, list[float]]:
+def _run_noop(n: int, snakefile: str = SNAKEFILE, server: list[str] | None = None,
+              script: str = SCRIPT) -> tuple[float, list[float]]:
     """Seconds of one ``snakemake --cores 1`` process running ``n`` no-op jobs, and the
-    seconds each job's benchmark file records (``snakefile``: one of :data:`FORMS`)."""
+    seconds each job's benchmark file records (``snakefile``, ``server`` (run_step.py's
+    options) and ``script``: one of :data:`FORMS`)."""
     with tempfile.TemporaryDirectory(prefix="rescu-noop-") as d:
         w = Path(d)
         (w / "Snakefile").write_text(snakefile.format(
-            n=n, runner=str(REPO / "workflow" / "run_step.py")))
-        (w / "noop.py").write_text(SCRIPT)
+            n=n, runner=str(REPO / "workflow" / "run_step.py"), server=list(server or [])))
+        (w / "noop.py").write_text(script)
         (w / "in.txt").write_text("x\n")
         t0 = time.perf_counter()
         proc = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--quiet", "all"],
@@ -109,12 +125,14 @@ def _run_noop(n: int, snakefile: str = SNAKEFILE) -> tuple[float, list[float]]:
         return total, bench
 
 
-def noop_jobs(n: int, snakefile: str = SNAKEFILE) -> tuple[float, float]:
+def noop_jobs(n: int, snakefile: str = SNAKEFILE, server: list[str] | None = None,
+              script: str = SCRIPT) -> tuple[float, float]:
     """(wall seconds per job, median benchmark seconds per job) of no-op jobs: the
     difference between a run of ``n + 1`` jobs and one of 1 job, over ``n`` (Snakemake's
-    start-up, DAG and scheduling of the run itself cancel out)."""
-    one, _ = _run_noop(1, snakefile)
-    many, bench = _run_noop(n + 1, snakefile)
+    start-up, DAG and scheduling of the run itself cancel out; with the step server, the
+    run of 1 job starts it)."""
+    one, _ = _run_noop(1, snakefile, server, script)
+    many, bench = _run_noop(n + 1, snakefile, server, script)
     print(f"  (snakemake process: 1 job {one:.1f} s, {n + 1} jobs {many:.1f} s)")
     return (many - one) / n, statistics.median(bench)
 
@@ -158,9 +176,9 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--rules-only needs --results")
     if a.rules_only:
         return print_rules(a.results, a.datasets)
-    for form, snakefile in FORMS.items():
+    for form, (snakefile, server, script) in FORMS.items():
         print(f"no-op job, {form} ({a.jobs} jobs, snakemake --cores 1):")
-        per_job, bench = noop_jobs(a.jobs, snakefile)
+        per_job, bench = noop_jobs(a.jobs, snakefile, server, script)
         print(f"  wall per job {per_job:.2f} s; its benchmark file records {bench:.2f} s")
     print("fresh interpreter importing what a step imports (median of 3):")
     for name, stmt in STEP_IMPORTS.items():

@@ -53,6 +53,10 @@ def step_params(script, **params):
     as under ``script:``. ``params``: JSON values
     (config sections), or functions of the wildcards giving one.
 
+    With ``step_server.enabled`` the command is ``python -m rescu.step_server
+    --idle=SECONDS run_step.py ...``: the job runs in a child of the step server, which
+    has already imported its libraries (:mod:`rescu.step_server`).
+
     Snakemake does not record a function's value as a parameter, nor a command's paths
     as code (``STEP_SHELL`` is the rule's code, the same text wherever the checkout or
     the Python lives); the script, the runner and the library files it runs are the
@@ -65,7 +69,11 @@ def step_params(script, **params):
         raise ValueError(f"step_params: no workflow script {path}")
     if "step" in params:
         raise ValueError("step_params: 'step' is the parameter it adds")
-    head = " ".join(shlex.quote(str(a)) for a in (sys.executable, RUN_STEP, path))
+    server = config["step_server"]
+    runner = [sys.executable, RUN_STEP]
+    if server["enabled"]:  # the command only: a switch that changes no output reruns no job
+        runner[1:1] = ["-m", "rescu.step_server", f"--idle={float(server['idle_seconds']):g}"]
+    head = " ".join(shlex.quote(str(a)) for a in (*runner, path))
 
     def step(wildcards, input, output, threads):
         def named(files):

@@ -1,0 +1,161 @@
+"""The step server (rescu.step_server, python -m rescu.step_server): a job run in a child
+of the server gets its streams, arguments and environment, exits with the status a process
+of its own would, computes the same bytes, and does not outlive its client."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rescu import step_server
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN_STEP = ROOT / "workflow" / "run_step.py"
+
+pytestmark = pytest.mark.skipif(not step_server.available(),
+                                reason="the step server needs Linux and socket.send_fds")
+
+SCRIPT = '''
+import os, sys
+import numpy as np
+x = snakemake.params.x
+print("out", x, snakemake.wildcards.image, os.environ.get("RESCU_TEST_VALUE"))
+print("err", x, file=sys.stderr)
+rng = np.random.default_rng(0)
+a = rng.standard_normal((64, 64))
+if snakemake.params.get("torch"):
+    import torch
+    torch.set_num_threads(1)
+    t = torch.nn.functional.conv2d(torch.from_numpy(a[None, None]).float(),
+                                   torch.ones(1, 1, 3, 3) / 9.0)
+    a = t.numpy()[0, 0].astype(np.float64)
+np.save(snakemake.output[0], a @ a.T)
+if x == 3:
+    sys.exit(3)
+if x == 4:
+    raise ValueError("boom")
+if x == 5:
+    open(snakemake.output[0] + ".pid", "w").write(str(os.getpid()))
+    import time
+    time.sleep(60)
+'''
+
+
+def _job(out: Path, x: int, torch: bool = False) -> str:
+    import json
+
+    return json.dumps({"input": {"items": [], "names": {}},
+                       "output": {"items": [str(out)], "names": {}},
+                       "params": {"x": x, "torch": torch}, "threads": 1,
+                       "wildcards": {"image": "img"}})
+
+
+def _step(tmp_path: Path, x: int, server: bool, out: Path, torch: bool = False,
+          **kw) -> subprocess.CompletedProcess:
+    script = tmp_path / "step.py"
+    script.write_text(SCRIPT)
+    args = ([sys.executable, "-m", "rescu.step_server", "--idle=20"] if server else
+            [sys.executable]) + [str(RUN_STEP)]
+    env = {**os.environ, "RESCU_TEST_VALUE": "v1"}
+    return subprocess.run(args + [str(script), _job(out, x, torch), str(tmp_path / "log")],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, **kw)
+
+
+@pytest.mark.parametrize("x", [0, 3, 4])
+def test_a_job_through_the_server_ends_as_its_own_process_would(tmp_path, x):
+    own = _step(tmp_path, x, False, tmp_path / "own.npy")
+    served = _step(tmp_path, x, True, tmp_path / "served.npy")
+    assert served.returncode == own.returncode == {0: 0, 3: 3, 4: 1}[x]
+    assert served.stdout == own.stdout == f"out {x} img v1\n"
+    assert served.stderr.startswith(f"err {x}\n")
+    if x == 4:
+        assert "ValueError: boom" in served.stderr and "ValueError: boom" in own.stderr
+    assert (tmp_path / "served.npy").read_bytes() == (tmp_path / "own.npy").read_bytes()
+
+
+def test_a_torch_step_computes_the_same_bytes_through_the_server(tmp_path):
+    own = _step(tmp_path, 0, False, tmp_path / "own.npy", torch=True)
+    served = _step(tmp_path, 0, True, tmp_path / "served.npy", torch=True)
+    assert own.returncode == served.returncode == 0, served.stderr
+    assert (tmp_path / "served.npy").read_bytes() == (tmp_path / "own.npy").read_bytes()
+
+
+def test_a_job_does_not_outlive_its_client(tmp_path):
+    script = tmp_path / "step.py"
+    script.write_text(SCRIPT)
+    out = tmp_path / "long.npy"
+    client = subprocess.Popen([sys.executable, "-m", "rescu.step_server", "--idle=20",
+                               str(RUN_STEP), str(script),
+                               _job(out, 5), str(tmp_path / "log")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
+    pid_file = Path(str(out) + ".pid")
+    end = time.monotonic() + 60
+    while not pid_file.exists() and time.monotonic() < end:
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    assert child != client.pid                      # the job ran in the server's child
+    client.send_signal(signal.SIGKILL)
+    client.wait()
+    end = time.monotonic() + 10
+    while time.monotonic() < end and Path(f"/proc/{child}").exists():
+        time.sleep(0.05)
+    assert not Path(f"/proc/{child}").exists()
+
+
+def test_a_signal_to_the_client_reaches_the_job(tmp_path):
+    script = tmp_path / "step.py"
+    script.write_text(SCRIPT)
+    out = tmp_path / "long.npy"
+    client = subprocess.Popen([sys.executable, "-m", "rescu.step_server", "--idle=20",
+                               str(RUN_STEP), str(script),
+                               _job(out, 5), str(tmp_path / "log")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
+    pid_file = Path(str(out) + ".pid")
+    end = time.monotonic() + 60
+    while not pid_file.exists() and time.monotonic() < end:
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    client.send_signal(signal.SIGTERM)
+    _, err = client.communicate(timeout=20)
+    assert client.returncode == 1 and b"without an exit status" in err
+    assert not Path(f"/proc/{child}").exists()
+
+
+def test_the_server_ends_when_idle_and_a_new_one_starts(tmp_path):
+    runner = tmp_path / "runner.py"
+    runner.write_text("import sys\n"
+                      "open(sys.argv[1], 'w').write(' '.join(sys.argv[2:]))\n")
+    directory = str(tmp_path)
+    path = step_server.socket_path(directory)
+    status = step_server.run_via_server([str(tmp_path / "a.txt"), "x", "y"], str(runner),
+                                        idle_s=0.5, directory=directory)
+    assert status == 0 and (tmp_path / "a.txt").read_text() == "x y"
+    end = time.monotonic() + 30
+    while os.path.exists(path) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not os.path.exists(path)                 # ended, its socket removed
+    Path(path).touch()                              # a socket file left by a killed one
+    status = step_server.run_via_server([str(tmp_path / "b.txt"), "z"], str(runner),
+                                        idle_s=0.5, directory=directory)
+    assert status == 0 and (tmp_path / "b.txt").read_text() == "z"
+
+
+def test_no_server_inside_a_slurm_job(monkeypatch, tmp_path):
+    monkeypatch.setenv("SLURM_JOB_ID", "1")
+    assert not step_server.available()
+    assert step_server.run_via_server(["x", "{}"], str(RUN_STEP),
+                                      directory=str(tmp_path)) is None
+
+
+def test_servers_differ_by_the_thread_settings_libraries_read_at_load():
+    a = step_server.socket_path("/d", env={"OMP_NUM_THREADS": "1"}, path=["p"])
+    assert a == step_server.socket_path("/d", env={"OMP_NUM_THREADS": "1", "HOME": "h"},
+                                        path=["p"])
+    assert a != step_server.socket_path("/d", env={"OMP_NUM_THREADS": "2"}, path=["p"])
+    assert a != step_server.socket_path("/d", env={"OMP_NUM_THREADS": "1"}, path=["q"])
