@@ -11,7 +11,7 @@ Prints
    its start-up not); and the seconds its ``benchmark:`` file records per job. Once as
    a ``script:`` rule, then run as the per-image rules run their scripts (``shell:``
    through ``workflow/run_step.py``, ``step_params`` in ``workflow/rules/common.smk``),
-   without and with the step server (``--server``, :mod:`rescu.step_server`), and the
+   without and with the step server (:mod:`rescu.step_server`), and the
    same two with a script that imports torch, as the steps that run the backbone do;
 2. the seconds a fresh interpreter takes to import what each per-image step imports
    (median of 3);
@@ -52,7 +52,7 @@ def step(wildcards, input, output, threads):
     job = {{"input": {{"items": list(input), "names": {{}}}},
            "output": {{"items": list(output), "names": {{}}}}, "params": {{}},
            "threads": threads, "wildcards": dict(wildcards.items())}}
-    return " ".join(shlex.quote(a) for a in (sys.executable, {runner!r}, *{server!r},
+    return " ".join(shlex.quote(a) for a in (sys.executable, *{server!r}, {runner!r},
                                              "noop.py", json.dumps(job)))
 
 rule all:
@@ -78,15 +78,16 @@ shutil.copy(snakemake.input[0], snakemake.output[0])
 TORCH_SCRIPT = SCRIPT.replace("pipeline.limit_threads(snakemake.threads)",
                               "pipeline.limit_threads(snakemake.threads, torch=True)")
 
-# form -> (Snakefile, run_step.py's options, script)
+# form -> (Snakefile, what runs run_step.py (the step server's command), script)
+SERVER = ["-m", "rescu.step_server", "--idle=30"]
 FORMS = {
     "script:": (SNAKEFILE, [], SCRIPT),
     "shell: through workflow/run_step.py": (STEP_SNAKEFILE, [], SCRIPT),
-    "shell: through workflow/run_step.py --server (the step server)":
-        (STEP_SNAKEFILE, ["--server=30"], SCRIPT),
+    "shell: through workflow/run_step.py and the step server":
+        (STEP_SNAKEFILE, SERVER, SCRIPT),
     "shell: through workflow/run_step.py, importing torch": (STEP_SNAKEFILE, [], TORCH_SCRIPT),
-    "shell: through workflow/run_step.py --server, importing torch":
-        (STEP_SNAKEFILE, ["--server=30"], TORCH_SCRIPT),
+    "shell: through workflow/run_step.py and the step server, importing torch":
+        (STEP_SNAKEFILE, SERVER, TORCH_SCRIPT),
 }
 
 STEP_IMPORTS = {
@@ -105,8 +106,8 @@ STEP_IMPORTS = {
 def _run_noop(n: int, snakefile: str = SNAKEFILE, server: list[str] | None = None,
               script: str = SCRIPT) -> tuple[float, list[float]]:
     """Seconds of one ``snakemake --cores 1`` process running ``n`` no-op jobs, and the
-    seconds each job's benchmark file records (``snakefile``, ``server`` (run_step.py's
-    options) and ``script``: one of :data:`FORMS`)."""
+    seconds each job's benchmark file records (``snakefile``, ``server`` (the arguments
+    before run_step.py: :data:`SERVER` or none) and ``script``: one of :data:`FORMS`)."""
     with tempfile.TemporaryDirectory(prefix="rescu-noop-") as d:
         w = Path(d)
         (w / "Snakefile").write_text(snakefile.format(
