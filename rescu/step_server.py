@@ -3,10 +3,10 @@ imported their libraries: a *step server*.
 
 Each per-image job of the workflow is a new Python process (``workflow/run_step.py``),
 and before it does any work it imports its libraries: NumPy, OpenCV, SciPy and h5py
-(about 0.5 s of a core), and for the steps that run the backbone (``dense``,
-``stage2_features``, ``stage2_ablation``) torch as well (1.5-2 s with this machine's CUDA
-build of torch). Over an image's seven or so jobs that is a fifth to a third of what a
-run of the real sets costs (``benchmarks/speed/job_overhead.py``,
+(0.2-0.6 s), and for the steps that run the backbone (``dense``, ``stage2_features``,
+``stage2_ablation``) torch as well (about 2 s with torch's CUDA build, less with its CPU
+wheels). Over an image's seven or so jobs that is about a fifth of what a run of the
+real sets costs (``benchmarks/speed/job_overhead.py``,
 ``benchmarks/speed/step_imports.py``).
 
 With the server the job's command is ``python -m rescu.step_server --idle=SECONDS
