@@ -86,19 +86,24 @@ def test_a_torch_step_computes_the_same_bytes_through_the_server(tmp_path):
     assert (tmp_path / "served.npy").read_bytes() == (tmp_path / "own.npy").read_bytes()
 
 
-def test_a_job_does_not_outlive_its_client(tmp_path):
+def _long_job(tmp_path: Path) -> tuple[subprocess.Popen, int]:
+    """A job that sleeps, started through the server: (its client, the job's pid)."""
     script = tmp_path / "step.py"
     script.write_text(SCRIPT)
     out = tmp_path / "long.npy"
     client = subprocess.Popen([sys.executable, "-m", "rescu.step_server", "--idle=20",
-                               str(RUN_STEP), str(script),
-                               _job(out, 5), str(tmp_path / "log")],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
+                               str(RUN_STEP), str(script), _job(out, 5),
+                               str(tmp_path / "log")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
     pid_file = Path(str(out) + ".pid")
     end = time.monotonic() + 60
     while not pid_file.exists() and time.monotonic() < end:
         time.sleep(0.05)
-    child = int(pid_file.read_text())
+    return client, int(pid_file.read_text())
+
+
+def test_a_job_does_not_outlive_its_client(tmp_path):
+    client, child = _long_job(tmp_path)
     assert child != client.pid                      # the job ran in the server's child
     client.send_signal(signal.SIGKILL)
     client.wait()
@@ -109,18 +114,7 @@ def test_a_job_does_not_outlive_its_client(tmp_path):
 
 
 def test_a_signal_to_the_client_reaches_the_job(tmp_path):
-    script = tmp_path / "step.py"
-    script.write_text(SCRIPT)
-    out = tmp_path / "long.npy"
-    client = subprocess.Popen([sys.executable, "-m", "rescu.step_server", "--idle=20",
-                               str(RUN_STEP), str(script),
-                               _job(out, 5), str(tmp_path / "log")],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
-    pid_file = Path(str(out) + ".pid")
-    end = time.monotonic() + 60
-    while not pid_file.exists() and time.monotonic() < end:
-        time.sleep(0.05)
-    child = int(pid_file.read_text())
+    client, child = _long_job(tmp_path)
     client.send_signal(signal.SIGTERM)
     _, err = client.communicate(timeout=20)
     assert client.returncode == 1 and b"without an exit status" in err
