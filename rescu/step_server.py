@@ -260,7 +260,7 @@ def serve(path: str, idle_s: float = 30.0, preload: Sequence[str] = PRELOAD,
         while True:
             try:
                 conn, _ = srv.accept()
-            except (BlockingIOError, OSError):
+            except OSError:                  # none queued (BlockingIOError) or closed
                 break
             conn.setblocking(True)
             _fork_job(srv, conn, runner)
@@ -369,7 +369,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     idle_s = 30.0
     if args and args[0].startswith("--idle="):
-        idle_s, args = float(args[0].split("=", 1)[1]), args[1:]
+        value, args = args[0].split("=", 1)[1], args[1:]
+        try:
+            idle_s = float(value)
+        except ValueError:
+            idle_s = float("nan")
+        if not idle_s > 0:
+            sys.exit(f"rescu.step_server: --idle must be a number of seconds > 0, got {value!r}")
     if not args:
         sys.exit("usage: python -m rescu.step_server [--idle=SECONDS] RUNNER [ARG ...]")
     runner, rest = args[0], args[1:]

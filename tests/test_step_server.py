@@ -153,3 +153,11 @@ def test_servers_differ_by_the_thread_settings_libraries_read_at_load():
                                         path=["p"])
     assert a != step_server.socket_path("/d", env={"OMP_NUM_THREADS": "2"}, path=["p"])
     assert a != step_server.socket_path("/d", env={"OMP_NUM_THREADS": "1"}, path=["q"])
+
+
+@pytest.mark.parametrize("idle", ["0", "-1", "soon"])
+def test_an_idle_time_that_is_not_positive_is_refused(tmp_path, idle):
+    r = subprocess.run([sys.executable, "-m", "rescu.step_server", f"--idle={idle}",
+                        str(RUN_STEP), "x.py", "{}"], capture_output=True, text=True,
+                       cwd=tmp_path)
+    assert r.returncode == 1 and "--idle must be a number of seconds > 0" in r.stderr
