@@ -155,9 +155,13 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
     The median similarity of the instances minus the ``quantile``-th percentile of the
     similarity map over the cells away from every instance: outside each box grown by
     ``grow`` x its width and height on every side (a window there does not overlap an
-    instance much; when such cells are fewer than 5 % of the map, outside the boxes
-    themselves). A pattern of texture or background (found everywhere) scores about 0 or
-    less, a set of distinct objects clearly more.
+    instance much). When such cells are fewer than 5 % of the map (objects that touch,
+    packed fruit or logs), the margin is halved, and when that still leaves fewer, the
+    cells outside the boxes themselves are used: a box that stops short of its object's
+    edge leaves that object's rim outside it, which resembles the prototype, so going
+    straight to no margin measured packed objects against their own rims and not the
+    gaps between them. A pattern of texture or background (found everywhere) scores
+    about 0 or less, a set of distinct objects clearly more.
 
     Parameters
     ----------
@@ -186,8 +190,10 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
         return free
 
     free = free_cells(grow)
-    if free.mean() < 0.05:
-        free = free_cells(0.0)
+    for g in (grow / 2, 0.0):
+        if free.mean() >= 0.05:
+            break
+        free = free_cells(g)
     if not free.any() or not len(sims):
         return -1.0
     return float(np.median(sims) - np.percentile(sim[free], quantile))
