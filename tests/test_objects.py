@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rescu.discovery.sources import DenseParams, combine_sources, split_by_confidence
-from rescu.evaluation.metrics import iou_matrix
+from rescu.evaluation.metrics import iou_matrix, match_boxes
 from rescu.extension.dense import find_dense
 from rescu.extension.objects import (colour_contrast, colour_integrals, complete_group,
                                      refine_extent, rp_confidence, suppress_parts)
@@ -125,8 +125,6 @@ def test_packed_discs_stand_out_as_much_as_discs_set_apart():
     # of the same discs set apart, about as little as the RP of the dark gaps between
     # them, which on another draw of this image, through RESCU-I, came first and took half
     # the discs. Now the margin is halved before it is dropped: the cells between the discs.
-    from rescu.evaluation.metrics import match_boxes
-
     p = _params()
     first = {}
     for pitch in (80, 110):
