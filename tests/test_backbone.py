@@ -87,6 +87,57 @@ def test_roi_align_without_torchvision_package_is_torchvisions_kernel():
     assert torch.equal(_roi_align()(fmap, rois, 1.0, 2, 2, 2, True), ref)
 
 
+@pytest.mark.parametrize("ratio", [2, 1, 0])
+@pytest.mark.parametrize("aligned", [True, False])
+def test_roi_align_in_plain_torch_samples_as_torchvision(ratio, aligned):
+    """Without torchvision, RoI-align runs in plain torch with the kernel's sampling:
+    boxes across the border, beyond it, empty, on two maps of a batch, at two scales."""
+    import torch
+    from torchvision.ops import roi_align
+
+    from rescu.extension.backbone import roi_align_torch
+
+    g = torch.Generator().manual_seed(1)
+    fmap = torch.randn(2, 5, 13, 17, generator=g)
+    xy = torch.rand(200, 2, generator=g) * torch.tensor([17 * 8.0, 13 * 8.0]) - 20
+    wh = torch.rand(200, 2, generator=g) * 60
+    wh[:4] = 0
+    rois = torch.cat([torch.randint(0, 2, (200, 1), generator=g).float(), xy, xy + wh], 1)
+    for scale in (1.0, 0.125):
+        ref = roi_align(fmap, rois, (2, 3), spatial_scale=scale, sampling_ratio=ratio,
+                        aligned=aligned)
+        got = roi_align_torch(fmap, rois, scale, 2, 3, ratio, aligned)
+        assert got.shape == ref.shape
+        assert torch.allclose(got, ref, atol=1e-5), float((got - ref).abs().max())
+    assert roi_align_torch(fmap, rois[:0], 1.0, 2, 2, 2, True).shape == (0, 5, 2, 2)
+
+
+def test_pool_boxes_without_torchvision_installed(tmp_path):
+    """With torchvision absent, pool_boxes falls back to the plain-torch RoI-align and
+    gives the features it gives with torchvision."""
+    import subprocess
+    import sys
+
+    import torch
+
+    g = torch.Generator().manual_seed(2)
+    fmap = torch.rand(1, 8, 12, 15, generator=g)
+    torch.save(fmap, tmp_path / "f.pt")
+    boxes = np.array([[0, 0, 40, 40.0], [30, 20, 90, 60], [-10, 150, 50, 40]])
+    ref = pool_boxes(fmap, boxes, (240, 192))
+    code = ("import sys; sys.modules['torchvision'] = None\n"
+            "import numpy as np, torch\n"
+            "from rescu.extension.backbone import _roi_align, pool_boxes, roi_align_torch\n"
+            "assert _roi_align() is roi_align_torch\n"
+            f"f = pool_boxes(torch.load({str(tmp_path / 'f.pt')!r}), "
+            f"np.array({boxes.tolist()!r}), (240, 192))\n"
+            f"np.save({str(tmp_path / 'out.npy')!r}, f)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    np.testing.assert_allclose(np.load(tmp_path / "out.npy"), ref, atol=1e-6)
+
+
 def test_pool_boxes_does_not_import_torchvision():
     import subprocess
     import sys

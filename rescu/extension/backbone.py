@@ -4,7 +4,8 @@ The paper uses a frozen ImageNet DenseNet-121 and one pass per region crop. On a
 one pass per proposal is far too slow, so here the backbone runs **once per image** (per
 input scale and per augmented copy) and the feature of every box is pooled from the
 shared feature map with :func:`torchvision.ops.roi_align` (a ``pool_size`` x ``pool_size``
-grid, flattened, L2-normalised). This departs from the paper: box features see context
+grid, flattened, L2-normalised; without torchvision, :func:`roi_align_torch`, the same
+sampling in plain torch). This departs from the paper: box features see context
 beyond the box through the receptive field, and are not re-computed on a resized crop.
 
 Backbones:
@@ -495,7 +496,9 @@ def _roi_align():
     """torchvision's compiled ``roi_align`` operator, loaded without importing the
     torchvision package (whose ``__init__`` imports its models and costs ~1.5 s per
     process); the same kernel :func:`torchvision.ops.roi_align` calls on tensors, so the
-    same floats. Falls back to that function where the library cannot be found."""
+    same floats. Falls back to that function where the library cannot be found, and to
+    :func:`roi_align_torch` (equal up to the order of summation)
+    where torchvision is not installed."""
     torch = _torch()
     try:
         return torch.ops.torchvision.roi_align
@@ -511,10 +514,110 @@ def _roi_align():
                 return torch.ops.torchvision.roi_align
             except (OSError, RuntimeError, AttributeError):
                 continue
-    from torchvision.ops import roi_align
-
+    try:
+        from torchvision.ops import roi_align
+    except ImportError:            # no torchvision: the same sampling in plain torch
+        return roi_align_torch
     return lambda x, rois, scale, ph, pw, ratio, aligned: roi_align(
         x, rois, (ph, pw), spatial_scale=scale, sampling_ratio=ratio, aligned=aligned)
+
+
+def roi_align_torch(x, rois, scale: float, ph: int, pw: int, ratio: int, aligned: bool):
+    """RoI-align in plain torch, the sampling of torchvision's CPU kernel (the same
+    sample points, bilinear weights and border rules; floats equal up to the order of
+    summation), for where torchvision is not installed. The operator's signature.
+
+    Parameters
+    ----------
+    x : torch.Tensor (B, C, h, w), float
+    rois : torch.Tensor (N, 5), ``[batch index, x0, y0, x1, y1]`` in the pixels of the
+        image ``x`` was made from
+    scale : map cells per such pixel
+    ph, pw : output grid, cells
+    ratio : samples per output cell and axis; <= 0: ``ceil`` of the RoI's cell size, as
+        torchvision does
+    aligned : shift the box by half a map cell (pixel centres; torchvision's ``aligned``)
+
+    Returns
+    -------
+    torch.Tensor (N, C, ph, pw), the mean of each output cell's bilinear samples (0
+    outside the map)
+
+    >>> import torch
+    >>> f = torch.arange(16.0).reshape(1, 1, 4, 4)
+    >>> roi_align_torch(f, torch.tensor([[0.0, 0, 0, 4, 4]]), 1.0, 2, 2, 2, True)[0, 0]
+    tensor([[ 2.5000,  4.5000],
+            [10.5000, 12.5000]])
+    """
+    torch = _torch()
+    rois = rois.to(x.dtype)
+    n, (b, c, h, w) = len(rois), x.shape
+    out = x.new_zeros((n, c, ph, pw))
+    if n == 0:
+        return out
+    off = 0.5 if aligned else 0.0
+    x0, y0 = rois[:, 1] * scale - off, rois[:, 2] * scale - off
+    rw, rh = rois[:, 3] * scale - off - x0, rois[:, 4] * scale - off - y0
+    if not aligned:
+        rw, rh = rw.clamp(min=1.0), rh.clamp(min=1.0)
+    if ratio > 0:
+        groups = [(torch.arange(n), ratio, ratio)]
+    else:                           # the grid depends on each RoI's size: one RoI at a time
+        gy = torch.ceil(rh / ph).to(torch.int64).tolist()
+        gx = torch.ceil(rw / pw).to(torch.int64).tolist()
+        groups = [(torch.tensor([k]), gy[k], gx[k]) for k in range(n)]
+    for idx, gy, gx in groups:
+        if gy < 1 or gx < 1:        # an empty RoI: torchvision's count of 1, its sum 0
+            continue
+        ys = _sample_points(y0[idx], rh[idx] / ph, ph, gy)       # (k, ph * gy)
+        xs = _sample_points(x0[idx], rw[idx] / pw, pw, gx)       # (k, pw * gx)
+        for bi in torch.unique(rois[idx, 0]).tolist():
+            sel = (rois[idx, 0] == bi).nonzero().flatten()
+            v = _bilinear(x[int(bi)], ys[sel], xs[sel])          # (C, k, ph gy, pw gx)
+            v = v.reshape(c, len(sel), ph, gy, pw, gx).sum((3, 5)) / float(gy * gx)
+            out[idx[sel]] = v.permute(1, 0, 2, 3)
+    return out
+
+
+def _sample_points(start, bin_size, bins: int, grid: int):
+    """``(k, bins * grid)`` sample coordinates along one axis: ``grid`` evenly spaced
+    points in each of ``bins`` bins of ``bin_size`` (k,) from ``start`` (k,)."""
+    torch = _torch()
+    t = (torch.arange(bins, dtype=start.dtype)[:, None]
+         + (torch.arange(grid, dtype=start.dtype)[None, :] + 0.5) / grid).reshape(-1)
+    return start[:, None] + t[None, :] * bin_size[:, None]
+
+
+def _bilinear(f, ys, xs):
+    """Bilinear samples of ``f`` (C, h, w) at every pair of ``ys`` (k, m) and ``xs``
+    (k, l): (C, k, m, l), with torchvision's border rules (0 beyond one cell outside the
+    map, clamped to the edge within it)."""
+    torch = _torch()
+    c, h, w = f.shape
+
+    def axis(v, size):
+        inside = (v >= -1.0) & (v <= size)
+        v = v.clamp(min=0.0)
+        lo = v.floor().to(torch.int64)
+        edge = lo >= size - 1
+        lo = torch.where(edge, torch.full_like(lo, size - 1), lo)
+        v = torch.where(edge, lo.to(v.dtype), v)
+        hi = torch.where(edge, lo, lo + 1)
+        frac = v - lo.to(v.dtype)
+        return inside, lo, hi, frac
+
+    iy, ylo, yhi, ly = axis(ys, h)
+    ix, xlo, xhi, lx = axis(xs, w)
+    flat = f.reshape(c, h * w)
+
+    def at(yi, xi):
+        return flat[:, (yi[:, :, None] * w + xi[:, None, :]).reshape(-1)].reshape(
+            c, *yi.shape, xi.shape[1])
+
+    ly, lx = ly[:, :, None], lx[:, None, :]
+    v = ((1 - ly) * (1 - lx) * at(ylo, xlo) + (1 - ly) * lx * at(ylo, xhi)
+         + ly * (1 - lx) * at(yhi, xlo) + ly * lx * at(yhi, xhi))
+    return v * (iy[:, :, None] & ix[:, None, :]).to(v.dtype)
 
 
 def pool_boxes(fmap, boxes: np.ndarray, image_size: tuple[int, int],
