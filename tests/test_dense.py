@@ -561,3 +561,19 @@ def test_rescu_i_scores_on_the_map_the_dense_step_kept(tmp_path, monkeypatch):
     assert pipeline.dense(w("bad.png"), w("m.json"), w("d2.json"), cfg["dense"],
                           w("d2.h5")) is not None
     assert D.load_map(w("d2.h5"), dp) is None
+
+
+def test_feature_blobs_embeddings_are_the_unit_window_means():
+    """Each blob's embedding is its window's unit mean feature, bit for bit, though only
+    the means at each size's in-plane peaks are kept."""
+    from rescu.extension.dense import box_means, feature_blobs
+
+    rng = np.random.default_rng(3)
+    f = rng.normal(size=(6, 40, 50)).astype(np.float32)
+    f /= np.linalg.norm(f, axis=0, keepdims=True)
+    sizes = (3, 4, 6)
+    cells, resp, emb = feature_blobs(f, sizes, 3, 50)
+    assert len(cells) == 50 and np.all(np.diff(resp) <= 0)
+    for (s, y, x), e in zip(cells, emb):
+        m = box_means(f, sizes[s])
+        assert np.array_equal(e, m[:, y, x] / (np.linalg.norm(m, axis=0)[y, x] + 1e-9))

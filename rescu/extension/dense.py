@@ -102,16 +102,27 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
     response : (n,) float, descending
     emb : (n, C) float32, the unit mean feature of each blob's window
     """
-    resp, means = [], []
+    resp, means, where = [], [], []
     for a in sizes:
         mc = box_means(f, int(a))
         ms = box_means(f, int(a) * surround)
         inner, outer = float(a * a), float((a * surround) ** 2)
         mr = (ms * outer - mc * inner) / (outer - inner)
+        del ms
         nc = np.linalg.norm(mc, axis=0) + 1e-9
         nr = np.linalg.norm(mr, axis=0) + 1e-9
-        resp.append((1.0 - (mc * mr).sum(0) / (nc * nr)) * nc)
-        means.append(mc / nc)
+        rs = (1.0 - (mc * mr).sum(0) / (nc * nr)) * nc
+        del mr
+        resp.append(rs)
+        # the unit means are kept only where this size's response peaks in its own plane
+        # (every peak over (size, y, x) is one): C x h x w floats per size otherwise, the
+        # largest part of the dense step's memory on a fine map
+        y, x = np.nonzero((rs == maximum_filter(rs, 3)) & (rs > 0))
+        at = np.full(rs.shape, -1, np.int64)
+        at[y, x] = np.arange(len(y))
+        means.append(mc[:, y, x] / nc[y, x])
+        where.append(at)
+        del mc
     r = np.stack(resp)
     peaks = np.argwhere((r == maximum_filter(r, 3)) & (r > 0))
     # a window that leaves the map is measured against reflected features: its contrast
@@ -123,7 +134,7 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
     val = r[tuple(peaks.T)]
     order = np.lexsort((peaks[:, 2], peaks[:, 1], peaks[:, 0], -val))[:max_blobs]
     peaks, val = peaks[order], val[order]
-    emb = np.array([means[s][:, y, x] for s, y, x in peaks], np.float32).reshape(
+    emb = np.array([means[s][:, where[s][y, x]] for s, y, x in peaks], np.float32).reshape(
         len(peaks), f.shape[0])
     return peaks.astype(int), val.astype(float), emb
 
