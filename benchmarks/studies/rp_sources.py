@@ -10,6 +10,10 @@ that lie on a GT object is the RP's precision against any GT RP. Prints, per dat
   source's whole objects) and confidence band: RPs, instances, share on GT objects;
 * the RPs set aside, by the reason recorded (``low confidence``, ``one structure``,
   ``same objects``, ``overlap``): the same three figures;
+* with ``--touching``: the reported RPs by source and by how many sides their
+  instances abut another instance of the RP on average (:func:`rescu.boxes.touching_sides`
+  at ``dense.touch_tolerance`` of the defaults, 0.35; the dense source drops its own RPs
+  above ``dense.max_touching`` as tilings);
 * the dominant RP (:func:`rescu.scene.counting.dominant_pattern`: the most confident,
   the one the caption counts) against the image's largest GT RP, over the images with a
   GT RP: the mean share of that GT RP it covers, its mean
@@ -22,7 +26,7 @@ that lie on a GT object is the RP's precision against any GT RP. Prints, per dat
 Usage (after a run, from the repository root)::
 
     python benchmarks/studies/rp_sources.py results/realdev --config config/realdev.yaml \\
-        --dataset chess --dataset aerial_cars --method rescu-ii
+        --dataset chess --dataset aerial_cars --method rescu-ii [--touching]
     python benchmarks/studies/rp_sources.py results --dominant count-confidence
 
 ``--method`` is the per-image JSON folder under ``<results>/<dataset>/``. The dataset
@@ -53,6 +57,9 @@ DOMINANT = {
 (the most confident); the others rank an RP of ``n`` instances and confidence ``c`` by
 the key they give (ties: the earlier RP), among the RPs whose confidence is at least
 :data:`FLOOR` of the image's highest."""
+
+TOUCH_BANDS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.01)
+"""Bands of the mean number of abutting sides (of 4) of ``--touching``."""
 
 FLOOR = {"count-near-best": 0.8}
 """Share of the image's highest confidence an RP needs to compete, by rule (0 when not
@@ -93,11 +100,20 @@ def _boxes(items: list[Any]) -> Any:
                      else i for i in items], float).reshape(-1, 4)
 
 
+def touching(boxes: Any) -> float:
+    """Mean :func:`rescu.boxes.touching_sides` of an RP's (n, 4) boxes at the default
+    ``dense.touch_tolerance``: on how many of its 4 sides an instance abuts another."""
+    from rescu.boxes import touching_sides
+    from rescu.params import config_defaults
+
+    return float(touching_sides(boxes, config_defaults("dense")["touch_tolerance"]).mean())
+
+
 def rp_rows(data: Path, pred: Path, rule: str = "code"
             ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """``(rps, images)``: one row per RP of every image of ``data`` with a result in
     ``pred`` (``image, kind`` reported / set aside, ``source, confidence, reason, n,
-    on_gt``) and one per image (``gt_count`` of its largest GT RP, the dominant RP's
+    on_gt, touching``) and one per image (``gt_count`` of its largest GT RP, the dominant RP's
     ``count`` by ``rule`` (:func:`pick_dominant`), ``covered`` GT instances and
     ``on_largest`` of its own)."""
     from rescu.evaluation.metrics import match_boxes
@@ -120,7 +136,7 @@ def rp_rows(data: Path, pred: Path, rule: str = "code"
                 b = _boxes(inst)
                 if not len(b):
                     continue
-                rps.append({"image": f, "kind": kind,
+                rps.append({"image": f, "kind": kind, "touching": touching(b),
                             "source": extra.get("source") or "stage1",
                             "confidence": extra.get("confidence"),
                             "reason": extra.get("dropped"), "n": len(b),
@@ -169,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = sets_parser(__doc__)
     ap.add_argument("--dominant", choices=list(DOMINANT), default="code",
                     help="rule for the dominant RP (default: the code's, the most confident)")
+    ap.add_argument("--touching", action="store_true",
+                    help="also the reported RPs by source and mean abutting sides")
     a = ap.parse_args(argv)
     sets = set_predictions(ap, a)
     if sets is None:
@@ -176,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     for ds, data, pred in sets:
         rows, imgs = rp_rows(data, pred, a.dominant)
         df = pd.DataFrame(rows, columns=["image", "kind", "source", "confidence", "reason",
-                                         "n", "on_gt"])
+                                         "n", "on_gt", "touching"])
         print(f"\n{ds} / {a.method}: {len(imgs)} images")
         rep = df[df.kind == "reported"]
         for src, g in rep.groupby("source"):
@@ -186,6 +204,13 @@ def main(argv: list[str] | None = None) -> int:
                 band = g[(conf >= lo) & (conf < hi)]
                 if len(band):
                     print(f"    confidence {lo:.1f}-{min(hi, 1.0):.1f} {_share(band)}")
+        if a.touching:
+            for src, g in rep.groupby("source"):
+                for lo, hi in zip(TOUCH_BANDS[:-1], TOUCH_BANDS[1:]):
+                    band = g[(g.touching >= lo) & (g.touching < hi)]
+                    if len(band):
+                        print(f"  reported {src:<7} abutting sides {lo:.2f}-{min(hi, 4.0):.2f} "
+                              f"{_share(band)}")
         for why, g in df[df.kind == "set aside"].groupby("reason"):
             print(f"  set aside, {why:<15} {_share(g)}")
         d = dominant_summary(imgs)
