@@ -13,9 +13,9 @@ into a temporary folder, and prints each process's wall seconds and peak residen
 
 ``--python``: the interpreter of another environment (this repository's code first on its
 path), e.g. one with the PyTorch CPU wheel, to compare with this environment's torch build;
-where that environment has no torchvision, the stage-II step's RoI align runs as a plain
-torch function (bilinear samples averaged per bin: close to torchvision's, not the same
-floats; its cost is a small part of the step). ``--retain``: the limit given to
+where that environment has no torchvision, RoI align runs as
+:func:`rescu.extension.backbone.roi_align_torch` (torchvision's sampling in plain torch),
+as the library does there. ``--retain``: the limit given to
 :func:`rescu.core.retain_freed_memory` (0: the C library's own behaviour).
 """
 
@@ -43,33 +43,8 @@ else:
     core.retain_freed_memory.__defaults__ = (limit,)
 import torch
 from rescu import pipeline
-try:
-    torch.ops.torchvision.roi_align
-    has_op = True
-except (AttributeError, RuntimeError):
-    import importlib.util
-    has_op = importlib.util.find_spec("torchvision") is not None
-if not has_op:
-    import rescu.extension.backbone as B
-
-    def roi_align(x, rois, scale, ph, pw, ratio, aligned):
-        s = ratio if ratio > 0 else 2
-        off = 0.5 if aligned else 0.0
-        H, W = x.shape[-2:]
-        x0, y0 = rois[:, 1] * scale - off, rois[:, 2] * scale - off
-        x1, y1 = rois[:, 3] * scale - off, rois[:, 4] * scale - off
-        K = rois.shape[0]
-        u = (torch.arange(pw * s, dtype=x.dtype) + 0.5) / (pw * s)
-        v = (torch.arange(ph * s, dtype=x.dtype) + 0.5) / (ph * s)
-        gx = (x0[:, None] + u[None] * (x1 - x0)[:, None]) / max(W - 1, 1) * 2 - 1
-        gy = (y0[:, None] + v[None] * (y1 - y0)[:, None]) / max(H - 1, 1) * 2 - 1
-        grid = torch.stack([gx[:, None, :].expand(K, ph * s, pw * s),
-                            gy[:, :, None].expand(K, ph * s, pw * s)], -1)
-        out = torch.nn.functional.grid_sample(x[:1], grid.reshape(1, K * ph * s, pw * s, 2),
-                                              align_corners=True)
-        return out.reshape(x.shape[1], K, ph, s, pw, s).mean((3, 5)).permute(1, 0, 2, 3)
-
-    B._roi_align = lambda: roi_align
+import rescu.extension.backbone as B
+has_op = B._roi_align() is not B.roi_align_torch
 cfg = yaml.safe_load(open("rescu/defaults/config.yaml"))
 out = tempfile.mkdtemp(prefix="rescu-stepmem-")
 p = f"{res}/{ds}/prepared/{im}"
