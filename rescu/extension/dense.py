@@ -115,8 +115,8 @@ def feature_blobs(f: np.ndarray, sizes: Sequence[int], surround: int, max_blobs:
         del mr
         resp.append(rs)
         # the unit means are kept only where this size's response peaks in its own plane
-        # (every peak over (size, y, x) is one): C x h x w floats per size otherwise, the
-        # largest part of the dense step's memory on a fine map
+        # (every peak over (size, y, x) is one), not as C x h x w floats per size (about
+        # 0.1 GB of the dense step's peak on a fine map)
         y, x = np.nonzero((rs == maximum_filter(rs, 3)) & (rs > 0))
         at = np.full(rs.shape, -1, np.int64)
         at[y, x] = np.arange(len(y))
