@@ -462,7 +462,7 @@ def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
     assert rs.main([str(tmp_path), "--touching"]) == 0   # boxes two sides apart: none abut
     out = capsys.readouterr().out
     assert has("reported dense abutting sides 0.00-0.25 1 RPs 3 instances on GT 0.000")
-    assert rs.touching([[0, 0, 10, 10], [10, 0, 10, 10], [0, 10, 10, 10.0]]) == 4 / 3
+    assert rs.touching([[0, 0, 10, 10], [10, 0, 10, 10], [0, 10, 10, 10.0]], 0.35) == 4 / 3
     assert rs.main([str(tmp_path), "--dominant", "count"]) == 0      # the 3 boxes off GT
     assert ("dominant RP (count) vs the largest GT RP (1 images): covers 0.000, precision "
             "0.000, relative count error 0.500, within 0.35 on 0.00") in capsys.readouterr().out

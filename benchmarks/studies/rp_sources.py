@@ -100,13 +100,13 @@ def _boxes(items: list[Any]) -> Any:
                      else i for i in items], float).reshape(-1, 4)
 
 
-def touching(boxes: Any) -> float:
-    """Mean :func:`rescu.boxes.touching_sides` of an RP's (n, 4) boxes at the default
-    ``dense.touch_tolerance``: on how many of its 4 sides an instance abuts another."""
+def touching(boxes: Any, tolerance: float) -> float:
+    """Mean :func:`rescu.boxes.touching_sides` of an RP's (n, 4) boxes at ``tolerance``
+    (a fraction of the median box side): on how many of its 4 sides an instance abuts
+    another."""
     from rescu.boxes import touching_sides
-    from rescu.params import config_defaults
 
-    return float(touching_sides(boxes, config_defaults("dense")["touch_tolerance"]).mean())
+    return float(touching_sides(boxes, tolerance).mean())
 
 
 def rp_rows(data: Path, pred: Path, rule: str = "code"
@@ -118,7 +118,9 @@ def rp_rows(data: Path, pred: Path, rule: str = "code"
     ``on_largest`` of its own)."""
     from rescu.evaluation.metrics import match_boxes
     from rescu.io import load_coco_rps, read_result
+    from rescu.params import config_defaults
 
+    tol = config_defaults("dense")["touch_tolerance"]
     gt = load_coco_rps(data / "annotations.json")
     rps: list[dict[str, Any]] = []
     images: list[dict[str, Any]] = []
@@ -136,7 +138,7 @@ def rp_rows(data: Path, pred: Path, rule: str = "code"
                 b = _boxes(inst)
                 if not len(b):
                     continue
-                rps.append({"image": f, "kind": kind, "touching": touching(b),
+                rps.append({"image": f, "kind": kind, "touching": touching(b, tol),
                             "source": extra.get("source") or "stage1",
                             "confidence": extra.get("confidence"),
                             "reason": extra.get("dropped"), "n": len(b),

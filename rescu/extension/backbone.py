@@ -551,7 +551,7 @@ def roi_align_torch(x, rois, scale: float, ph: int, pw: int, ratio: int, aligned
     """
     torch = _torch()
     rois = rois.to(x.dtype)
-    n, (b, c, h, w) = len(rois), x.shape
+    n, c = len(rois), int(x.shape[1])
     out = x.new_zeros((n, c, ph, pw))
     if n == 0:
         return out
