@@ -9,7 +9,9 @@ Usage::
 
 Times, for each form of :class:`rescu.extension.backbone.FrozenBackbone`: the dense step's stride-8 + stride-16 maps of a 1.2-MP and a 4.3-MP image
 (its coarse and fine levels), stage II's stride-16 map of a 0.8-MP image, and the
-classifier on a batch of six 160-pixel crops (the dense step's objectness). The image is
+classifier on a batch of six 160-pixel crops (the dense step's objectness; it classifies
+four per group by default now, but the batch stays six so that the figures compare with
+those recorded before). The image is
 the first CMP facade of ../shared/data when present, a rendered texture otherwise.
 Prints per pass the median seconds of each form, their ratio, and the largest absolute
 difference between their outputs relative to the published form's largest (the maps) or
