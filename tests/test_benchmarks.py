@@ -594,3 +594,23 @@ def test_box_fit_counts_boxes_and_the_share_of_the_object_they_cover(tmp_path, c
     assert "median area / the object's: 0.62" in out       # 0.25 and 1
     assert bf.main([str(tmp_path / "run"), "--data", str(tmp_path), "--dataset", "set"]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_dense_cost_times_a_variant_beside_the_defaults(capsys):
+    """``dense_cost.py --against``: both settings on each image, alternating; a bad variant
+    is a usage error naming the key."""
+    sys.path.insert(0, str(BENCH / "speed"))
+    spec = importlib.util.spec_from_file_location("dense_cost", BENCH / "speed" / "dense_cost.py")
+    dc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(dc)
+    with pytest.raises(SystemExit):
+        dc.main(["--per-set", "0", "--against", "objectness_crops=-1"])
+    assert "objectness_crops" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        dc.main(["--per-set", "0", "--against", "objectness_crops"])
+    assert "KEY=VALUE" in capsys.readouterr().err
+    # no photo (--per-set 0): the synthetic rendering, at 0.1 MP, once with each setting
+    assert dc.main(["--per-set", "0", "--megapixels", "0.1", "--repeats", "1", "--threads", "1",
+                    "--against", "objectness_crops=0"]) == 0
+    out = capsys.readouterr().out
+    assert "synthetic" in out and "variant: objectness_crops=0" in out

@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/speed/dense_cost.py [--megapixels 1.0] [--per-set 4] [--repeats 3] [--threads 2]
                                           [--strip-px N] [--rotations R] [--completion-turn]
-                                          [--wide-scales YAML]
+                                          [--wide-scales YAML] [--against KEY=VALUE ...]
 
 Takes the first ``--per-set`` photos of each set of ../shared/data (CMP and SPb facades,
 chess, aerial cars; a synthetic rendering when absent), resizes each to
@@ -19,9 +19,13 @@ inputs over this many pixels (:data:`rescu.extension.backbone.STRIP_PX`; 0: neve
 whole pass). ``--rotations``: ``dense.rotations`` instead of the config's (backbone
 passes per map). ``--completion-turn``: ``dense.completion_turn`` on (one more backbone
 pass per map that has a group to complete). ``--wide-scales``: ``dense.wide_scales``
-instead of the config's (``[]``: no wide maps). The map cache of
-:func:`rescu.extension.dense.dense_map` is emptied before each call, so every repeat passes
-the backbone.
+instead of the config's (``[]``: no wide maps). ``--against``: a variant of the
+``dense`` section (``KEY=VALUE``, the value read as YAML; repeatable, all keys in one
+variant), timed on each image beside the settings above, the two alternating call by call
+(which goes first alternates too), so that a change of the machine's speed during the run
+falls on both alike; prints both medians per image, their sums and the variant's share.
+The map cache of :func:`rescu.extension.dense.dense_map` is emptied before each call, so
+every repeat passes the backbone.
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _photos import median_seconds, photos, resized  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _cli import parse_sets  # noqa: E402
 
 SETS = ["cmp_facade", "spb_facades", "chess", "aerial_cars"]
 
@@ -54,7 +61,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--wide-scales", default=None,
                     help="dense.wide_scales as YAML, e.g. '[]' for no wide maps "
                          "(default: the config's)")
+    ap.add_argument("--against", action="append", default=[], metavar="KEY=VALUE",
+                    help="time a variant of the dense section beside the settings, "
+                         "alternating (repeatable: one variant of all the keys)")
     a = ap.parse_args(argv)
+    try:
+        against = parse_sets(a.against)
+    except ValueError as e:
+        ap.error(str(e))
     import torch
 
     import resource
@@ -96,8 +110,16 @@ def main(argv: list[str] | None = None) -> int:
 
         params = DenseParams.from_dict({**params.__dict__,
                                         "wide_scales": yaml.safe_load(a.wide_scales)})
+    variant = None
+    if against:
+        try:
+            variant = DenseParams.from_dict({**params.__dict__, **against})
+        except (TypeError, ValueError) as e:
+            ap.error(f"--against: {e}")
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
     find_dense(np.zeros((64, 64, 3), np.uint8), params, backbone)   # warm-up
+    if variant is not None:
+        return _paired(images, params, variant, backbone, run, a, against)
     times = []
     print(f"{'image':<48} {'size':>11} {'RPs':>4} {'seconds':>8}")
     for name, rgb in images:
@@ -111,6 +133,32 @@ def main(argv: list[str] | None = None) -> int:
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, strips of "
           f"{B.STRIP_PX if B.STRIP_PX < 1 << 62 else 'no'} px, rotations {params.rotations}, "
           f"completion turned {params.completion_turn}, wide maps {list(params.wide_scales)}")
+    return 0
+
+
+def _paired(images, params, variant, backbone, run, a, against) -> int:
+    """``--against``: each image timed with ``params`` and ``variant`` in turn."""
+    import time
+
+    sums = [0.0, 0.0]
+    print(f"{'image':<48} {'size':>11} {'RPs':>9} {'seconds':>8} {'variant':>8}")
+    for name, rgb in images:
+        rgb = resized(rgb, a.megapixels)
+        h, w = rgb.shape[:2]
+        runs: list[list[float]] = [[], []]
+        found: list = [None, None]
+        for r in range(max(1, a.repeats)):
+            for k in ((0, 1) if r % 2 == 0 else (1, 0)):
+                t = time.perf_counter()
+                found[k] = run(rgb, (params, variant)[k], backbone)
+                runs[k].append(time.perf_counter() - t)
+        med = [statistics.median(x) for x in runs]
+        sums = [sums[0] + med[0], sums[1] + med[1]]
+        print(f"{name:<48} {w:>5}x{h:<5} {len(found[0]):>4}/{len(found[1]):<4} "
+              f"{med[0]:>8.2f} {med[1]:>8.2f}")
+    print(f"sum {sums[0]:.1f} s, variant {sums[1]:.1f} s ({sums[1] / max(sums[0], 1e-9):.3f} of "
+          f"it) over {len(images)} image(s) at {a.megapixels} MP, {a.threads} thread(s); "
+          f"variant: {', '.join(f'{k}={v}' for k, v in against.items())}")
     return 0
 
 
