@@ -136,9 +136,10 @@ def test_second_run_does_nothing(finished_run):
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
 
 
-def test_parameter_change_reruns_only_dependants(finished_run):
+def test_parameter_change_reruns_only_dependants(finished_run, tmp_path):
     work, _ = finished_run
-    changed = tiny_config(work, **{"scene.symmetry.threshold": 0.05})
+    # the changed config beside this test, never over the run's own (later tests read it)
+    changed = tiny_config(tmp_path, **{"scene.symmetry.threshold": 0.05})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs, "a changed scene parameter must rerun something"
     assert jobs.get("scene") == 3 and jobs.get("caption") == 3
@@ -156,7 +157,7 @@ def test_code_change_reruns_its_steps_only(finished_run, tmp_path):
     import os
 
     work, _ = finished_run
-    cfg = tiny_config(work)  # the run's own config (other tests write changed ones there)
+    cfg = tiny_config(work)  # the run's own config, as the fixture wrote it
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
     stamp = work / "results" / ".code" / "scene.txt"
     listed = stamp.read_text()
@@ -192,9 +193,9 @@ def test_code_change_reruns_its_steps_only(finished_run, tmp_path):
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
 
 
-def test_stage2_gate_change_reruns_prediction_only(finished_run):
+def test_stage2_gate_change_reruns_prediction_only(finished_run, tmp_path):
     work, _ = finished_run
-    changed = tiny_config(work, **{"stage2.predict.lattice_score_threshold": 0.9})
+    changed = tiny_config(tmp_path, **{"stage2.predict.lattice_score_threshold": 0.9})
     jobs = planned_jobs(snakemake(work, changed, "-n"))
     assert jobs.get("stage2_predict") == 3, jobs
     for upstream in ("features", "rescu_i", "stage2_features"):
