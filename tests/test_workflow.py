@@ -156,8 +156,7 @@ def test_code_change_reruns_its_steps_only(finished_run, tmp_path):
     upstream (the edit made in a copy of the checkout, whose Snakefile then runs)."""
     import os
 
-    work, _ = finished_run
-    cfg = tiny_config(work)  # the run's own config, as the fixture wrote it
+    work, cfg = finished_run
     assert planned_jobs(snakemake(work, cfg, "-n")) == {}
     stamp = work / "results" / ".code" / "scene.txt"
     listed = stamp.read_text()

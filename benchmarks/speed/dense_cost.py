@@ -100,20 +100,20 @@ def main(argv: list[str] | None = None) -> int:
     else:
         images = [(p.parent.parent.name + "/" + p.name,
                    cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in paths]
-    params = DenseParams.from_dict(None)
+    over: dict = {}  # the settings: the default dense parameters with these options
     if a.rotations is not None:
-        params = DenseParams.from_dict({**params.__dict__, "rotations": a.rotations})
+        over["rotations"] = a.rotations
     if a.completion_turn:
-        params = DenseParams.from_dict({**params.__dict__, "completion_turn": True})
+        over["completion_turn"] = True
     if a.wide_scales is not None:
         import yaml
 
-        params = DenseParams.from_dict({**params.__dict__,
-                                        "wide_scales": yaml.safe_load(a.wide_scales)})
+        over["wide_scales"] = yaml.safe_load(a.wide_scales)
+    params = DenseParams.from_dict(over)
     variant = None
     if against:
         try:
-            variant = DenseParams.from_dict({**params.__dict__, **against})
+            variant = DenseParams.from_dict({**over, **against})
         except (TypeError, ValueError) as e:
             ap.error(f"--against: {e}")
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
