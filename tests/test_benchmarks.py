@@ -470,6 +470,56 @@ def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
         rs.main([str(tmp_path), "--dataset", "no_such_set"])
 
 
+def test_rp_objectness_scores_every_reported_rp_and_leaves_out_stage1_below(tmp_path, capsys):
+    """One image, one GT RP of two boxes: a stage-I RP on both and a dense RP on
+    neither. Every RP gets an objectness in (0, 1]; at threshold 0 nothing is left out
+    (precision 0.4: 2 of 5 boxes); at 1.01 the stage-I RP is, and the precision is 0."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from rescu.types import ImageResult, Instance, Pattern
+
+    ro = load("rp_objectness")
+    data = tmp_path / "data" / "synthetic"
+    data.mkdir(parents=True)
+    (data / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/x.png", "width": 128, "height": 96}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 0, "bbox": [8, 8, 24, 24]},
+                        {"id": 2, "image_id": 1, "category_id": 0, "bbox": [48, 8, 24, 24]}],
+        "categories": [{"id": 0, "name": "o"}]}))
+    prep = tmp_path / "synthetic" / "prepared"
+    prep.mkdir(parents=True)
+    img = np.full((96, 128, 3), 200, np.uint8)
+    for x in (8, 48):
+        cv2.circle(img, (x + 12, 20), 10, (30, 60, 160), -1)
+    cv2.imwrite(str(prep / "x.png"), img)
+    (prep / "x.meta.json").write_text(json.dumps({"scale_factor": 1.0}))
+
+    def rp(boxes, **extra):
+        return Pattern(id=0, score=1.0, extra=extra,
+                       instances=[Instance(bbox=b, score=1.0) for b in boxes])
+
+    res = ImageResult(image="images/x.png", width=128, height=96, method="m", patterns=[
+        rp([(8, 8, 24, 24), (48, 8, 24, 24)], confidence=0.7),
+        rp([(8, 60, 20, 20), (40, 60, 20, 20), (72, 60, 20, 20)], source="dense")])
+    (tmp_path / "synthetic" / "rescu-ii").mkdir()
+    (tmp_path / "synthetic" / "rescu-ii" / "x.json").write_text(json.dumps(res.to_json()))
+    assert ro.main([str(tmp_path), "--crops", "2", "--threshold", "0",
+                    "--threshold", "1.01"]) == 0
+    out = capsys.readouterr().out
+    assert "synthetic      stage1      1 RPs, on GT 1.000" in out
+    assert "synthetic      dense       1 RPs, on GT 0.000" in out
+    assert "below 0.00 left out (0): any-RP P / R synthetic 0.400 / 1.000" in out
+    assert "below 1.01 left out (1): any-RP P / R synthetic 0.000 / 0.000" in out
+    import re
+    med = [float(v) for v in re.findall(r"median objectness ([0-9.]+)", out)]
+    assert len(med) == 2 and all(0 < v <= 1 for v in med)
+    with pytest.raises(SystemExit):
+        ro.main([str(tmp_path), "--crops", "0"])
+
+
 def test_rp_separation_of_objects_and_of_a_band(tmp_path, capsys):
     """One image with a stored map: a dense RP of objects with wall between them (on the
     two GT boxes) keeps its separation, a dense RP along a band of the same stuff falls
