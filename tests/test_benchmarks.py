@@ -466,6 +466,9 @@ def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
     assert rs.main([str(tmp_path), "--dominant", "count"]) == 0      # the 3 boxes off GT
     assert ("dominant RP (count) vs the largest GT RP (1 images): covers 0.000, precision "
             "0.000, relative count error 0.500, within 0.35 on 0.00") in capsys.readouterr().out
+    assert rs.main([str(tmp_path), "--dominant", "best"]) == 0      # the ground truth picks
+    assert ("dominant RP (best) vs the largest GT RP (1 images): covers 1.000, precision "
+            "1.000, relative count error 0.000, within 0.35 on 1.00") in capsys.readouterr().out
     with pytest.raises(SystemExit):
         rs.main([str(tmp_path), "--dataset", "no_such_set"])
 
