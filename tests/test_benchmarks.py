@@ -415,34 +415,45 @@ def test_compare_runs_tells_run_specific_parts_from_changes(tmp_path, capsys):
     assert "different: d/final/x.json" in out and "in one run only: d/final/y.json" in out
 
 
+def _one_gt_rp(root, boxes, width, height):
+    """``root/data/synthetic/annotations.json``: one image ``images/x.png`` whose
+    ``boxes`` (``[x, y, w, h]``, one category) form one GT RP."""
+    import json
+
+    data = root / "data" / "synthetic"
+    data.mkdir(parents=True)
+    (data / "annotations.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "images/x.png", "width": width, "height": height}],
+        "annotations": [{"id": k + 1, "image_id": 1, "category_id": 0, "bbox": list(b)}
+                        for k, b in enumerate(boxes)],
+        "categories": [{"id": 0, "name": "o"}]}))
+
+
+def _rp(boxes, **extra):
+    """A :class:`rescu.types.Pattern` of ``boxes`` with ``extra``."""
+    from rescu.types import Instance, Pattern
+
+    return Pattern(id=0, score=1.0, extra=extra,
+                   instances=[Instance(bbox=b, score=1.0) for b in boxes])
+
+
 def test_rp_sources_by_source_reason_and_dominant(tmp_path, capsys):
     """One image, one GT RP of two boxes: a reported stage-I RP on both, a dense RP on
     neither, an RP set aside as one structure; the dominant (most confident) RP covers
     the GT RP and counts it right."""
     import json
 
-    from rescu.types import ImageResult, Instance, Pattern
+    from rescu.types import ImageResult
 
     rs = load("rp_sources")
     assert rs.main([str(tmp_path)]) == 2
     assert "run the pipeline first" in capsys.readouterr().err
-    data = tmp_path / "data" / "synthetic"
-    data.mkdir(parents=True)
-    (data / "annotations.json").write_text(json.dumps({
-        "images": [{"id": 1, "file_name": "images/x.png", "width": 100, "height": 100}],
-        "annotations": [{"id": 1, "image_id": 1, "category_id": 0, "bbox": [0, 0, 10, 10]},
-                        {"id": 2, "image_id": 1, "category_id": 0, "bbox": [20, 0, 10, 10]}],
-        "categories": [{"id": 0, "name": "o"}]}))
-
-    def rp(boxes, **extra):
-        return Pattern(id=0, score=1.0, extra=extra,
-                       instances=[Instance(bbox=b, score=1.0) for b in boxes])
-
+    _one_gt_rp(tmp_path, [(0, 0, 10, 10), (20, 0, 10, 10)], 100, 100)
     res = ImageResult(image="images/x.png", width=100, height=100, method="m", patterns=[
-        rp([(0, 0, 10, 10), (20, 0, 10, 10)], confidence=0.7),
-        rp([(60, 60, 10, 10), (80, 60, 10, 10), (60, 80, 10, 10)], confidence=0.35,
-           source="dense")])
-    res.extra["candidate_patterns"] = [dict(rp([(40, 40, 5, 5), (50, 40, 5, 5)],
+        _rp([(0, 0, 10, 10), (20, 0, 10, 10)], confidence=0.7),
+        _rp([(60, 60, 10, 10), (80, 60, 10, 10), (60, 80, 10, 10)], confidence=0.35,
+            source="dense")])
+    res.extra["candidate_patterns"] = [dict(_rp([(40, 40, 5, 5), (50, 40, 5, 5)],
                                                confidence=0.5).to_json(), dropped="one structure")]
     (tmp_path / "synthetic" / "rescu-ii").mkdir(parents=True)
     (tmp_path / "synthetic" / "rescu-ii" / "x.json").write_text(json.dumps(res.to_json()))
@@ -482,16 +493,10 @@ def test_rp_objectness_scores_every_reported_rp_and_leaves_out_stage1_below(tmp_
     import cv2
     import numpy as np
 
-    from rescu.types import ImageResult, Instance, Pattern
+    from rescu.types import ImageResult
 
     ro = load("rp_objectness")
-    data = tmp_path / "data" / "synthetic"
-    data.mkdir(parents=True)
-    (data / "annotations.json").write_text(json.dumps({
-        "images": [{"id": 1, "file_name": "images/x.png", "width": 128, "height": 96}],
-        "annotations": [{"id": 1, "image_id": 1, "category_id": 0, "bbox": [8, 8, 24, 24]},
-                        {"id": 2, "image_id": 1, "category_id": 0, "bbox": [48, 8, 24, 24]}],
-        "categories": [{"id": 0, "name": "o"}]}))
+    _one_gt_rp(tmp_path, [(8, 8, 24, 24), (48, 8, 24, 24)], 128, 96)
     prep = tmp_path / "synthetic" / "prepared"
     prep.mkdir(parents=True)
     img = np.full((96, 128, 3), 200, np.uint8)
@@ -500,13 +505,9 @@ def test_rp_objectness_scores_every_reported_rp_and_leaves_out_stage1_below(tmp_
     cv2.imwrite(str(prep / "x.png"), img)
     (prep / "x.meta.json").write_text(json.dumps({"scale_factor": 1.0}))
 
-    def rp(boxes, **extra):
-        return Pattern(id=0, score=1.0, extra=extra,
-                       instances=[Instance(bbox=b, score=1.0) for b in boxes])
-
     res = ImageResult(image="images/x.png", width=128, height=96, method="m", patterns=[
-        rp([(8, 8, 24, 24), (48, 8, 24, 24)], confidence=0.7),
-        rp([(8, 60, 20, 20), (40, 60, 20, 20), (72, 60, 20, 20)], source="dense")])
+        _rp([(8, 8, 24, 24), (48, 8, 24, 24)], confidence=0.7),
+        _rp([(8, 60, 20, 20), (40, 60, 20, 20), (72, 60, 20, 20)], source="dense")])
     (tmp_path / "synthetic" / "rescu-ii").mkdir()
     (tmp_path / "synthetic" / "rescu-ii" / "x.json").write_text(json.dumps(res.to_json()))
     assert ro.main([str(tmp_path), "--crops", "2", "--threshold", "0",
