@@ -37,30 +37,38 @@ FACADES = ("cmp_facade", "spb_facades")
 """The sets whose stage-I RPs are windows (against chess's, on the board)."""
 
 
-def rp_objectness(results: Path, ds: str, data: Path, pred: Path, backbone: Any,
-                  params: Any) -> list[dict[str, Any]]:
-    """One row per reported RP of every image of ``data`` with a result in ``pred``:
-    ``set, image, k`` (its index), ``source``, ``n``, ``on_gt`` (instances on a GT
-    object of a GT RP), ``objectness`` (on ``<results>/<ds>/prepared/<image>.png``)."""
+def load_images(data: Path, pred: Path) -> list[tuple[str, list[Any], Any]]:
+    """``(file name, GT RPs, result)`` of every image of ``data`` (its
+    ``annotations.json``) with a result in ``pred``, read once for every figure."""
+    from rescu.io import load_coco_rps, read_result
+
+    out = []
+    for f, groups in load_coco_rps(data / "annotations.json").items():
+        path = pred / f"{Path(f).stem}.json"
+        if path.is_file():
+            out.append((f, groups, read_result(path)))
+    return out
+
+
+def rp_objectness(prepared: Path, ds: str, images: list[tuple[str, list[Any], Any]],
+                  backbone: Any, params: Any) -> list[dict[str, Any]]:
+    """One row per reported RP of ``images`` (:func:`load_images`): ``set`` (``ds``),
+    ``image, k`` (its index), ``source``, ``n``, ``on_gt`` (instances on a GT object of a
+    GT RP), ``objectness`` (on ``<prepared>/<image stem>.png``)."""
     import cv2
     import numpy as np
 
     from rescu.evaluation.metrics import match_boxes
     from rescu.extension.dense import objectness
-    from rescu.io import load_coco_rps, read_json, read_result
+    from rescu.io import read_json
 
     rows = []
-    for f, groups in load_coco_rps(data / "annotations.json").items():
+    for f, groups, res in images:
         stem = Path(f).stem
-        path = pred / f"{stem}.json"
-        if not path.is_file():
-            continue
-        res = read_result(path)
-        prep = results / ds / "prepared"
-        s = float(read_json(prep / f"{stem}.meta.json")["scale_factor"])
-        bgr = cv2.imread(str(prep / f"{stem}.png"))
+        s = float(read_json(prepared / f"{stem}.meta.json")["scale_factor"])
+        bgr = cv2.imread(str(prepared / f"{stem}.png"))
         if bgr is None:
-            raise SystemExit(f"{prep / (stem + '.png')}: missing or unreadable")
+            raise SystemExit(f"{prepared / (stem + '.png')}: missing or unreadable")
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         every = np.array([b for g in groups for b in g.boxes], float).reshape(-1, 4)
         for k, p in enumerate(res.patterns):
@@ -74,21 +82,16 @@ def rp_objectness(results: Path, ds: str, data: Path, pred: Path, backbone: Any,
     return rows
 
 
-def without_below(data: Path, pred: Path, ds: str, drop: set[tuple[str, str, int]]
-                  ) -> tuple[float, float]:
-    """Mean any-RP instance precision and recall over the images of ``data`` with a
-    result in ``pred``, each image's RPs ``(ds, image, k)`` in ``drop`` left out."""
+def without_below(ds: str, images: list[tuple[str, list[Any], Any]],
+                  drop: set[tuple[str, str, int]]) -> tuple[float, float]:
+    """Mean any-RP instance precision and recall over ``images`` (:func:`load_images`
+    of ``ds``), each image's RPs ``(ds, image, k)`` in ``drop`` left out."""
     import numpy as np
 
     from rescu.evaluation.metrics import score_image
-    from rescu.io import load_coco_rps, read_result
 
     P, R = [], []
-    for f, groups in load_coco_rps(data / "annotations.json").items():
-        path = pred / f"{Path(f).stem}.json"
-        if not path.is_file():
-            continue
-        res = read_result(path)
+    for f, groups, res in images:
         det = [[i.bbox for i in p.instances] for k, p in enumerate(res.patterns)
                if (ds, f, k) not in drop]
         sc = score_image(det, [g.boxes for g in groups])
@@ -130,21 +133,23 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     params = DenseParams.from_dict({**config_defaults("dense"), "objectness_crops": a.crops})
     backbone = FrozenBackbone(params.backbone, feature_stride=16)
-    rows = [r for ds, data, pred in sets
-            for r in rp_objectness(a.results, ds, data, pred, backbone, params)]
+    images = {ds: load_images(data, pred) for ds, data, pred in sets}
+    rows = [r for ds, ims in images.items()
+            for r in rp_objectness(a.results / ds / "prepared", ds, ims, backbone, params)]
     df = pd.DataFrame(rows, columns=["set", "image", "k", "source", "n", "on_gt",
                                      "objectness"])
     for (ds, src), g in df.groupby(["set", "source"]):
         print(f"{ds:<14} {src:<7} {len(g):>5} RPs, on GT {g.on_gt.sum() / g.n.sum():.3f}, "
               f"median objectness {g.objectness.median():.3f}")
     s1 = df[df.source == "stage1"]
+    board = s1[s1.set.isin([*FACADES, "chess"])]
     print(f"stage-I RPs: AUC of objectness, half or more on GT against the others "
           f"{auc(s1.on_gt >= 0.5 * s1.n, s1.objectness):.3f}; facades against chess "
-          f"{auc(s1[s1.set.isin([*FACADES, 'chess'])].set.isin(FACADES), s1[s1.set.isin([*FACADES, 'chess'])].objectness):.3f}")
+          f"{auc(board.set.isin(FACADES), board.objectness):.3f}")
     for t in a.threshold or [0.0, 0.2, 0.3, 0.4]:
         drop = set(map(tuple, s1[s1.objectness < t][["set", "image", "k"]].values.tolist()))
-        figs = "  ".join(f"{ds} {p:.3f} / {r:.3f}" for ds, data, pred in sets
-                         for p, r in [without_below(data, pred, ds, drop)])
+        figs = "  ".join(f"{ds} {p:.3f} / {r:.3f}" for ds, ims in images.items()
+                         for p, r in [without_below(ds, ims, drop)])
         print(f"stage-I RPs below {t:.2f} left out ({len(drop)}): any-RP P / R {figs}")
     return 0
 
