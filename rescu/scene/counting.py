@@ -1,8 +1,10 @@
 """Counting: instances per recurring pattern, the dominant RP, and count errors.
 
 * The count of an RP is its number of instances.
-* The *dominant* RP of an image is the one with the most instances; ties go to the
-  higher score, then to the lower pattern index (so the choice is deterministic).
+* The *dominant* RP of an image is the most confident one when its RPs carry a
+  confidence, else the one with the most instances; ties go to more instances, the
+  higher score, then the lower pattern index (so the choice is deterministic;
+  :func:`dominant_pattern`).
 * Count errors are measured on *matched* RPs: :func:`count_pairs` turns the assignment
   of detected RPs to ground-truth RPs (``rescu.evaluation.metrics.score_image(...).rp_assignment``)
   into ``(predicted, ground-truth)`` count pairs, one per ground-truth RP that some
