@@ -796,6 +796,53 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
     assert d["candidate_patterns"][0]["count"] == 2
 
 
+def _board(square=40, n=8, margin=40, size=(480, 400)):
+    """A grey image with an n x n two-colour board of ``square``-pixel squares at
+    (``margin``, ``margin``), and its bright squares' boxes."""
+    w, h = size
+    img = np.full((h, w), 120, np.uint8)
+    ij = np.indices((n * square, n * square)) // square
+    img[margin:margin + n * square, margin:margin + n * square] = \
+        np.where(ij.sum(0) % 2 == 0, 215, 35).astype(np.uint8)
+    bright = [[margin + j * square + 8, margin + i * square + 8, square - 16, square - 16]
+              for i in range(n) for j in range(n) if (i + j) % 2 == 0]
+    return img, bright
+
+
+def test_a_board_is_found_and_a_window_grid_is_not():
+    from rescu.discovery.tiling import checkerboard_grid, checkerboard_outline, share_inside
+
+    img, bright = _board()
+    grid = checkerboard_grid(img)
+    assert grid is not None and grid.shape == (7, 7, 2)        # the inner corners
+    outline = checkerboard_outline(img, 16, 1)                  # one square on every side
+    assert np.allclose(outline.min(0), 40, atol=1.5)
+    assert np.allclose(outline.max(0), 360, atol=1.5)
+    assert share_inside(np.array(bright, float), outline) == 1.0
+    assert checkerboard_outline(img, 50, 1) is None             # fewer corners than asked
+    assert checkerboard_outline(img, 0, 1) is None              # off
+    facade = np.full((400, 480), 200, np.uint8)                 # dark windows in a light wall
+    for r in range(5):
+        for c in range(7):
+            facade[30 + 70 * r:70 + 70 * r, 20 + 64 * c:52 + 64 * c] = 40
+    assert checkerboard_outline(facade, 16, 2) is None
+
+
+def test_stage_one_rps_on_a_board_are_a_tiling_and_the_pieces_stay():
+    from rescu.discovery.tiling import checkerboard_outline
+
+    img, bright = _board()
+    squares = _pat(bright[:10], confidence=0.8)                           # stage I
+    pieces = _pat([[50 + 80 * k, 100, 30, 60] for k in range(4)], confidence=0.6,
+                  source="dense")
+    table = _pat([[400, 20 + 90 * k, 30, 30] for k in range(4)], confidence=0.5)
+    res = ImageResult(image="x", width=480, height=400, method="rescu-i",
+                      patterns=[squares, pieces, table])
+    split_by_confidence(res, 0.3, _params(), checkerboard_outline(img, 16, 2))
+    assert [p.extra["confidence"] for p in res.patterns] == [0.6, 0.5]
+    assert [c["dropped"] for c in res.extra["candidate_patterns"]] == ["tiling"]
+
+
 @pytest.mark.parametrize("key,value", [("mode", "everything"), ("max_candidates", 1),
                                        ("part_cover", 0.0), ("min_confidence", 1.5),
                                        ("part_area", 0.0), ("part_reach", 0.5),
@@ -808,7 +855,10 @@ def test_split_by_confidence_keeps_the_rest_for_experts():
                                        ("confidence_stage1_score_scale", -0.1),
                                        ("min_separation", 3.0), ("separation_reach", 0.0),
                                        ("min_object_separation", -2.5), ("extent_ring", 0.0),
-                                       ("extent_ring", 3.0), ("extent_edges", -1.0)])
+                                       ("extent_ring", 3.0), ("extent_edges", -1.0),
+                                       ("checkerboard_min_corners", -1),
+                                       ("checkerboard_border", 9),
+                                       ("checkerboard_min_alternation", 0.4)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

@@ -15,6 +15,7 @@ import numpy as np
 from ..boxes import cover_matrix, greedy_keep
 from ..params import checked_mapping, config_section
 from ..types import ImageResult, Pattern, failure_record
+from .tiling import share_inside
 
 #: The modes of :func:`combine_sources`.
 MODES = ("both", "dense", "objects")
@@ -174,6 +175,18 @@ class DenseParams:
         a cup's rim or a band of texture sampled by abutting boxes; -2 reports all.
     separation_reach : float
         Neighbours farther apart than this x their mean box side are not compared.
+    checkerboard_min_corners : int
+        A stage-I RP with half or more of its instances on a checkerboard (a board's
+        squares: :func:`rescu.discovery.tiling.checkerboard_outline`, at least this
+        many X-corners) samples a tiling: not reported (``"tiling"``); 0: not looked for.
+    checkerboard_border : int
+        Squares the board extends beyond its outermost corners found, on every side.
+    checkerboard_min_alternation : float
+        A grid of corners is a board when its cells' grey levels alternate as a
+        checkerboard's on at least this share of them
+        (:func:`rescu.discovery.tiling.grid_cells`).
+    checkerboard_seed : int
+        Seed of OpenCV's generator, which the board's detector draws from.
     """
 
     enabled: bool
@@ -227,6 +240,10 @@ class DenseParams:
     min_separation: float
     min_object_separation: float
     separation_reach: float
+    checkerboard_min_corners: int
+    checkerboard_border: int
+    checkerboard_min_alternation: float
+    checkerboard_seed: int
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -306,6 +323,13 @@ class DenseParams:
         for k in ("min_separation", "min_object_separation"):
             if not -2.0 <= getattr(self, k) <= 2.0:
                 raise ValueError(f"dense.{k} must be in [-2, 2], got {getattr(self, k)}")
+        if self.checkerboard_min_corners < 0 or not 0 <= self.checkerboard_border <= 8:
+            raise ValueError("dense.checkerboard_min_corners must be >= 0 (0: off) and "
+                             "dense.checkerboard_border in [0, 8], got "
+                             f"{self.checkerboard_min_corners}, {self.checkerboard_border}")
+        if not 0.5 <= self.checkerboard_min_alternation <= 1.0:
+            raise ValueError("dense.checkerboard_min_alternation must be in [0.5, 1], got "
+                             f"{self.checkerboard_min_alternation}")
         if not self.separation_reach > 0:
             raise ValueError(f"dense.separation_reach must be > 0, got {self.separation_reach}")
         if not 0 < self.min_side <= self.max_side:
@@ -442,7 +466,8 @@ def _less_overlap(p: Pattern, taken: np.ndarray, params: DenseParams) -> Pattern
 
 
 def split_by_confidence(res: ImageResult, min_confidence: float,
-                        params: DenseParams | None = None) -> None:
+                        params: DenseParams | None = None,
+                        board: np.ndarray | None = None) -> None:
     """Report the confident RPs of ``res``, most confident first; the others go to
     ``res.extra["candidate_patterns"]`` (their JSON, for experts, with ``"dropped"``
     saying why; not analysed further), in place; ids of both lists renumbered 0.. .
@@ -458,7 +483,12 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     that, it is dropped when its boxes sit on a reported RP's objects (:func:`parts_of`
     of any size: ``"same objects"``; e.g. the rims and gaps around coins found whole, or
     the halves of objects that stage I found whole): one RP per set of objects. An RP
-    without a confidence is reported, after those with one.
+    without a confidence is reported, after those with one. With ``board`` ((K, 2)
+    outline of a checkerboard in the result's pixels,
+    :func:`rescu.discovery.tiling.checkerboard_outline`), a stage-I RP with half or more
+    of its instances' centres on it samples the board's squares, a tiling, and is
+    dropped (``"tiling"``) whatever its confidence; RPs of whole objects (the pieces on
+    the board) are not.
     ``res.extra["n_candidate_patterns"]`` counts the dropped ones.
 
     >>> from rescu.types import Instance, Pattern
@@ -483,6 +513,10 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
         c = p.extra.get("confidence")
         if c is not None and float(c) < min_confidence:
             dropped.append((p, "low confidence"))
+            continue
+        if board is not None and not is_whole_object(p) and share_inside(
+                np.array([i.bbox for i in p.instances], float), board) >= 0.5:
+            dropped.append((p, "tiling"))
             continue
         if params is not None and c is not None:
             sep = p.extra.get("separation")

@@ -15,11 +15,14 @@ PAPER = bool(config.get("paper", False))  # also the ablations and their tables 
 DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) feeds RESCU-I
 # the dense step's parameters: what finds the dense RPs, not whether or how RESCU-I takes them
 # (so switching dense.enabled or dense.mode, or changing how RESCU-I scores stage I's RPs
-# or which RPs it sets aside as one structure, does not rerun the dense or ablation jobs;
-# separation_reach is the dense step's too: it records each RP's separation)
+# or which RPs it sets aside as one structure or as a board's squares, does not rerun the
+# dense or ablation jobs; separation_reach is the dense step's too: it records each RP's
+# separation)
 DENSE_STEP = {**config["dense"], "enabled": True, "mode": "both",
               "confidence_stage1_score_scale": 0.0, "min_separation": -2.0,
-              "min_object_separation": -2.0}
+              "min_object_separation": -2.0, "checkerboard_min_corners": 0,
+              "checkerboard_border": 0, "checkerboard_min_alternation": 0.75,
+              "checkerboard_seed": 0}
 # the stage-I ablation's source rows (sparse-only, dense-only, sparse+dense; they need the dense step)
 ABLATION_SOURCES = bool(config["ablation"].get("sources", True))
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
