@@ -15,6 +15,8 @@ T-junctions, not in X-corners between alternating cells.
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 
@@ -206,3 +208,17 @@ def share_inside(boxes: np.ndarray, outline: np.ndarray) -> float:
     ctr = b[:, :2] + b[:, 2:] / 2
     inside = [cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in ctr]
     return float(np.mean(inside))
+
+
+def board_outline(rgb: np.ndarray, scale_factor: float, dp: Any) -> np.ndarray | None:
+    """Outline ((K, 2), original pixels) of the checkerboard in the prepared image
+    ``rgb`` ((H, W, 3) uint8, processed = original x ``scale_factor``):
+    :func:`checkerboard_outline` with the ``checkerboard_*`` fields of ``dp`` (a
+    :class:`rescu.discovery.sources.DenseParams`); None when the test is off or no board
+    is found."""
+    if dp.checkerboard_min_corners <= 0:
+        return None
+    gray = cv2.cvtColor(np.ascontiguousarray(rgb, np.uint8), cv2.COLOR_RGB2GRAY)
+    out = checkerboard_outline(gray, dp.checkerboard_min_corners, dp.checkerboard_border,
+                               dp.checkerboard_seed, dp.checkerboard_min_alternation)
+    return None if out is None else out / float(scale_factor)

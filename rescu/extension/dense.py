@@ -63,7 +63,7 @@ __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature
            "dense_candidates", "objectness", "rank_candidates", "dense_patterns",
            "objectness_for", "dense_map", "save_map", "load_map", "dense_levels",
            "level_sizes", "level_candidates", "iter_level_candidates", "find_dense",
-           "score_and_split", "board_outline"]
+           "score_and_split"]
 
 
 # --------------------------------------------------------------------- feature map
@@ -746,29 +746,6 @@ def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float
     return turned
 
 
-def board_outline(rgb: np.ndarray, res: Any, meta: dict[str, Any], dp: DenseParams
-                  ) -> np.ndarray | None:
-    """Outline ((K, 2), original pixels) of the checkerboard in the prepared image
-    ``rgb`` (:func:`rescu.discovery.tiling.checkerboard_outline` with
-    ``dp.checkerboard_min_corners`` and ``dp.checkerboard_border``), recorded in
-    ``res.extra["checkerboard"]`` (its outline as a list of [x, y]); None (not looked for)
-    when ``res`` has no stage-I RP, the test is off, or no board is found."""
-    import cv2
-
-    from ..discovery.tiling import checkerboard_outline
-
-    if dp.checkerboard_min_corners <= 0 or all(map(is_whole_object, res.patterns)):
-        return None
-    gray = cv2.cvtColor(np.ascontiguousarray(rgb, np.uint8), cv2.COLOR_RGB2GRAY)
-    out = checkerboard_outline(gray, dp.checkerboard_min_corners, dp.checkerboard_border,
-                               dp.checkerboard_seed, dp.checkerboard_min_alternation)
-    if out is None:
-        return None
-    out = out / float(meta["scale_factor"])
-    res.extra["checkerboard"] = [[round(float(x), 2), round(float(y), 2)] for x, y in out]
-    return out
-
-
 def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
                     meta: dict[str, Any], backbone: Any = None,
                     fmap: tuple[np.ndarray, float] | None = None) -> None:
@@ -778,9 +755,10 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
     sitting on a more confident RP's objects, or left with too few instances by one move
     to ``candidate_patterns``, the others are reported most confident first
     (:func:`rescu.discovery.sources.split_by_confidence`), in place; stage-I RPs on a
-    checkerboard (:func:`board_outline`) are not reported either. Then one box per
-    object: a reported instance whose nearest earlier one (of a more confident RP, or
-    earlier in its own) is a box on the same object, with no gap between the two on the
+    checkerboard (:func:`rescu.discovery.tiling.board_outline`, its outline recorded in
+    ``res.extra["checkerboard"]``) are not reported either. Then one box per object: a
+    reported instance whose nearest earlier one (of a more confident RP, or earlier in
+    its own) is a box on the same object, with no gap between the two on the
     map, is dropped (``dense.min_object_separation`` -2: off;
     :func:`rescu.extension.objects.one_box_per_object`). Nothing in the other modes or
     after a failed dense step (``found``'s failure).
@@ -797,6 +775,7 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
         :func:`load_map`); None: made here when needed
     """
     from ..discovery.sources import split_by_confidence
+    from ..discovery.tiling import board_outline
     from .objects import one_box_applies, one_box_per_object, score_patterns
 
     dp = DenseParams.from_dict(dense_params)
@@ -808,7 +787,11 @@ def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
         fmap = dense_map(rgb, dp, backbone) if fmap is None else fmap
     if unscored:
         score_patterns(rgb, res.patterns, float(meta["scale_factor"]), dp, *fmap)
-    split_by_confidence(res, dp.min_confidence, dp, board_outline(rgb, res, meta, dp))
+    board = (None if all(map(is_whole_object, res.patterns))
+             else board_outline(rgb, float(meta["scale_factor"]), dp))
+    if board is not None:                       # the board's outline, for experts
+        res.extra["checkerboard"] = [[round(float(x), 2), round(float(y), 2)] for x, y in board]
+    split_by_confidence(res, dp.min_confidence, dp, board)
     if boxes:
         one_box_per_object(res, fmap, float(meta["scale_factor"]), dp)
     res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))
