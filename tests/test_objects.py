@@ -858,7 +858,8 @@ def test_stage_one_rps_on_a_board_are_a_tiling_and_the_pieces_stay():
                                        ("extent_ring", 3.0), ("extent_edges", -1.0),
                                        ("checkerboard_min_corners", -1),
                                        ("checkerboard_border", 9),
-                                       ("checkerboard_min_alternation", 0.4)])
+                                       ("checkerboard_min_alternation", 0.4),
+                                       ("checkerboard_seed", -1)])
 def test_bad_objects_settings_are_refused(key, value):
     with pytest.raises(ValueError):
         _params(**{key: value})

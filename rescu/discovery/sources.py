@@ -323,10 +323,12 @@ class DenseParams:
         for k in ("min_separation", "min_object_separation"):
             if not -2.0 <= getattr(self, k) <= 2.0:
                 raise ValueError(f"dense.{k} must be in [-2, 2], got {getattr(self, k)}")
-        if self.checkerboard_min_corners < 0 or not 0 <= self.checkerboard_border <= 8:
-            raise ValueError("dense.checkerboard_min_corners must be >= 0 (0: off) and "
-                             "dense.checkerboard_border in [0, 8], got "
-                             f"{self.checkerboard_min_corners}, {self.checkerboard_border}")
+        if (self.checkerboard_min_corners < 0 or not 0 <= self.checkerboard_border <= 8
+                or self.checkerboard_seed < 0):
+            raise ValueError("dense.checkerboard_min_corners and checkerboard_seed must be "
+                             ">= 0 (corners 0: off) and dense.checkerboard_border in [0, 8], "
+                             f"got {self.checkerboard_min_corners}, {self.checkerboard_seed}, "
+                             f"{self.checkerboard_border}")
         if not 0.5 <= self.checkerboard_min_alternation <= 1.0:
             raise ValueError("dense.checkerboard_min_alternation must be in [0.5, 1], got "
                              f"{self.checkerboard_min_alternation}")
