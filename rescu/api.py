@@ -25,7 +25,8 @@ from .types import ImageResult
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
              config: dict[str, Any] | None = None, keep_work: bool = False,
              name: str | None = None, validated: bool = False,
-             force: bool = False, overlay: str | None = None) -> ImageResult:
+             force: bool = False, overlay: str | None = None,
+             examples: Any = None) -> ImageResult:
     """Discover the recurring patterns of one photo and describe the scene.
 
     Parameters
@@ -55,6 +56,13 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     overlay : {"full", "boxes", "none"}, optional
         What ``<stem>.png`` shows (:data:`rescu.visualize.OVERLAY_MODES`; ``"none"``:
         no picture); None: the config's ``report.overlay``.
+    examples : sequence of (x, y, w, h), optional
+        "Count these": one or a few boxes of the thing to count, pixels of the original
+        photo (top-left corner, width, height). The result's first pattern is then every
+        instance of it, dominant (the caption counts it), its ``extra["source"]``
+        ``"prompt"``, the examples' instances ``source`` ``"example"``, the others
+        ``"prompt"``; with the config's ``prompt.unprompted`` the RPs found without the
+        examples follow it.
 
     Returns
     -------
@@ -76,7 +84,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         ``image`` is a folder, FIFO or device; ``method`` or ``config`` is invalid (the
         message names the key and its value); ``name`` leaves ``out_dir``; ``out_dir``
         is a file, or its results would overwrite ``image`` or, without ``force``, a
-        file rescu did not write (:class:`rescu.outputs.OverwriteError`).
+        file rescu did not write (:class:`rescu.outputs.OverwriteError`); an example box
+        is not four numbers, is smaller than ``prompt.min_box_px`` or leaves the photo
+        (:class:`rescu.core.ExampleError`, naming the photo and the box; nothing written).
     rescu.io.DiskFullError
         No space left while writing (the results written before are intact).
 
@@ -93,6 +103,12 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     >>> result = discover(photo, method="rescu-i")
     >>> "failure" in result.extra, result.patterns[0].count
     (False, 5)
+
+    The same photo, one of the five copies given as an example:
+
+    >>> result = discover(photo, method="rescu-i", examples=[truth[0]])
+    >>> result.patterns[0].extra["source"], result.patterns[0].count
+    ('prompt', 5)
     """
     import os
 
@@ -130,9 +146,9 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     mode = overlay or cfg["report"]["overlay"]
     try:
         if out_dir is None:  # nothing is written
-            return _run(image, cfg, method, None, None, stem, False, mode)
+            return _run(image, cfg, method, None, None, stem, False, mode, examples)
         with outputs.staging(out_dir) as staged:
-            return _run(image, cfg, method, staged, out_dir, stem, keep_work, mode)
+            return _run(image, cfg, method, staged, out_dir, stem, keep_work, mode, examples)
     except io.DiskFullError:
         raise
     except OSError as e:  # a result that cannot be written: this photo fails, not the run
@@ -143,12 +159,14 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
 
 
 def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
-         out_dir: str | Path | None, stem: str, keep_work: bool, overlay: str) -> ImageResult:
+         out_dir: str | Path | None, stem: str, keep_work: bool, overlay: str,
+         examples: Any = None) -> ImageResult:
     """:func:`discover`'s computation (:func:`rescu.core.run_image`, in memory); with
     ``out_dir`` (and its staging folder ``staged``; both None: nothing is written), the
     result set made under ``staged`` (the overlay picture drawn in mode ``overlay``, none
     for ``"none"``) and committed."""
-    ran = core.run_image(image, cfg, method, name=image.name, validated=True, keep=keep_work)
+    ran = core.run_image(image, cfg, method, name=image.name, validated=True, keep=keep_work,
+                         examples=examples)
     result = ran.result
     if out_dir is None or staged is None:  # both None together (discover)
         return result

@@ -76,6 +76,76 @@ def _collect_photos(paths: Sequence[str]) -> list[Path]:
     return list(unique.values())
 
 
+def _parse_box(text: str, where: str) -> tuple[float, float, float, float]:
+    """``"X,Y,W,H"`` -> four floats; :class:`~rescu.io.InputError` naming ``where``."""
+    import math
+
+    from .io import InputError
+
+    parts = [t.strip() for t in str(text).split(",")]
+    try:
+        vals = tuple(float(t) for t in parts)
+    except ValueError:
+        vals = ()
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
+        raise InputError(f"{where}: expected X,Y,W,H (four numbers, pixels of the original "
+                         f"photo), got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+EXAMPLES_HEADER = ("file", "x", "y", "w", "h")
+
+
+def read_examples_file(path: Path, photos: Sequence[Path]
+                       ) -> dict[Path, list[tuple[float, float, float, float]]]:
+    """The example boxes of an ``--examples`` CSV file, by photo.
+
+    The file has the header ``file,x,y,w,h`` and one row per box (several rows for
+    several boxes of one photo); ``file`` is a photo's file name (``cells.jpg``) or its
+    path as given on the command line. Photos without a row run without examples.
+    Raises :class:`~rescu.io.InputError` naming the file and line for a missing or
+    unreadable file, another header, a row that is not five fields or whose box is not
+    four finite numbers, a name that matches no photo of the run or matches two.
+    """
+    import csv
+
+    from .io import InputError
+
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"--examples {path}: cannot read it ({getattr(e, 'strerror', None) or e})"
+                         ) from None
+    rows = list(csv.reader(text.splitlines()))
+    if not rows or tuple(c.strip().lower() for c in rows[0]) != EXAMPLES_HEADER:
+        got = ",".join(rows[0]) if rows else "an empty file"
+        raise InputError(f"--examples {path}: the first line must be the header "
+                         f"{','.join(EXAMPLES_HEADER)}, got {got!r}")
+    by_name: dict[str, list[Path]] = {}
+    for ph in photos:
+        for key in {ph.name, str(ph)}:
+            by_name.setdefault(key, []).append(ph)
+    out: dict[Path, list[tuple[float, float, float, float]]] = {}
+    for n, row in enumerate(rows[1:], 2):
+        if not row or not "".join(row).strip():
+            continue
+        where = f"--examples {path} line {n}"
+        if len(row) != 5:
+            raise InputError(f"{where}: expected 5 fields file,x,y,w,h, got {len(row)}")
+        name = row[0].strip()
+        match = by_name.get(name, [])
+        if not match:
+            raise InputError(f"{where}: {name!r} matches none of the {len(photos)} photo(s) "
+                             f"given")
+        if len(set(match)) > 1:
+            raise InputError(f"{where}: {name!r} matches {len(set(match))} photos "
+                             f"({', '.join(map(str, sorted(set(match))))}); give its path")
+        out.setdefault(match[0], []).append(_parse_box(",".join(row[1:]), where))
+    if not out:
+        raise InputError(f"--examples {path}: no box (only the header)")
+    return out
+
+
 def result_names(photos: Sequence[Path]) -> list[str]:
     """The name each photo's outputs get (``<name>.json``, ``<name>.png``, ...).
 
@@ -152,6 +222,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
     from .api import discover
     from .config import load_config
+    from .core import ExampleError
     from .io import DiskFullError, InputError
     from .outputs import check_targets
     from .pipeline import setup_logging
@@ -162,6 +233,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
                       profile="objects" if args.objects else None)
     photos = _collect_photos(args.photos)
     names = result_names(photos)
+    examples: dict[Path, list[tuple[float, float, float, float]]] = {}
+    if args.example:
+        boxes = [_parse_box(b, "--example") for b in args.example]
+        examples = {ph: boxes for ph in photos}
+    elif args.examples:
+        examples = read_examples_file(Path(args.examples), photos)
     out = Path(args.out)
     _check_out_dir(out, photos)
     check_targets(out, names, force=args.force)
@@ -172,6 +249,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: cannot write {out / 'rescu.log'} "
                          f"({e.strerror or e})") from None
     failed = degraded = 0
+    refused: list[str] = []  # photos whose example boxes were refused: nothing written
     bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
                disable=args.quiet or None, file=sys.stderr)
     for done, (photo, name) in enumerate(bar):
@@ -179,7 +257,13 @@ def cmd_discover(args: argparse.Namespace) -> int:
         try:
             res = discover(photo, out_dir=out, method=args.method, config=cfg,
                            keep_work=args.keep_work, name=name, validated=True,
-                           force=args.force, overlay=args.overlay)
+                           force=args.force, overlay=args.overlay,
+                           examples=examples.get(photo))
+        except ExampleError as e:  # this photo's boxes: the others go on
+            failed += 1
+            refused.append(name)
+            tqdm.write(f"{photo.name}: FAILED: {e}", file=sys.stdout)
+            continue
         except DiskFullError as e:
             bar.close()
             print(f"rescu: error: {e}; stopped at {photo} ({done} of {len(photos)} photo(s) "
@@ -194,7 +278,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
             if degraded else "")
     from .gallery import write_gallery
 
-    page = write_gallery(out, names)
+    page = write_gallery(out, [n for n in names if n not in refused])
     print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
           f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
     print(f"Gallery: {page}")
@@ -346,6 +430,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what <stem>.png shows: boxes (instances, labels, legend, caption), "
                         "full (also the vanishing points as thin lines) or none (no picture); "
                         "default: the config's report.overlay (full)")
+    ex = d.add_mutually_exclusive_group()
+    ex.add_argument("--example", action="append", default=[], metavar="X,Y,W,H",
+                    help="count these: a box (pixels of the original photo: top-left corner, "
+                         "width, height) around one instance of what to count; repeat for a "
+                         "few boxes of the same thing. Every instance is found and reported "
+                         "first (the dominant RP, the caption's count), the boxes drawn with "
+                         "white frames. Applies to every photo given")
+    ex.add_argument("--examples", metavar="CSV", default=None,
+                    help="example boxes for many photos: a CSV file with the header "
+                         "file,x,y,w,h, one row per box (several rows for several boxes of "
+                         "one photo), file a photo's file name; photos without a row run "
+                         "without examples")
     d.add_argument("--keep-work", action="store_true",
                    help="keep intermediate files (features, RP matrices, checkpoint) in DIR/.work/")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

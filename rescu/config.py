@@ -140,6 +140,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     from .scene.claims import ClaimParams
     from .discovery.stage1 import Stage1Params
     from .discovery.sources import DenseParams
+    from .extension.prompted import PromptParams
     from .extension.params import Stage2Params, predict_only_error
     from .data.synth import SynthParams
 
@@ -159,6 +160,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
                              f"stage1.{most} = {s1[most]}: no RP could have enough {what}")
     build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
     build("dense", lambda: DenseParams.from_dict(config["dense"]))
+    build("prompt", lambda: PromptParams.from_dict(config["prompt"]))
     ablation = config.get("ablation") or {}
     for name, spec in ablation.get("variants", {}).items():
         build(f"ablation.variants.{name}",

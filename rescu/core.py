@@ -38,6 +38,7 @@ step that refines a good result keeps that result, ``"degraded_to"`` naming its 
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import traceback
@@ -448,9 +449,52 @@ def describe(prep: Prepared, src: ImageResult, params: dict[str, Any],
     return res
 
 
+# --------------------------------------------------------------------------- prompt
+def find_prompted(prep: Prepared, src: ImageResult, examples: np.ndarray,
+                  cfg: dict[str, Any]) -> ImageResult:
+    """``src`` with the pattern of every instance of what ``examples`` show first.
+
+    ``examples`` (K, 4) are ``x, y, w, h`` in original pixels, checked
+    (:func:`rescu.extension.prompted.check_examples`). The new pattern (id one above
+    ``src``'s, 0 when it has none) holds the examples (``source`` ``"example"``, score
+    1) and the finds of :func:`rescu.extension.prompted.find_like` (``"prompt"``, score
+    the correlation) on the processed image with the stage-II backbone (config sections
+    ``prompt``, ``stage2.backbone``); its ``extra``: ``source`` ``"prompt"``,
+    ``examples`` (K), ``reference`` and ``threshold`` (scores). It is the dominant
+    pattern (:func:`rescu.scene.counting.dominant_pattern`).
+    """
+    from .extension.params import Stage2Params
+    from .extension.prompted import PromptParams, find_like
+    from .extension.proposal_features import get_backbone
+    from .types import Instance
+
+    p = PromptParams.from_dict(cfg["prompt"])
+    backbone = get_backbone(Stage2Params.from_dict(cfg["stage2"]))
+    s = float(prep.scale_factor)
+    with _threads(cfg, "in_process"):
+        found = find_like(prep.rgb, np.asarray(examples, np.float64) * s, backbone, p)
+    boxes = found.boxes / s
+    boxes[:found.is_example.sum()] = examples  # the user's boxes, as given
+    inst = [Instance(bbox=tuple(float(v) for v in b), score=float(min(1.0, sc)),
+                     source="example" if e else "prompt")
+            for b, sc, e in zip(boxes, found.scores, found.is_example)]
+    finds = found.scores[~found.is_example]
+    pid = 1 + max((q.id for q in src.patterns), default=-1)
+    pat = Pattern(id=pid, score=float(finds.mean()) if len(finds) else 1.0, instances=inst,
+                  extra={"source": "prompt", "examples": int(found.is_example.sum()),
+                         "reference": round(found.reference, 6),
+                         "threshold": round(found.threshold, 6)})
+    res = copy.copy(src)
+    res.patterns = [pat] + list(src.patterns)
+    res.extra = dict(src.extra, prompted={"examples": int(found.is_example.sum()),
+                                          "pattern": pid, "unprompted": p.unprompted})
+    return res
+
+
 # --------------------------------------------------------------------------- run
 def run(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
-        method: str = "rescu-ii", name: str | None = None) -> ImageResult:
+        method: str = "rescu-ii", name: str | None = None,
+        examples: Any = None) -> ImageResult:
     """Discover the recurring patterns of one image and describe the scene, in memory.
 
     Parameters
@@ -465,6 +509,10 @@ def run(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
         Which instances the scene analysis and caption use.
     name : str, optional
         The result's ``image`` name (default: the file's name, or ``"image"``).
+    examples : sequence of (x, y, w, h), optional
+        "Count these": boxes of one kind of object, pixels of the original photo. The
+        result's first pattern is then every instance of it (:func:`find_prompted`),
+        dominant, its instances' ``source`` ``"example"`` or ``"prompt"``.
 
     Returns
     -------
@@ -477,7 +525,8 @@ def run(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
     ------
     rescu.io.InputError
         ``image`` is not a uint8 RGB or grey array nor a path; ``method`` or ``config``
-        is invalid.
+        is invalid; an example box is malformed or leaves the photo
+        (:class:`ExampleError`).
 
     Examples
     --------
@@ -486,15 +535,17 @@ def run(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
     >>> r.width, r.height, r.patterns
     (64, 64, [])
     """
-    return run_image(image, config, method, name).result
+    return run_image(image, config, method, name, examples=examples).result
 
 
 def run_image(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
               method: str = "rescu-ii", name: str | None = None,
-              validated: bool = False, keep: bool = False) -> RunOutput:
+              validated: bool = False, keep: bool = False,
+              examples: Any = None) -> RunOutput:
     """:func:`run` with everything it made: the prepared image, the rectified views and,
     with ``keep``, the intermediate records (:class:`RunOutput`). ``validated``: the
-    caller already checked ``config``."""
+    caller already checked ``config``. ``examples``: as :func:`run`'s, checked against
+    the photo's size once it is read (:class:`ExampleError`)."""
     from .config import load_config, validate_config
 
     if method not in METHODS:
@@ -516,20 +567,52 @@ def run_image(image: np.ndarray | str | Path, config: dict[str, Any] | None = No
                             f"{type(image).__name__}")
     if prep.failure:  # nothing to process
         return RunOutput(empty_result(prep.meta, method, prep.failure), prep)
-    return _chain(prep, cfg, method, keep)
+    ex = None
+    if examples is not None:
+        from .extension.prompted import check_examples
+
+        w, h = prep.meta["original_size"]
+        try:
+            ex = check_examples(examples, int(w), int(h), cfg["prompt"]["min_box_px"])
+        except ValueError as e:
+            raise ExampleError(f"{prep.meta['image']}: {e}") from None
+    return _chain(prep, cfg, method, keep, ex)
 
 
-def _chain(prep: Prepared, cfg: dict[str, Any], method: str, keep: bool) -> RunOutput:
-    """The steps after preparing, with the pipeline's failure semantics."""
+class ExampleError(io.InputError):
+    """An example box of "count these" that cannot be used on its photo (malformed,
+    too small, outside the photo); the message names the photo and the box."""
+
+
+def _chain(prep: Prepared, cfg: dict[str, Any], method: str, keep: bool,
+           examples: np.ndarray | None = None) -> RunOutput:
+    """The steps after preparing, with the pipeline's failure semantics; with
+    ``examples`` ((K, 4) original pixels, checked) the prompted pattern is added before
+    the scene step, and with ``prompt.unprompted`` false nothing is discovered without
+    them."""
     meta = prep.meta
     kept: dict[str, Any] = {}
     out = RunOutput(empty_result(meta, method, None), prep, {}, kept)
+    if examples is not None and not cfg["prompt"]["unprompted"]:
+        src = empty_result(meta, method, None)
+    else:
+        src = _discover(prep, cfg, method, kept, out)
+        if src is None:
+            return out
+    return _describe(prep, cfg, src, kept, out, keep, examples)
+
+
+def _discover(prep: Prepared, cfg: dict[str, Any], method: str, kept: dict[str, Any],
+              out: RunOutput) -> ImageResult | None:
+    """Discovery without examples (features, dense source, stage I, stage II); None, with
+    ``out.result`` the failure, when a step the rest needs failed."""
+    meta = prep.meta
     s1_method = "grasp" if method == "grasp" else "rescu-i"
 
     feats, f = attempt("features", lambda: extract_features(prep, cfg["features"]))
     if f is not None:
         out.result = empty_result(meta, method, f)
-        return out
+        return None
     kept["features"] = feats
     found = None
     if s1_method == "rescu-i" and cfg["dense"]["enabled"]:
@@ -542,17 +625,26 @@ def _chain(prep: Prepared, cfg: dict[str, Any], method: str, keep: bool) -> RunO
         prep.rgb, found, cfg["dense"]))
     if f is not None:
         out.result = empty_result(meta, method, f)
-        return out
+        return None
     src = as_written(got[0])
     kept["stage1"], kept["rp_matrices"] = src, got[1]
     if method == "rescu-ii":
         src = _extend(prep, src, cfg, kept)
+    return src
 
+
+def _describe(prep: Prepared, cfg: dict[str, Any], src: ImageResult, kept: dict[str, Any],
+              out: RunOutput, keep: bool, examples: np.ndarray | None) -> RunOutput:
+    """The prompted pattern (with ``examples``), the scene, the image VPs and the
+    caption, each step's failure keeping the previous result."""
     def step(stage: str, fn: Callable[[ImageResult], ImageResult]) -> None:
         nonlocal src
         res, f = attempt(stage, lambda: fn(src))
         src = as_written(res) if f is None else degraded_result(src, src.method, f)
 
+    if examples is not None:
+        step("prompt", lambda s: find_prompted(prep, s, examples, cfg))
+        kept["prompt"] = src
     views: dict[int, np.ndarray] = {}
 
     def scene(s: ImageResult) -> ImageResult:

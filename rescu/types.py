@@ -127,8 +127,9 @@ class Instance:
     """One RP instance: a box in original pixels.
 
     ``source`` is ``"stage1"`` (found by RESCU-I / GRASP), ``"stage2"`` (added by
-    RESCU-II) or ``"completion"`` (filled into an equally spaced row by the scene step,
-    :mod:`rescu.scene.completion`). ``score`` is a confidence in [0, 1].
+    RESCU-II), ``"completion"`` (filled into an equally spaced row by the scene step,
+    :mod:`rescu.scene.completion`), or for "count these" ``"example"`` (a box the user
+    gave) and ``"prompt"`` (found like it, :func:`rescu.core.find_prompted`). ``score`` is a confidence in [0, 1].
     """
 
     bbox: BBox

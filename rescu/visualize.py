@@ -138,6 +138,11 @@ def legend_entries(result: ImageResult) -> list[tuple[tuple[int, int, int], str]
     for p in result.patterns:
         kind, v = pattern_confidence(p)
         text = f"RP{p.id}: {p.count} instance{'s' if p.count != 1 else ''}, {kind} {v:.2f}"
+        if p.extra.get("source") == "prompt":
+            k = int(p.extra.get("examples", 1))
+            text = (f"RP{p.id}: {p.count} instance{'s' if p.count != 1 else ''} like the "
+                    f"{k} example box{'es' if k != 1 else ''} (white frame{'s' if k != 1 else ''}),"
+                    f" least similarity {p.extra.get('threshold', 0):.2f}")
         if p.translation_symmetry is not None and p.translation_symmetry.detected:
             text += ", translation symmetry"
         if p.vanishing_point is not None:
@@ -170,8 +175,8 @@ def draw_overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
         The picture (longer side <= ``picture_max_side``) with, below it, a white band
         holding the legend (one line per RP: colour, count, confidence or score, TS, VP)
         and the caption. Every instance box has a black edge under its colour and is at
-        least :data:`MIN_BOX_PX` wide (stage-I boxes thicker than stage-II / completed
-        ones); each RP gets a label ``RP<id>: <count>`` with a filled background next to
+        least :data:`MIN_BOX_PX` wide (stage-I boxes and the user's example boxes thicker
+        than stage-II / completed ones, the example boxes inside a white frame); each RP gets a label ``RP<id>: <count>`` with a filled background next to
         one of its boxes. In ``full`` mode an RP's VP is drawn as one thin line per row
         (from the row's first instance towards the VP) or, when the VP is far, one thin
         arrow from the RP's centre; the image's VPs (``extra["vanishing_points"]``) as
@@ -202,8 +207,12 @@ def draw_overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     for p in result.patterns:
         col = PALETTE[p.id % len(PALETTE)]
         for inst, (x0, y0, x1, y1) in zip(p.instances, boxes[p.id]):
-            t = thick + 1 if inst.source == "stage1" else thick
+            t = thick + 1 if inst.source in ("stage1", "example") else thick
             a, b = (round(x0), round(y0)), (round(x1), round(y1))
+            if inst.source == "example":  # the user's box: a white frame around it
+                e = t + 2
+                cv2.rectangle(img, (a[0] - e, a[1] - e), (b[0] + e, b[1] + e),
+                              (255, 255, 255), t + 2)
             cv2.rectangle(img, a, b, (0, 0, 0), t + 2)
             cv2.rectangle(img, a, b, col, t)
     placer = _Placer((w, h), [b for bs in boxes.values() for b in bs])

@@ -238,16 +238,24 @@ def summary_line(result: ImageResult) -> str:
     """One line of what was found, stating the same facts as the caption
     (:func:`scene_facts`) plus each RP's count and confidence (or score), e.g.
     ``"2 RPs: 12 (confidence 0.83), 4 (confidence 0.41); grid; VP outside the image;
-    translation symmetry"``; :data:`NO_PATTERN` without an RP of two or more instances.
+    translation symmetry"`` (a "count these" RP: ``"14 (like the example box)"``);
+    :data:`NO_PATTERN` without an RP of two or more instances.
     A failure record is not handled here (the caller says it)."""
     facts = scene_facts(result)
     pats = [p for p in result.patterns if p.count >= 2]
+    asked = [p for p in result.patterns if p.extra.get("source") == "prompt"]
+    if asked and asked[0].count < 2:  # "count these" found nothing but the examples
+        return f"{asked[0].count} instance: nothing else like the example box"
     if facts.count < 2 or not pats:
         return NO_PATTERN
     counts = []
     for p in pats:
         kind, v = pattern_confidence(p)
-        counts.append(f"{p.count} ({kind} {v:.2f})")
+        if p.extra.get("source") == "prompt":
+            k = int(p.extra.get("examples", 1))
+            counts.append(f"{p.count} (like the example box{'es' if k != 1 else ''})")
+        else:
+            counts.append(f"{p.count} ({kind} {v:.2f})")
     parts = [f"{len(pats)} RP{'s' if len(pats) != 1 else ''}: " + ", ".join(counts)]
     if facts.layout in ("row", "column", "grid"):
         parts.append({"row": "in a row", "column": "in a column",

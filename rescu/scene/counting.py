@@ -30,11 +30,16 @@ def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:
 def dominant_pattern(patterns: Sequence[Pattern]) -> int | None:
     """Index (position in ``patterns``) of the dominant RP, None when there is none.
 
-    The dominant RP is the most confident one (``extra["confidence"]``,
+    The pattern of what the user's example boxes show (``extra["source"] == "prompt"``,
+    :func:`rescu.core.find_prompted`) is dominant: it is what the user counts. Otherwise
+    the dominant RP is the most confident one (``extra["confidence"]``,
     :func:`rescu.extension.objects.rp_confidence`) when the patterns carry confidences,
     else the one with the most instances; ties: more instances, higher score, then lower
     index. Patterns with no instance are never dominant.
     """
+    for i, p in enumerate(patterns):
+        if p.extra.get("source") == "prompt" and p.count:
+            return i
     conf = any("confidence" in p.extra for p in patterns)
     best: tuple[float, int, float, int] | None = None
     for i, p in enumerate(patterns):
