@@ -24,6 +24,14 @@ that concurrent jobs start one); it exits after ``idle_s`` seconds without a job
 
 Safety:
 
+* Only this user's processes meet at the socket. Socket and lock live in a folder of
+  this user's that nobody else may enter (:func:`private_dir`: ``rescu-steps-<uid>``
+  under ``$XDG_RUNTIME_DIR`` or the temporary directory, mode 0700, checked not to be a
+  link nor someone else's, :func:`ensure_private`); both ends check the other's user id
+  (``SO_PEERCRED``): the server serves no other user's client, the client sends its
+  environment and streams to no other user's server; the lock is opened without
+  following links. Where any of it fails, the client says why on its standard error and
+  the step runs in its own process.
 * A signal the client gets (Snakemake cancelling the job) is passed on to the child; a
   child whose client has gone (killed) kills itself, so no step outlives its job.
 * A child that dies without a status (a crash, the kernel's OOM killer) makes the client
@@ -49,6 +57,7 @@ import json
 import os
 import signal
 import socket
+import stat
 import struct
 import sys
 import tempfile
@@ -68,6 +77,8 @@ ENV_KEYS: tuple[str, ...] = (
 _PROTOCOL = 1
 _HEADER = struct.Struct("!I")       # length of the request's JSON
 _STATUS = struct.Struct("!i")       # the child's pid, then its exit status
+_CREDS = struct.Struct("3i")        # SO_PEERCRED: pid, uid, gid
+_MAX_UNIX_PATH = 107                # bytes of a Unix socket's path (sun_path, NUL excluded)
 _START_TIMEOUT_S = 120.0            # the server's imports: a few seconds, more on a busy machine
 
 
@@ -81,14 +92,78 @@ def available() -> bool:
 def socket_path(directory: str | None = None, env: dict[str, str] | None = None,
                 path: Sequence[str] | None = None) -> str:
     """The server's socket for this Python, ``sys.path`` and :data:`ENV_KEYS` values
-    (``env``: ``os.environ``; ``path``: ``sys.path``), in ``directory`` (default: the
-    temporary directory)."""
+    (``env``: ``os.environ``; ``path``: ``sys.path``), in this user's private folder
+    under ``directory`` (:func:`private_dir`; default base: :func:`default_base`)."""
     env = os.environ if env is None else env
     key = json.dumps([_PROTOCOL, sys.executable, list(sys.path if path is None else path),
                       {k: env.get(k) for k in ENV_KEYS}, PRELOAD])
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return os.path.join(directory or tempfile.gettempdir(),
-                        f"rescu-steps-{os.getuid()}-{digest}.sock")
+    return os.path.join(private_dir(directory), f"{digest}.sock")
+
+
+def default_base() -> str:
+    """Where the private folder goes: ``$XDG_RUNTIME_DIR`` when it is a folder of this
+    user's that nobody else may enter (the login's runtime folder), else the temporary
+    directory."""
+    run = os.environ.get("XDG_RUNTIME_DIR")
+    if run:
+        try:
+            st = os.lstat(run)
+        except OSError:
+            st = None
+        if (st is not None and stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid()
+                and not st.st_mode & 0o077):
+            return run
+    return tempfile.gettempdir()
+
+
+def private_dir(directory: str | None = None) -> str:
+    """This user's folder for the server's socket and lock: ``<base>/rescu-steps-<uid>``
+    (``directory``, default :func:`default_base`). Nothing is created here
+    (:func:`ensure_private` does)."""
+    return os.path.join(directory or default_base(), f"rescu-steps-{os.getuid()}")
+
+
+class UnsafeError(OSError):
+    """The socket's folder, the lock or the peer at the other end of the socket is not
+    this user's alone (the message says which and why)."""
+
+
+def ensure_private(folder: str) -> None:
+    """Create ``folder`` with mode 0700 when missing; raise :class:`UnsafeError` unless
+    it is a real folder (not a link) owned by this user that nobody else may enter."""
+    try:
+        os.mkdir(folder, 0o700)
+    except FileExistsError:
+        pass
+    st = os.lstat(folder)
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise UnsafeError(f"{folder} is not a folder (a link or a file)")
+    if st.st_uid != os.getuid():
+        raise UnsafeError(f"{folder} belongs to uid {st.st_uid}, not to this user "
+                          f"({os.getuid()})")
+    if st.st_mode & 0o077:
+        raise UnsafeError(f"{folder} may be entered by others (mode "
+                          f"{stat.S_IMODE(st.st_mode):04o}, must be 0700); remove it")
+
+
+def peer_uid(conn: socket.socket) -> int:
+    """The user id of the process at the other end of a Unix socket (``SO_PEERCRED``)."""
+    creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _CREDS.size)
+    return _CREDS.unpack(creds)[1]
+
+
+def _check_peer(conn: socket.socket, what: str) -> None:
+    uid = peer_uid(conn)
+    if uid != os.getuid():
+        raise UnsafeError(f"the {what} at the other end of the socket is uid {uid}, not "
+                          f"this user ({os.getuid()})")
+
+
+def _refuse(reason: object) -> None:
+    """Say once, on standard error, why the step runs without the server."""
+    sys.stderr.write(f"rescu step server: not used ({reason}); the step runs in its own "
+                     f"process\n")
 
 
 # ------------------------------------------------------------------------------ client
@@ -112,9 +187,16 @@ def run_via_server(argv: Sequence[str], runner: str, idle_s: float = 30.0,
     if not available():
         return None
     path = socket_path(directory)
+    if len(os.fsencode(path)) + 12 > _MAX_UNIX_PATH:   # + the server's ".<pid>.tmp"
+        _refuse(f"the socket's path {path} is too long for a Unix socket")
+        return None
     for attempt in range(2):                # a server that was just ending: start another
         try:
+            ensure_private(os.path.dirname(path))
             conn = _connect(path) or _start(path, idle_s)
+        except UnsafeError as e:
+            _refuse(e)
+            return None
         except OSError:
             return None
         if conn is None:
@@ -138,6 +220,11 @@ def _connect(path: str) -> socket.socket | None:
     except OSError:
         s.close()
         return None
+    try:
+        _check_peer(s, "server")             # a socket planted by someone else
+    except BaseException:
+        s.close()
+        raise
     return s
 
 
@@ -146,7 +233,17 @@ def _start(path: str, idle_s: float) -> socket.socket | None:
     import fcntl
     import subprocess
 
-    with open(path + ".lock", "w") as lock:
+    try:                                     # never through a planted link
+        fd = os.open(path + ".lock", os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC,
+                     0o600)
+    except OSError as e:
+        raise UnsafeError(f"cannot open the lock {path}.lock without following links "
+                          f"({e.strerror or e})") from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid():
+        os.close(fd)
+        raise UnsafeError(f"the lock {path}.lock is not a file of this user's")
+    with os.fdopen(fd, "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         conn = _connect(path)                # another job started it meanwhile
         if conn is not None:
@@ -241,6 +338,7 @@ def serve(path: str, idle_s: float = 30.0, preload: Sequence[str] = PRELOAD,
     tmp = f"{path}.{os.getpid()}.tmp"
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     srv.bind(tmp)
+    os.chmod(tmp, 0o600)                    # the folder is 0700 too
     srv.listen(64)
     os.replace(tmp, path)                   # ready: clients connect from here on
     srv.settimeout(idle_s)
@@ -270,6 +368,11 @@ def serve(path: str, idle_s: float = 30.0, preload: Sequence[str] = PRELOAD,
 
 def _fork_job(srv: socket.socket, conn: socket.socket,
               runner: Callable[[Sequence[str]], None] | None) -> None:
+    try:
+        _check_peer(conn, "client")          # only this user's jobs run as this user
+    except OSError:
+        conn.close()
+        return
     try:
         msg, fds, _, _ = socket.recv_fds(conn, 1 << 16, 3)
     except OSError:

@@ -121,11 +121,22 @@ def test_a_signal_to_the_client_reaches_the_job(tmp_path):
     assert not Path(f"/proc/{child}").exists()
 
 
-def test_the_server_ends_when_idle_and_a_new_one_starts(tmp_path):
+@pytest.fixture
+def short():
+    """A folder with a short path (a Unix socket's path is at most 107 bytes)."""
+    import shutil
+    import tempfile
+
+    d = tempfile.mkdtemp(prefix="rs", dir="/tmp")
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def test_the_server_ends_when_idle_and_a_new_one_starts(tmp_path, short):
     runner = tmp_path / "runner.py"
     runner.write_text("import sys\n"
                       "open(sys.argv[1], 'w').write(' '.join(sys.argv[2:]))\n")
-    directory = str(tmp_path)
+    directory = short
     path = step_server.socket_path(directory)
     status = step_server.run_via_server([str(tmp_path / "a.txt"), "x", "y"], str(runner),
                                         idle_s=0.5, directory=directory)
@@ -161,3 +172,150 @@ def test_an_idle_time_that_is_not_positive_is_refused(tmp_path, idle):
                         str(RUN_STEP), "x.py", "{}"], capture_output=True, text=True,
                        cwd=tmp_path)
     assert r.returncode == 1 and "--idle must be a number of seconds > 0" in r.stderr
+
+
+# --------------------------------------------------------------- only this user's
+WRITER = "import sys\nopen(sys.argv[1], 'w').write('ran')\n"
+
+
+def test_socket_and_lock_live_in_a_folder_only_this_user_may_enter(tmp_path, short):
+    import stat
+
+    runner = tmp_path / "runner.py"
+    runner.write_text(WRITER)
+    assert step_server.run_via_server([str(tmp_path / "a")], str(runner), idle_s=0.5,
+                                      directory=short) == 0
+    folder = step_server.private_dir(short)
+    assert os.path.dirname(step_server.socket_path(short)) == folder
+    st = os.lstat(folder)
+    assert stat.S_ISDIR(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o700
+    assert st.st_uid == os.getuid()
+    lock = step_server.socket_path(short) + ".lock"
+    assert stat.S_IMODE(os.lstat(lock).st_mode) == 0o600
+
+
+@pytest.mark.parametrize("plant", ["open folder", "link", "file"])
+def test_a_socket_folder_others_could_plant_in_is_refused(tmp_path, short, capsys, plant):
+    runner = tmp_path / "runner.py"
+    runner.write_text(WRITER)
+    folder = step_server.private_dir(short)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    if plant == "open folder":
+        os.mkdir(folder)
+        os.chmod(folder, 0o770)
+    elif plant == "link":
+        os.symlink(elsewhere, folder)
+    else:
+        Path(folder).write_text("x")
+    assert step_server.run_via_server([str(tmp_path / "a")], str(runner), idle_s=0.5,
+                                      directory=short) is None
+    assert not (tmp_path / "a").exists() and not any(elsewhere.iterdir())
+    err = capsys.readouterr().err
+    assert "rescu step server: not used" in err and folder in err
+    assert "runs in its own process" in err
+
+
+def test_a_lock_planted_as_a_link_is_not_followed(tmp_path, short, capsys):
+    runner = tmp_path / "runner.py"
+    runner.write_text(WRITER)
+    target = tmp_path / "precious"
+    target.write_text("keep me")
+    os.mkdir(step_server.private_dir(short), 0o700)
+    os.symlink(target, step_server.socket_path(short) + ".lock")
+    assert step_server.run_via_server([str(tmp_path / "a")], str(runner), idle_s=0.5,
+                                      directory=short) is None
+    assert target.read_text() == "keep me"
+    assert "without following links" in capsys.readouterr().err
+
+
+def test_a_socket_path_too_long_for_unix_is_refused(tmp_path, capsys):
+    deep = tmp_path / ("d" * 100)
+    deep.mkdir()
+    assert step_server.run_via_server(["x"], str(tmp_path / "r.py"),
+                                      directory=str(deep)) is None
+    assert "too long" in capsys.readouterr().err
+
+
+OTHER_UID = 65534  # nobody
+as_root = pytest.mark.skipif(os.getuid() != 0, reason="a second uid needs root to act as it")
+
+
+def _python_of(uid: int) -> str:
+    """A Python interpreter that ``uid`` may run (the test's may sit in root's home)."""
+    import shutil
+
+    for cand in (sys.executable, "/usr/bin/python3", shutil.which("python3") or ""):
+        try:
+            if cand and subprocess.run([cand, "-c", "import socket; socket.send_fds"],
+                                       user=uid, capture_output=True,
+                                       timeout=30).returncode == 0:
+                return cand
+        except OSError:
+            continue
+    pytest.skip(f"no Python 3.9+ that uid {uid} may run")
+
+
+@as_root
+def test_a_folder_of_another_user_is_refused(tmp_path, short, capsys):
+    folder = step_server.private_dir(short)
+    os.mkdir(folder, 0o700)
+    os.chown(folder, OTHER_UID, OTHER_UID)
+    assert step_server.run_via_server(["x"], str(tmp_path / "r.py"), directory=short) is None
+    assert f"belongs to uid {OTHER_UID}" in capsys.readouterr().err
+
+
+@as_root
+def test_the_client_refuses_a_server_of_another_user(short):
+    """A socket squatted by another user gets neither the environment nor the streams."""
+    os.chmod(short, 0o777)
+    path = os.path.join(short, "squat.sock")
+    got = os.path.join(short, "got")
+    squatter = subprocess.Popen(
+        [_python_of(OTHER_UID), "-c",
+         "import socket, sys\n"
+         "s = socket.socket(socket.AF_UNIX); s.bind(sys.argv[1]); s.listen(1)\n"
+         "import os; os.chmod(sys.argv[1], 0o777)\n"
+         "c, _ = s.accept(); c.settimeout(5)\n"
+         "try:\n    data = c.recv(1 << 16)\nexcept OSError:\n    data = b''\n"
+         "open(sys.argv[2], 'wb').write(data)\n", path, got],
+        user=OTHER_UID)
+    try:
+        end = time.monotonic() + 20
+        while not os.path.exists(path) and time.monotonic() < end:
+            time.sleep(0.02)
+        with pytest.raises(step_server.UnsafeError, match=f"uid {OTHER_UID}"):
+            step_server._connect(path)
+        squatter.wait(timeout=20)
+        assert Path(got).read_bytes() == b""        # it received nothing
+    finally:
+        squatter.kill()
+
+
+@as_root
+def test_the_server_refuses_a_client_of_another_user(tmp_path, short):
+    """Another user who reaches the socket does not get a job run as its owner."""
+    runner = tmp_path / "runner.py"
+    runner.write_text(WRITER)
+    assert step_server.run_via_server([str(tmp_path / "first")], str(runner), idle_s=20,
+                                      directory=short) == 0     # a server is running
+    path = step_server.socket_path(short)
+    os.chmod(short, 0o755)
+    os.chmod(step_server.private_dir(short), 0o755)  # the folder's defence taken away:
+    os.chmod(path, 0o777)                             # the peer check alone remains
+    attacker = Path(short) / "attacker.py"
+    marker = tmp_path / "pwned"
+    attacker.write_text(
+        "import json, socket, struct, sys\n"
+        "s = socket.socket(socket.AF_UNIX); s.connect(sys.argv[1])\n"
+        "req = json.dumps({'argv': [sys.argv[3]], 'runner': sys.argv[2], 'cwd': '/',\n"
+        "                  'env': {}, 'path': sys.path}).encode()\n"
+        "socket.send_fds(s, [struct.pack('!I', len(req)) + req], [0, 1, 2])\n"
+        "s.settimeout(10)\n"
+        "try:\n    got = s.recv(8)\nexcept ConnectionResetError:\n    got = b''\n"
+        "print('served' if got else 'closed')\n")
+    r = subprocess.run([_python_of(OTHER_UID), str(attacker), path, str(runner), str(marker)],
+                       user=OTHER_UID, capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "closed", r.stderr   # no pid, no status
+    time.sleep(0.5)
+    assert not marker.exists()
