@@ -140,7 +140,7 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
                 or image.resolve().is_relative_to((out / f"{stem}_rectified").resolve()):
             raise InputError(f"out_dir {out_dir}: the results of {image} would overwrite it; "
                              f"choose another out_dir")
-        outputs.check_targets(out, [stem], force=force)
+        outputs.check_targets(out, [stem], force=force, own=False)
         out.mkdir(parents=True, exist_ok=True)
         outputs.sweep_stale_work(out)
     mode = overlay or cfg["report"]["overlay"]
@@ -171,7 +171,7 @@ def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
     if out_dir is None or staged is None:  # both None together (discover)
         return result
     if keep_work:
-        _write_work(Path(out_dir) / ".work" / stem, ran)
+        _write_work(outputs.safe_dir(out_dir, f".work/{stem}"), ran)  # no link followed
     io.write_json(staged / f"{stem}.json", result)
     if not ran.prepared.failure:
         rect = staged / f"{stem}_rectified"

@@ -218,12 +218,8 @@ def _terminate(signum: int, frame: Any) -> None:
 def cmd_discover(args: argparse.Namespace) -> int:
     import signal
 
-    from tqdm import tqdm
-
-    from .api import discover
+    from . import outputs
     from .config import load_config
-    from .core import ExampleError
-    from .io import DiskFullError, InputError
     from .outputs import check_targets
     from .pipeline import setup_logging
 
@@ -243,11 +239,25 @@ def cmd_discover(args: argparse.Namespace) -> int:
     _check_out_dir(out, photos)
     check_targets(out, names, force=args.force)
     signal.signal(signal.SIGTERM, _terminate)  # a kill runs the cleanup of `finally` blocks
+    log = outputs.open_log(out)  # never through a link; recorded as rescu's
     try:
-        setup_logging(str(out / "rescu.log"), logging.DEBUG if args.verbose else logging.INFO)
-    except OSError as e:
-        raise InputError(f"--out {out}: cannot write {out / 'rescu.log'} "
-                         f"({e.strerror or e})") from None
+        setup_logging(level=logging.DEBUG if args.verbose else logging.INFO, stream=log)
+        return _discover_photos(args, cfg, photos, names, examples, out)
+    finally:
+        logging.getLogger("rescu").handlers[:] = []
+        outputs.close_log(out, log)
+
+
+def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list[Path],
+                     names: list[str], examples: dict[Path, Any], out: Path) -> int:
+    """``rescu discover``'s loop over the photos, the gallery and the closing lines."""
+    from tqdm import tqdm
+
+    from . import outputs
+    from .api import discover
+    from .core import ExampleError
+    from .io import DiskFullError
+
     failed = degraded = 0
     refused: list[str] = []  # photos whose example boxes were refused: nothing written
     bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
@@ -278,7 +288,9 @@ def cmd_discover(args: argparse.Namespace) -> int:
             if degraded else "")
     from .gallery import write_gallery
 
-    page = write_gallery(out, [n for n in names if n not in refused])
+    with outputs.locked(out):  # every photo of the folder's manifest, this run's first
+        page = write_gallery(out, outputs.names_in(out, [n for n in names if n not in refused]))
+        outputs.record_own(out, outputs.GALLERY)
     print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
           f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
     print(f"Gallery: {page}")

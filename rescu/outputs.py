@@ -15,6 +15,15 @@ folder the user owns. Two rules keep that safe:
   when the new run found 3 RPs) go, and a killed run leaves the previous set as it was.
   Staging folders of processes that no longer run are removed by the next run
   (:func:`sweep_stale_work`).
+* **No link is followed.** A result file, ``rescu.log``, ``index.html``, the staging
+  area ``.rescu-work`` or the ``--keep-work`` folder ``.work/<name>`` that is a symbolic
+  link is refused (:func:`check_path`), never written through nor swept.
+* **Runs on one folder take turns.** The manifest's read-change-write and the gallery
+  happen under one lock (``fcntl.flock`` on ``.rescu-lock``, :func:`locked`), so two
+  runs writing into one folder both keep their results.
+
+The folder's own files ``rescu.log`` and ``index.html`` are recorded in the manifest too
+(``"own"``): a ``rescu.log`` or ``index.html`` of the user's is refused like a result.
 """
 
 from __future__ import annotations
@@ -23,6 +32,7 @@ import contextlib
 import hashlib
 import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -35,6 +45,14 @@ MANIFEST = ".rescu-results.json"
 both the old and the new content count as rescu's)."""
 WORK = ".rescu-work"
 """The output folder's staging area (one sub-folder per running process)."""
+LOCK = ".rescu-lock"
+"""The lock file the runs writing into one output folder take turns on (:func:`locked`)."""
+LOG = "rescu.log"
+GALLERY = "index.html"
+OWN = (LOG, GALLERY)
+"""The output folder's files of rescu's own beside the result sets (manifest ``"own"``)."""
+OPEN = "open"
+"""The manifest's mark of an own file being written (the log during a run)."""
 
 
 class OverwriteError(InputError):
@@ -72,13 +90,89 @@ def read_manifest(out_dir: str | os.PathLike[str]) -> dict[str, Any]:
     Raises :class:`InputError` naming the file when it exists but is not a manifest.
     """
     path = Path(out_dir) / MANIFEST
-    if not path.exists():
-        return {"format": 1, "results": {}}
+    if not _lexists(path):
+        return {"format": 1, "results": {}, "own": {}}
+    check_path(path, "rescu's manifest")
+    if not stat.S_ISREG(os.lstat(path).st_mode):
+        raise InputError(f"{path}: not a regular file (rescu's manifest of results); move it "
+                         f"away or choose another output folder")
     d = read_json(path)
-    if not (isinstance(d, dict) and isinstance(d.get("results"), dict)):
-        raise InputError(f"{path}: not rescu's manifest of results (no 'results' mapping); "
-                         f"move it away or choose another output folder")
+    bad = _manifest_problem(d)
+    if bad:
+        raise InputError(f"{path}: not rescu's manifest of results ({bad}); move it away or "
+                         f"choose another output folder")
+    d.setdefault("own", {})
     return d
+
+
+def _manifest_problem(d: Any) -> str | None:
+    """What makes ``d`` not a manifest (None: it is one)."""
+    if not isinstance(d, dict) or not isinstance(d.get("results"), dict):
+        return "no 'results' mapping"
+    for name, entry in d["results"].items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("files", {}), dict):
+            return f"results.{name}: not a mapping with a 'files' mapping"
+        for rel, hashes in (entry.get("files") or {}).items():
+            if not (isinstance(hashes, list) and all(isinstance(h, str) for h in hashes)):
+                return f"results.{name}.files.{rel}: not a list of hashes"
+    own = d.get("own", {})
+    if not isinstance(own, dict) or not all(
+            isinstance(v, list) and all(isinstance(h, str) for h in v) for v in own.values()):
+        return "'own': not a mapping of lists of hashes"
+    return None
+
+
+def _lexists(path: Path) -> bool:
+    try:
+        os.lstat(path)
+    except FileNotFoundError:
+        return False
+    return True
+
+
+def check_path(path: str | os.PathLike[str], what: str = "a file rescu writes") -> Path:
+    """``path`` when it is not a symbolic link (it may not exist); :class:`InputError`
+    naming it otherwise. rescu never writes through, sweeps or reads its own files
+    through a link in an output folder."""
+    path = Path(path)
+    if path.is_symlink():
+        raise InputError(f"{path}: is a symbolic link ({what}); rescu does not follow links "
+                         f"in its output folder: remove the link or choose another folder")
+    return path
+
+
+def safe_dir(out_dir: str | os.PathLike[str], rel: str) -> Path:
+    """``out_dir/rel`` created folder by folder, none of its parts below ``out_dir`` a
+    link (:class:`InputError` naming the link) nor a file."""
+    cur = Path(out_dir)
+    for part in Path(rel).parts:
+        cur = check_path(cur / part, "a folder rescu writes into")
+        try:
+            cur.mkdir()
+        except FileExistsError:
+            if not stat.S_ISDIR(os.lstat(cur).st_mode):
+                raise InputError(f"{cur}: exists and is not a folder") from None
+    return cur
+
+
+@contextlib.contextmanager
+def locked(out_dir: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold the output folder's lock (``.rescu-lock``, ``fcntl.flock``, exclusive): runs
+    writing into one folder change its manifest and gallery in turn."""
+    import fcntl
+
+    path = check_path(Path(out_dir) / LOCK, "rescu's lock")
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as e:
+        raise InputError(f"{path}: cannot open rescu's lock ({e.strerror or e})") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputError(f"{path}: not a regular file (rescu's lock)")
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _recorded(manifest: dict[str, Any]) -> dict[str, list[str]]:
@@ -116,8 +210,27 @@ def foreign_files(out_dir: str | os.PathLike[str], name: str,
     return found
 
 
+def foreign_own(out_dir: str | os.PathLike[str], manifest: dict[str, Any] | None = None
+                ) -> list[Path]:
+    """``rescu.log`` and ``index.html`` of ``out_dir`` when they exist and rescu did not
+    write them (a link, or not in the manifest's ``"own"`` with their content; a log
+    marked :data:`OPEN` was being written by a run, perhaps killed: rescu's)."""
+    out = Path(out_dir)
+    own = (read_manifest(out) if manifest is None else manifest).get("own", {})
+    found = []
+    for rel in OWN:
+        p = out / rel
+        if not _lexists(p):
+            continue
+        hashes = own.get(rel) or []
+        if p.is_symlink() or not p.is_file() or not (
+                (rel == LOG and OPEN in hashes) or _sha256(p) in hashes):
+            found.append(p)
+    return found
+
+
 def check_targets(out_dir: str | os.PathLike[str], names: Sequence[str],
-                  force: bool = False) -> None:
+                  force: bool = False, own: bool = True) -> None:
     """Refuse, before any work, result sets that would replace files rescu did not write.
 
     Parameters
@@ -127,7 +240,11 @@ def check_targets(out_dir: str | os.PathLike[str], names: Sequence[str],
     names : sequence of str
         The result names (``<name>.json``, ...) of the photos to run.
     force : bool
-        Replace such files anyway (``rescu discover --force``).
+        Replace such files anyway (``rescu discover --force``); a link is never
+        written through, forced or not.
+    own : bool
+        Also check the folder's ``rescu.log`` and ``index.html`` (the command line
+        writes them; :func:`rescu.discover` does not).
 
     Raises
     ------
@@ -137,10 +254,15 @@ def check_targets(out_dir: str | os.PathLike[str], names: Sequence[str],
     out = Path(out_dir)
     for n in names:
         check_name(n)
-    if force or not out.is_dir():
+    if not out.is_dir():
+        return
+    for rel in (MANIFEST, LOCK, WORK) + (OWN if own else ()):  # forced or not
+        check_path(out / rel, "rescu's own file or folder")
+    if force:
         return
     manifest = read_manifest(out)
-    found = [p for n in names for p in foreign_files(out, n, manifest)]
+    found = (foreign_own(out, manifest) if own else []) + [p for n in names
+                                          for p in foreign_files(out, n, manifest)]
     if found:
         shown = ", ".join(str(p) for p in found[:3]) + (f" and {len(found) - 3} more"
                                                          if len(found) > 3 else "")
@@ -162,13 +284,16 @@ def _alive(pid: int) -> bool:
 
 def sweep_stale_work(out_dir: str | os.PathLike[str]) -> list[Path]:
     """Remove the staging folders in ``out_dir/.rescu-work`` whose process no longer runs
-    (a killed run's); return them."""
-    work = Path(out_dir) / WORK
+    (a killed run's); return them. A link (``.rescu-work`` or an entry) is never
+    followed: a linked ``.rescu-work`` is refused (:func:`check_path`), a linked entry
+    left alone."""
+    work = check_path(Path(out_dir) / WORK, "rescu's staging area")
     removed = []
     if work.is_dir():
         for p in sorted(work.iterdir()):
             pid = p.name.split("-", 1)[0]
-            if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            if (pid.isdigit() and int(pid) != os.getpid() and not p.is_symlink()
+                    and p.is_dir() and not _alive(int(pid))):
                 shutil.rmtree(p, ignore_errors=True)
                 removed.append(p)
         with contextlib.suppress(OSError):
@@ -182,14 +307,20 @@ def staging(out_dir: str | os.PathLike[str] | None) -> Iterator[Path]:
 
     In ``out_dir/.rescu-work/<pid>-<random>/`` (same file system as the results, so
     :func:`commit` only renames), or in the system's temporary folder when ``out_dir``
-    is None.
+    is None. A ``.rescu-work`` that is a link is refused; one that another run removes
+    (it was empty) while this one makes its folder is made again.
     """
     if out_dir is None:
         path = Path(tempfile.mkdtemp(prefix=f"rescu-{os.getpid()}-"))
     else:
-        base = Path(out_dir) / WORK
-        base.mkdir(parents=True, exist_ok=True)
-        path = Path(tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base))
+        for attempt in range(20):
+            base = safe_dir(out_dir, WORK)
+            try:
+                path = Path(tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base))
+                break
+            except FileNotFoundError:  # another run's rmdir of the empty area
+                if attempt == 19:
+                    raise
     try:
         yield path
     finally:
@@ -222,7 +353,11 @@ def commit(out_dir: str | os.PathLike[str], name: str, staged: Path, image: str)
     renamed (rectified views, overlay, JSON last), then the manifest keeps the new
     ones only: a kill at any point leaves files that a rerun recognises as its own.
     """
-    out = Path(out_dir)
+    with locked(out_dir):
+        _commit(Path(out_dir), name, staged, image)
+
+
+def _commit(out: Path, name: str, staged: Path, image: str) -> None:
     manifest = read_manifest(out)
     new = _set_files(out, name, staged)
     old = (manifest["results"].get(name) or {}).get("files") or {}
@@ -245,3 +380,65 @@ def commit(out_dir: str | os.PathLike[str], name: str, staged: Path, image: str)
             (out / rel).unlink()
     manifest["results"][name] = {"image": image, "files": new}
     write_json(out / MANIFEST, manifest)
+
+
+def record_own(out_dir: str | os.PathLike[str], rel: str, value: str | None = None) -> None:
+    """Record the own file ``rel`` (:data:`OWN`) of ``out_dir`` as rescu's in the manifest:
+    its current SHA-256, or ``value`` (:data:`OPEN` while the log is written). The
+    caller holds :func:`locked`."""
+    out = Path(out_dir)
+    manifest = read_manifest(out)
+    p = check_path(out / rel)
+    manifest["own"][rel] = [value if value is not None else _sha256(p)]
+    write_json(out / MANIFEST, manifest)
+
+
+def open_log(out_dir: str | os.PathLike[str]) -> Any:
+    """``out_dir/rescu.log`` opened for this run's messages (a text stream; the caller
+    closes it), never through a link (``O_NOFOLLOW``) and recorded as rescu's
+    (:data:`OPEN`). Appended to while another run writes it (both hold a shared
+    ``flock`` on it), emptied first otherwise. The caller checked it is not a user's
+    (:func:`check_targets`)."""
+    import fcntl
+
+    path = check_path(Path(out_dir) / LOG, "rescu's log")
+    with locked(out_dir):
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW
+                         | os.O_CLOEXEC, 0o666 & ~_umask())
+        except OSError as e:
+            raise InputError(f"{path}: cannot write it ({e.strerror or e})") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise InputError(f"{path}: not a regular file (rescu's log)")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.ftruncate(fd, 0)      # nobody else writes it: a fresh log
+        except BlockingIOError:
+            pass                     # another run writes it: append
+        fcntl.flock(fd, fcntl.LOCK_SH)
+        record_own(out_dir, LOG, OPEN)
+    return os.fdopen(fd, "a", encoding="utf-8")
+
+
+def close_log(out_dir: str | os.PathLike[str], stream: Any) -> None:
+    """Close the log of :func:`open_log` and record its content as rescu's."""
+    stream.close()
+    with contextlib.suppress(OSError):  # a full disk: the log stays marked open (rescu's)
+        with locked(out_dir):
+            if (Path(out_dir) / LOG).is_file():
+                record_own(out_dir, LOG)
+
+
+def names_in(out_dir: str | os.PathLike[str], first: Sequence[str] = ()) -> list[str]:
+    """The result names of ``out_dir``'s manifest, ``first`` (this run's, those
+    recorded) in their order, then the others sorted."""
+    recorded = read_manifest(out_dir)["results"]
+    return ([n for n in first if n in recorded]
+            + sorted(n for n in recorded if n not in set(first)))
+
+
+def _umask() -> int:
+    from .io import _UMASK
+
+    return _UMASK

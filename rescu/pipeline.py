@@ -672,10 +672,14 @@ def overlay(png: str, meta_path: str, result_json: str, out_png: str,
 
 
 # --------------------------------------------------------------------------- logging
-def setup_logging(log_path: str | None = None, level: int = logging.INFO) -> None:
-    """Send the ``rescu`` logger (and warnings) to ``log_path`` or stderr."""
+def setup_logging(log_path: str | None = None, level: int = logging.INFO,
+                  stream: Any = None) -> None:
+    """Send the ``rescu`` logger (and warnings) to ``log_path``, ``stream`` (an open text
+    stream, e.g. :func:`rescu.outputs.open_log`'s) or stderr."""
     handler: logging.Handler
-    if log_path:
+    if stream is not None:
+        handler = logging.StreamHandler(stream)
+    elif log_path:
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         handler = logging.FileHandler(log_path, mode="w")
     else:

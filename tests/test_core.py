@@ -156,7 +156,7 @@ def test_discover_writes_no_work_folder(tmp_path, monkeypatch):
     assert sorted(p.name for p in (tmp_path / "in").iterdir()) == ["shelf.png"]
     out = tmp_path / "out"
     rescu.discover(photo, out, method="rescu-i")
-    assert sorted(p.name for p in out.iterdir()) == [".rescu-results.json", "shelf.json",
+    assert sorted(p.name for p in out.iterdir()) == [".rescu-lock", ".rescu-results.json", "shelf.json",
                                                       "shelf.png", "shelf_rectified"]
     assert list(tmp.iterdir()) == []
     rescu.discover(photo, out, method="rescu-i", keep_work=True)

@@ -1,0 +1,134 @@
+"""Hostile input, round 3: links planted in an output folder, a user's own ``rescu.log``
+and ``index.html``, concurrent runs on one folder, a FIFO for the manifest. Each gives a
+clear refusal or correct behaviour, and nothing outside the output folder changes."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+from pathlib import Path
+
+import pytest
+
+from rescu import outputs
+from rescu.io import InputError
+from test_cli import rescu, shelf_photo
+from test_trust import assert_one_line_error, checksums
+
+
+@pytest.fixture
+def photo(tmp_path: Path) -> Path:
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    return shelf_photo(folder / "shelf.png")
+
+
+@pytest.fixture
+def outside(tmp_path: Path) -> Path:
+    """A folder outside the output folder with a file and a dead process's 'staging'."""
+    d = tmp_path / "outside"
+    (d / "999999999-x").mkdir(parents=True)
+    (d / "999999999-x" / "keep.txt").write_text("mine")
+    (d / "precious.txt").write_text("do not truncate")
+    return d
+
+
+def _discover(photo: Path, out: Path, *more: str):
+    return rescu("discover", str(photo), "--out", str(out), "--method", "rescu-i",
+                 "--quiet", *more)
+
+
+@pytest.mark.parametrize("link", ["rescu.log", "index.html", ".rescu-work", ".rescu-lock"])
+def test_a_link_in_the_output_folder_is_refused_and_not_followed(photo, tmp_path, outside,
+                                                                 link):
+    out = tmp_path / "out"
+    out.mkdir()
+    target = outside if link == ".rescu-work" else outside / "precious.txt"
+    os.symlink(target, out / link)
+    before = checksums(outside)
+    proc = _discover(photo, out)
+    assert_one_line_error(proc, link)
+    assert checksums(outside) == before and (outside / "999999999-x").is_dir()
+    proc = _discover(photo, out, "--force")      # forced or not: never through a link
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert checksums(outside) == before
+
+
+def test_keep_work_through_a_linked_folder_is_refused(photo, tmp_path, outside):
+    out = tmp_path / "out"
+    (out / ".work").mkdir(parents=True)
+    os.symlink(outside, out / ".work" / "shelf")
+    before = checksums(outside)
+    proc = _discover(photo, out, "--keep-work")
+    assert proc.returncode == 2 and "symbolic link" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert checksums(outside) == before
+
+
+@pytest.mark.parametrize("own", ["rescu.log", "index.html"])
+def test_a_users_own_log_or_page_is_not_replaced(photo, tmp_path, own):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / own).write_text("my notes")
+    proc = _discover(photo, out)
+    assert_one_line_error(proc, own, "not written by rescu")
+    assert (out / own).read_text() == "my notes"
+    assert _discover(photo, out, "--force").returncode == 0   # forced: replaced
+    assert _discover(photo, out).returncode == 0              # rescu's own now: a rerun
+    assert "shelf" in (out / "index.html").read_text()
+
+
+def test_the_gallery_lists_every_photo_of_the_folder(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    a = shelf_photo(folder / "a.png")
+    b = shelf_photo(folder / "b.png", tins=True)
+    out = tmp_path / "out"
+    assert _discover(a, out).returncode == 0
+    assert _discover(b, out).returncode == 0
+    page = (out / "index.html").read_text()
+    assert "a.png" in page and "b.png" in page
+
+
+def test_a_fifo_as_the_manifest_is_refused_not_waited_on(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    os.mkfifo(out / outputs.MANIFEST)
+    with pytest.raises(InputError, match="not a regular file"):
+        outputs.read_manifest(out)
+
+
+@pytest.mark.parametrize("manifest", [
+    {"files": []}, [], {"results": {"x": {"files": []}}},
+    {"results": {"x": {"files": {"x.json": "abc"}}}}, {"results": {}, "own": []}])
+def test_a_malformed_manifest_is_one_line_naming_it(tmp_path, manifest):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / outputs.MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match=r"\.rescu-results\.json: not rescu's manifest"):
+        outputs.read_manifest(out)
+
+
+# ----------------------------------------------------------------- concurrent runs
+def _commit_many(out: str, who: str, n: int) -> None:
+    for i in range(n):
+        with outputs.staging(out) as staged:
+            (staged / f"{who}{i}.json").write_text(json.dumps({"who": who, "i": i}))
+            outputs.commit(out, f"{who}{i}", staged, f"{who}{i}.png")
+
+
+def test_two_runs_on_one_folder_keep_every_result(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    ctx = multiprocessing.get_context("fork")
+    procs = [ctx.Process(target=_commit_many, args=(str(out), who, 40)) for who in "ab"]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert [p.exitcode for p in procs] == [0, 0]
+    names = outputs.read_manifest(out)["results"]
+    assert len(names) == 80
+    outputs.check_targets(out, list(names))   # every file recognised as rescu's
+    assert not (out / outputs.WORK).exists()
