@@ -16,13 +16,12 @@ configfile: str(DEFAULT_CONFIG)
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
-# --config values arrive as strings inside mappings/lists ({seed: 11} -> "11"): retype them
-update_config(config, typed_cli_overrides(workflow.config_settings.config))
-
-
-# every key of every section checked once, before any job (the package's schema, then the
-# parameter classes): one line naming the key, its value and what is allowed, exit 2
+# --config values arrive as strings inside mappings/lists ({seed: 11} -> "11"): retype them;
+# then every key of every section checked once, before any job (sizes and finite numbers,
+# the package's schema, then the parameter classes): one line naming the key, its value
+# and what is allowed, exit 2
 try:
+    update_config(config, typed_cli_overrides(workflow.config_settings.config))
     validate_config(config, ", ".join(map(str, workflow.configfiles)) or "config",
                     [("--config", workflow.config_settings.config)])
 except InputError as e:

@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 from .io import InputError
 from .params import deep_merge  # noqa: F401  (part of this module's API)
-from .params import load_yaml
+from .params import config_value_problem, load_yaml, short_repr
 
 DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
 DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
@@ -42,9 +42,13 @@ def _read_yaml(path: Any) -> Any:
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot be read ({e})") from None
     try:
-        return load_yaml(text)
+        value = load_yaml(text)
     except yaml.YAMLError as e:
         raise InputError(f"{path}: malformed YAML ({' '.join(str(e).split())})") from None
+    bad = config_value_problem(value)
+    if bad:
+        raise InputError(f"{path}: {bad}")
+    return value
 
 
 def typed_cli_overrides(overrides: Any) -> Any:
@@ -66,12 +70,19 @@ def typed_cli_overrides(overrides: Any) -> Any:
     -------
     The same structure with plain dicts and lists.
     """
+    bad = config_value_problem(overrides)
+    if bad:
+        raise InputError(f"--config: {bad}")
+    return _typed(overrides)
+
+
+def _typed(overrides: Any) -> Any:
     import yaml
 
     if isinstance(overrides, Mapping):
-        return {k: typed_cli_overrides(v) for k, v in overrides.items()}
+        return {k: _typed(v) for k, v in overrides.items()}
     if isinstance(overrides, (list, tuple)):
-        return [typed_cli_overrides(v) for v in overrides]
+        return [_typed(v) for v in overrides]
     if isinstance(overrides, str):
         try:
             v = yaml.safe_load(overrides)
@@ -101,7 +112,13 @@ def _schema_error_text(e: Any, config: Any) -> str:
                          + (f" (did you mean '{close[0]}'?)" if close else ""))
         return "; ".join(parts) + f"; known keys of {section}: {', '.join(known)}"
     where = ".".join(path) or "(top level)"
-    return f"{where} = {e.instance!r}: {e.message}"
+    return f"{where} = {short_repr(e.instance)}: {_short_text(e.message)}"
+
+
+def _short_text(text: str, limit: int = 300) -> str:
+    """A message cut to ``limit`` characters (jsonschema's quote the value)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def schema_errors(config: dict[str, Any]) -> list[tuple[list[str], str]]:
@@ -318,6 +335,14 @@ def validate_config(config: dict[str, Any], source: str = "config",
     ...
     rescu.io.InputError: my.yaml: grasp.rcl_size = 0: ...
     """
+    bad = config_value_problem(config)
+    if bad:  # first: a bomb is refused before it is walked, NaN before it is compared
+        path = bad.split(" ", 1)[0].rstrip(":").split(".")
+        origin = source
+        for name, layer in sources or []:
+            if _has_path(layer, path[:2]):
+                origin = name
+        raise InputError(f"{origin}: {bad}")
     errors = schema_errors(config)
     if errors:
         path, text = errors[0]

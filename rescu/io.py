@@ -240,6 +240,42 @@ def _too_large(path: Path, size: str, pixels: int, max_pixels: int) -> str:
             f"image.max_pixels = {max_pixels}); downscale it first or raise the limit")
 
 
+MAX_BYTES_PER_PIXEL = 3
+"""A photo's decoded size may be at most ``image.max_pixels`` x this many bytes (8-bit
+RGB): a 32-bit or RGBA image is refused over it; a deeper one is decoded and turned into 8 bits
+in blocks of rows (no float64 copy of the whole image)."""
+_BYTES_PER_PIXEL = {"1": 1, "L": 1, "P": 1, "LA": 2, "PA": 2, "RGB": 3, "YCbCr": 3,
+                    "LAB": 3, "HSV": 3, "RGBA": 4, "RGBX": 4, "CMYK": 4, "I;16": 2,
+                    "I;16L": 2, "I;16B": 2, "I;16N": 2, "I": 4, "F": 4}
+
+
+def to_8bit(arr: np.ndarray, rows: int = 512) -> np.ndarray:
+    """A grey image of any depth (H, W) as uint8, its largest finite value at 255 and
+    everything at or below 0 at 0 (NaN too), converted ``rows`` rows at a time in
+    float32 so that no full-size float copy is made.
+
+    >>> to_8bit(np.array([[0, 1000], [2000, 4000]], np.uint16)).tolist()
+    [[0, 64], [128, 255]]
+    """
+    hi = 0.0
+    for r in range(0, arr.shape[0], rows):
+        block = arr[r:r + rows]
+        if block.dtype.kind == "f":
+            block = np.where(np.isfinite(block), block, 0)
+        if block.size:
+            hi = max(hi, float(block.max()))
+    scale = np.float32(255.0 / hi) if hi > 0 else np.float32(0.0)
+    out = np.empty(arr.shape, np.uint8)
+    for r in range(0, arr.shape[0], rows):
+        b = arr[r:r + rows].astype(np.float32)
+        np.nan_to_num(b, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        b *= scale
+        b += np.float32(0.5)
+        np.clip(b, 0, 255, out=b)
+        out[r:r + rows] = b.astype(np.uint8)
+    return out
+
+
 def load_image(path: str | os.PathLike[str], max_side: int | None = None,
                min_side: int | None = None, max_pixels: int | None = None) -> LoadedImage:
     """Load a photo in displayed orientation as 8-bit RGB, downscaled to ``max_side``.
@@ -277,16 +313,26 @@ def load_image(path: str | os.PathLike[str], max_side: int | None = None,
             w0, h0 = im.size  # from the header: nothing decoded yet
             if w0 * h0 > max_pixels:
                 raise InputError(_too_large(path, f"{w0}x{h0} = ", w0 * h0, max_pixels))
+            need = w0 * h0 * _BYTES_PER_PIXEL.get(im.mode, 4)
+            if need > max_pixels * MAX_BYTES_PER_PIXEL:
+                raise InputError(
+                    f"{path}: {w0}x{h0} {im.mode} image decodes to {need / 2**20:.0f} MiB, "
+                    f"over the budget of image.max_pixels x {MAX_BYTES_PER_PIXEL} bytes = "
+                    f"{max_pixels * MAX_BYTES_PER_PIXEL / 2**20:.0f} MiB; downscale it or "
+                    f"convert it to 8 bits first")
             im.load()
             if _orientation(im) != 1:  # exif_transpose copies: only when there is a rotation
                 im = ImageOps.exif_transpose(im)
                 notes.append("exif-rotated")
             mode = im.mode
-            if mode in ("I;16", "I;16B", "I;16L", "I"):
-                arr = np.asarray(im, dtype=np.float64)
-                hi = arr.max() if arr.size else 1.0
-                arr8 = (arr / (hi if hi > 0 else 1.0) * 255.0 + 0.5).astype(np.uint8)
-                im = Image.fromarray(arr8, "L")
+            if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+                arr = np.asarray(im)  # one copy at the file's depth, then Pillow's freed
+                im.close()
+                im_file.close()
+                with warnings.catch_warnings():  # our limits were checked above
+                    warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                    im = Image.fromarray(to_8bit(arr), "L")
+                del arr
                 notes.append(f"{mode}->8bit")
             if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
                 im = im.convert("RGBA")

@@ -45,6 +45,70 @@ def params_from_dict(cls: type[T], d: Mapping[str, Any] | None) -> T:
     return cls(**checked_mapping(cls, d))
 
 
+MAX_CONFIG_NODES = 100_000
+"""The most values (mappings, lists and scalars, each alias counted where it is used) a
+configuration may expand to: the defaults have about 1,000. A YAML alias bomb (anchors
+nested a few levels) expands to billions and is refused after this many."""
+MAX_CONFIG_TEXT = 100_000
+"""The most characters one configuration string or key may have."""
+
+
+def config_value_problem(value: Any, max_nodes: int = MAX_CONFIG_NODES,
+                         max_text: int = MAX_CONFIG_TEXT) -> str | None:
+    """What makes a configuration value unusable, in one line naming its key path, or
+    None: over ``max_nodes`` values once its aliases are expanded, a string or key over
+    ``max_text`` characters, or a number that is not finite (NaN, inf). Visits at most
+    ``max_nodes`` values, so a bomb costs milliseconds, not its expansion.
+
+    >>> config_value_problem({"stage1": {"sigma_s": float("nan")}})
+    'stage1.sigma_s = nan: not a finite number'
+    >>> bomb = ["x"] * 10
+    >>> for _ in range(9):
+    ...     bomb = [bomb] * 10
+    >>> config_value_problem({"stage1": {"max_patterns": bomb}})
+    'stage1.max_patterns: more than 100000 values (a YAML alias bomb?)'
+    >>> config_value_problem({"a": [1, 2.5, None, "ok"]}) is None
+    True
+    """
+    import math
+
+    stack: list[tuple[tuple[str, ...], Any]] = [((), value)]
+    seen = 0
+    while stack:
+        path, v = stack.pop()
+        seen += 1
+        where = ".".join(path) or "(top level)"
+        if seen > max_nodes:
+            top = ".".join(path[:2]) or "(top level)"
+            return f"{top}: more than {max_nodes} values (a YAML alias bomb?)"
+        if isinstance(v, Mapping):
+            for k, x in reversed(list(v.items())):
+                if isinstance(k, str) and len(k) > max_text:
+                    return f"{where}: a key of {len(k)} characters (at most {max_text})"
+                stack.append((path + (str(k)[:60],), x))
+        elif isinstance(v, (list, tuple)):
+            for i in range(len(v) - 1, -1, -1):
+                stack.append((path + (str(i),), v[i]))
+        elif isinstance(v, str):
+            if len(v) > max_text:
+                return f"{where}: a value of {len(v)} characters (at most {max_text})"
+        elif isinstance(v, float) and not math.isfinite(v):
+            return f"{where} = {v}: not a finite number"
+    return None
+
+
+def short_repr(value: Any, limit: int = 200) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a message never prints a huge value)."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxstring = r.maxother = limit
+    r.maxlist = r.maxdict = r.maxtuple = r.maxset = 8
+    r.maxlevel = 3
+    text = r.repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def load_yaml(text: str) -> Any:
     """The YAML document in ``text``, read as ``yaml.safe_load`` reads it.
 

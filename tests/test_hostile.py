@@ -132,3 +132,114 @@ def test_two_runs_on_one_folder_keep_every_result(tmp_path):
     assert len(names) == 80
     outputs.check_targets(out, list(names))   # every file recognised as rescu's
     assert not (out / outputs.WORK).exists()
+
+
+# ------------------------------------------------------------ config and image bombs
+def _bomb() -> str:
+    """Nine nested anchors under ``stage1.max_patterns``: 9**9 strings once expanded."""
+    levels = ["&a [" + ",".join(['"lol"'] * 9) + "]"]
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        levels.append(f"&{name} [" + ",".join([f"*{prev}"] * 9) + "]")
+    return "stage1:\n  max_patterns: [" + ", ".join(levels) + "]\n"
+
+
+BOMB = _bomb()
+
+
+def _peak_and_time(cmd: list[str], **kw):
+    """Run ``cmd``; its exit, output and the peak RSS (bytes) of its process tree."""
+    import resource
+    import subprocess
+    import time
+
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, **kw)
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+    return proc, peak, time.monotonic() - t0
+
+
+def test_a_yaml_alias_bomb_is_refused_at_once_with_a_short_message(photo, tmp_path):
+    import sys
+
+    cfg = tmp_path / "bomb.yaml"
+    cfg.write_text(BOMB)
+    proc, peak, secs = _peak_and_time(
+        [sys.executable, "-m", "rescu.cli", "discover", str(photo), "--out",
+         str(tmp_path / "out"), "--config", str(cfg)])
+    assert_one_line_error(proc, "bomb.yaml", "stage1.max_patterns", "alias bomb")
+    assert len(proc.stderr) < 400 and secs < 60 and peak < 1.5 * 2**30
+
+
+def test_a_yaml_alias_bomb_is_refused_by_the_workflow(tmp_path):
+    import subprocess
+    import sys
+
+    from test_cli import REPO
+
+    cfg = tmp_path / "bomb.yaml"
+    cfg.write_text(BOMB)
+    proc, peak, secs = _peak_and_time(
+        [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"),
+         "--directory", str(tmp_path), "--configfile", str(cfg), "-n"])
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "alias bomb" in proc.stderr and len(proc.stderr) < 2000
+    assert secs < 120 and peak < 1.5 * 2**30
+
+
+def test_a_bomb_through_snakemakes_config_values_is_refused():
+    from rescu.config import typed_cli_overrides
+
+    bomb = ["x"] * 9
+    for _ in range(9):
+        bomb = [bomb] * 9
+    with pytest.raises(InputError, match=r"--config: stage1\.max_patterns: more than"):
+        typed_cli_overrides({"stage1": {"max_patterns": bomb}})
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_nan_and_inf_are_refused_wherever_a_number_is_read(tmp_path, value):
+    from rescu.config import load_config
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"stage1: {{sigma_s: {value}}}\n")
+    with pytest.raises(InputError, match=r"c\.yaml: stage1\.sigma_s = .*not a finite number"):
+        load_config(cfg, stage2=False)
+    with pytest.raises(InputError, match=r"--set: dense\..* not a finite number"):
+        load_config(overrides={"dense": {"min_confidence": float(value.replace(".", "")
+                                                                   .replace("nan", "nan"))}},
+                    stage2=False)
+
+
+def test_a_16_bit_png_under_the_pixel_limit_decodes_within_the_memory_budget(tmp_path):
+    import subprocess
+    import sys
+
+    import numpy as np
+    from PIL import Image
+
+    a = np.zeros((10000, 10000), np.uint16)
+    a[::97, :] = 40000
+    png = tmp_path / "big16.png"
+    Image.fromarray(a).save(png)
+    del a
+    probe = ("import resource, sys; from rescu.io import load_image; "
+             "r = load_image(sys.argv[1]); print(r.rgb.shape, r.rgb.dtype, r.rgb.max()); "
+             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    proc = subprocess.run([sys.executable, "-c", probe, str(png)], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    shape, peak_kb = proc.stdout.splitlines()
+    assert shape.startswith("(1600, 1600, 3) uint8 ") and int(shape.split()[-1]) > 0
+    assert int(peak_kb) * 1024 < 1.5 * 2**30
+
+
+def test_a_deep_image_over_the_byte_budget_is_refused_before_decoding(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from rescu.io import load_image
+
+    png = tmp_path / "deep.tif"
+    Image.fromarray(np.zeros((100, 100), np.int32), "I").save(png)
+    with pytest.raises(InputError, match=r"deep\.tif: 100x100 I image decodes to"):
+        load_image(png, max_pixels=12000)  # 40,000 bytes over 12,000 x 3
