@@ -76,6 +76,14 @@ def _collect_photos(paths: Sequence[str]) -> list[Path]:
     return list(unique.values())
 
 
+def printable(text: str) -> str:
+    """:func:`rescu.io.printable`: control characters of file names escaped, not sent to
+    the terminal."""
+    from .io import printable as _p
+
+    return _p(text)
+
+
 def _parse_box(text: str, where: str) -> tuple[float, float, float, float]:
     """``"X,Y,W,H"`` -> four floats; :class:`~rescu.io.InputError` naming ``where``."""
     import math
@@ -272,18 +280,19 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
         except ExampleError as e:  # this photo's boxes: the others go on
             failed += 1
             refused.append(name)
-            tqdm.write(f"{photo.name}: FAILED: {e}", file=sys.stdout)
+            tqdm.write(printable(f"{photo.name}: FAILED: {e}"), file=sys.stdout)
             continue
         except DiskFullError as e:
             bar.close()
-            print(f"rescu: error: {e}; stopped at {photo} ({done} of {len(photos)} photo(s) "
-                  f"done, their results in {out}/ intact); free some space and run again",
+            print(printable(f"rescu: error: {e}; stopped at {photo} ({done} of {len(photos)} "
+                            f"photo(s) done, their results in {out}/ intact); free some "
+                            f"space and run again"),
                   file=sys.stderr)
             return EXIT_IMAGE_FAILED
         f = res.extra.get("failure")
         failed += bool(f) and not f.get("degraded_to")
         degraded += bool(f) and bool(f.get("degraded_to"))
-        tqdm.write(_summary_line(photo.name, res), file=sys.stdout)
+        tqdm.write(printable(_summary_line(photo.name, res)), file=sys.stdout)
     kept = (f" ({degraded} with a failed step, the previous step's result kept)"
             if degraded else "")
     from .gallery import write_gallery
@@ -291,9 +300,9 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
     with outputs.locked(out):  # every photo of the folder's manifest, this run's first
         page = write_gallery(out, outputs.names_in(out, [n for n in names if n not in refused]))
         outputs.record_own(out, outputs.GALLERY)
-    print(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results in {out}/ "
-          f"(per-image JSON, overlay PNG; log in {out / 'rescu.log'})")
-    print(f"Gallery: {page}")
+    print(printable(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results "
+                    f"in {out}/ (per-image JSON, overlay PNG; log in {out / 'rescu.log'})"))
+    print(printable(f"Gallery: {page}"))
     return EXIT_IMAGE_FAILED if failed or degraded else EXIT_OK
 
 
@@ -483,7 +492,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except (InputError, ValueError, FileNotFoundError) as e:
-        print(f"rescu: error: {e}", file=sys.stderr)
+        print(f"rescu: error: {printable(str(e))}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("rescu: interrupted", file=sys.stderr)

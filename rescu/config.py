@@ -146,6 +146,13 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     stage-II variants). With ``stage2`` the backbone's weights must be on disk. Raises
     ValueError / :class:`InputError` naming the section and key; returns nothing.
     """
+    rd = config.get("results_dir")
+    if isinstance(rd, str):
+        where = Path(rd).expanduser().resolve()
+        if not rd.strip() or where == Path(where.anchor) or where == Path.home().resolve():
+            raise InputError(f"results_dir = {rd!r}: the file system's root, your home "
+                             f"folder or empty; results (and their sweeps of stale files) "
+                             f"need a folder of their own, e.g. results")
     from .captions.caption import CaptionParams
     from .scene.completion import CompletionParams
     from .params import EvaluationParams

@@ -97,12 +97,21 @@ def write_json(path: str | os.PathLike[str], obj: Any) -> None:
 
 
 def read_json(path: str | os.PathLike[str]) -> Any:
-    """Read a JSON file; a malformed file raises :class:`InputError` naming it."""
+    """Read a JSON file; a malformed file (or one nested too deeply to read, or not a
+    regular file) raises :class:`InputError` naming it."""
+    import stat
+
     path = Path(path)
     try:
+        if not stat.S_ISREG(path.stat().st_mode):
+            raise InputError(f"{path}: not a regular file")
         return json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be read") from None
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     except json.JSONDecodeError as e:
         raise InputError(f"{path}: malformed JSON ({e.msg} at line {e.lineno}, "
                          f"column {e.colno})") from None
@@ -111,10 +120,37 @@ def read_json(path: str | os.PathLike[str]) -> Any:
 def read_result(path: str | os.PathLike[str]) -> ImageResult:
     """Read a per-image result JSON into an :class:`ImageResult`."""
     d = read_json(path)
+    pats = d.get("patterns") if isinstance(d, dict) else None
+    for i, p in enumerate(pats if isinstance(pats, list) else []):
+        insts = p.get("instances") if isinstance(p, dict) else None
+        for j, inst in enumerate(insts if isinstance(insts, list) else []):
+            problem = box_problem(inst.get("bbox") if isinstance(inst, dict) else None)
+            if problem:
+                raise InputError(f"{path}: patterns[{i}].instances[{j}].bbox {problem}")
     try:
         return ImageResult.from_json(d)
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"{path}: not a per-image result ({type(e).__name__}: {e})") from None
+    except (KeyError, TypeError, ValueError, AttributeError, RecursionError) as e:
+        raise InputError(f"{path}: not a per-image result ({type(e).__name__}: "
+                         f"{str(e)[:200]})") from None
+
+
+def box_problem(b: Any) -> str | None:
+    """What makes ``b`` not a box ``[x, y, width, height]`` of pixels (four finite
+    numbers, width and height >= 0), or None.
+
+    >>> box_problem([1, 2, 3, 4]) is None, box_problem([0, 0, -1, 2])
+    (True, 'has a negative width or height: [0, 0, -1, 2]')
+    """
+    import math
+
+    if (not isinstance(b, (list, tuple)) or len(b) != 4
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in b)):
+        return f"must be [x, y, width, height] (four numbers), got {str(b)[:80]}"
+    if not all(math.isfinite(v) for v in b):
+        return f"is not finite: {list(b)}"
+    if b[2] < 0 or b[3] < 0:
+        return f"has a negative width or height: {list(b)}"
+    return None
 
 
 def write_h5(path: str | os.PathLike[str], arrays: dict[str, Any],
@@ -219,6 +255,19 @@ def check_photo_file(path: str | os.PathLike[str]) -> Path:
             else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
             else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
     raise InputError(f"{path}: is {kind}, not an image file")
+
+
+def printable(text: str) -> str:
+    r"""``text`` safe to print on a terminal: control characters (escape codes, carriage
+    returns, ...) shown as ``\xNN`` / ``\uNNNN`` escapes instead of acted on.
+
+    >>> printable("a\x1b[2Jb.png")
+    'a\\x1b[2Jb.png'
+    """
+    import unicodedata
+
+    return "".join(ch if ch == " " or unicodedata.category(ch)[0] not in "CZ" or ch == "\u3000"
+                   else ascii(ch)[1:-1] for ch in str(text))
 
 
 def display_name(name: str) -> str:
@@ -442,13 +491,19 @@ def load_coco_rps(path: str | os.PathLike[str]) -> dict[str, list[GroundTruthRP]
             raise InputError(f"{path}: field '{key}' missing or not a list")
     cats = {}
     for c in d.get("categories", []) or []:
-        if isinstance(c, dict) and "id" in c:
+        if isinstance(c, dict) and isinstance(c.get("id"), (int, str)):
             cats[c["id"]] = str(c.get("name", c["id"]))
     files: dict[Any, str] = {}
     for i, im in enumerate(d["images"]):
         if not isinstance(im, dict) or "id" not in im or "file_name" not in im:
             raise InputError(f"{path}: images[{i}] needs 'id' and 'file_name'")
-        files[im["id"]] = str(im["file_name"])
+        if not isinstance(im["id"], (int, str)) or isinstance(im["id"], bool):
+            raise InputError(f"{path}: images[{i}].id must be a number or a string")
+        name = im["file_name"]
+        if not isinstance(name, str) or not name or len(name) > 4096:
+            raise InputError(f"{path}: images[{i}].file_name must be a path of 1 to 4096 "
+                             f"characters")
+        files[im["id"]] = name
     groups: dict[tuple[str, Any], list[tuple[BBox, dict[str, Any]]]] = {}
     for i, a in enumerate(d["annotations"]):
         if not isinstance(a, dict):
@@ -457,11 +512,14 @@ def load_coco_rps(path: str | os.PathLike[str]) -> dict[str, list[GroundTruthRP]
             if key not in a:
                 raise InputError(f"{path}: annotations[{i}] has no field '{key}'")
         b = a["bbox"]
-        if (not isinstance(b, (list, tuple)) or len(b) != 4
-                or not all(isinstance(v, (int, float)) for v in b)):
-            raise InputError(f"{path}: annotations[{i}].bbox must be [x, y, width, height]")
-        if a["image_id"] not in files:
-            raise InputError(f"{path}: annotations[{i}].image_id {a['image_id']!r} "
+        problem = box_problem(b)
+        if problem:
+            raise InputError(f"{path}: annotations[{i}].bbox {problem}")
+        if not isinstance(a["category_id"], (int, str)):
+            raise InputError(f"{path}: annotations[{i}].category_id must be a number or a "
+                             f"string")
+        if not isinstance(a["image_id"], (int, str)) or a["image_id"] not in files:
+            raise InputError(f"{path}: annotations[{i}].image_id {repr(a['image_id'])[:80]} "
                              f"is not in 'images'")
         extra = {k: v for k, v in a.items() if k not in ("bbox", "image_id", "id", "area",
                                                           "segmentation", "iscrowd")}
@@ -492,12 +550,21 @@ def load_vanishing_points(path: str | os.PathLike[str]) -> dict[str, dict[str, A
         for key in ("file_name", "width", "height", "vanishing_points"):
             if key not in im:
                 raise InputError(f"{path}: images[{i}] has no field '{key}'")
+        for key in ("width", "height"):
+            v = im[key]
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v < 1e6:
+                raise InputError(f"{path}: images[{i}].{key} must be a number of pixels > 0, "
+                                 f"got {str(v)[:40]!r}")
+        if not isinstance(im["vanishing_points"], list):
+            raise InputError(f"{path}: images[{i}].vanishing_points must be a list")
         vps = []
         for j, vp in enumerate(im["vanishing_points"]):
             h = vp.get("homogeneous") if isinstance(vp, dict) else None
-            if not isinstance(h, list) or len(h) != 3:
+            if (not isinstance(h, list) or len(h) != 3
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                               and np.isfinite(v) for v in h)):
                 raise InputError(f"{path}: images[{i}].vanishing_points[{j}].homogeneous "
-                                 f"must be [x, y, w]")
+                                 f"must be [x, y, w], three finite numbers")
             vps.append(np.asarray(h, float))
         out[str(im["file_name"])] = {
             "width": int(im["width"]), "height": int(im["height"]),

@@ -146,16 +146,27 @@ def _bomb() -> str:
 BOMB = _bomb()
 
 
-def _peak_and_time(cmd: list[str], **kw):
-    """Run ``cmd``; its exit, output and the peak RSS (bytes) of its process tree."""
-    import resource
-    import subprocess
-    import time
+WRAP = ("import resource, subprocess, sys, time\n"
+        "t0 = time.monotonic()\n"
+        "r = subprocess.run(sys.argv[1:])\n"
+        "sys.stderr.write('PEAK %d %f\\n' % (resource.getrusage(resource.RUSAGE_CHILDREN)"
+        ".ru_maxrss * 1024, time.monotonic() - t0))\n"
+        "sys.exit(r.returncode)\n")
 
-    t0 = time.monotonic()
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, **kw)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
-    return proc, peak, time.monotonic() - t0
+
+def _peak_and_time(cmd: list[str], **kw):
+    """Run ``cmd``; its exit, output, the peak RSS (bytes) of its largest process and
+    its seconds. Measured by a small wrapper process: a child's ``ru_maxrss`` starts
+    at its parent's size when forked, and this test's process holds the suite's models."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", WRAP, *cmd], capture_output=True,
+                          text=True, timeout=300, **kw)
+    lines = proc.stderr.splitlines()
+    peak, secs = lines[-1].split()[1:]
+    proc.stderr = "\n".join(lines[:-1]) + ("\n" if len(lines) > 1 else "")
+    return proc, int(peak), float(secs)
 
 
 def test_a_yaml_alias_bomb_is_refused_at_once_with_a_short_message(photo, tmp_path):
@@ -222,9 +233,9 @@ def test_a_16_bit_png_under_the_pixel_limit_decodes_within_the_memory_budget(tmp
     png = tmp_path / "big16.png"
     Image.fromarray(a).save(png)
     del a
-    probe = ("import resource, sys; from rescu.io import load_image; "
+    probe = ("import re, sys; from rescu.io import load_image; "   # VmHWM: this process's
              "r = load_image(sys.argv[1]); print(r.rgb.shape, r.rgb.dtype, r.rgb.max()); "
-             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+             "print(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read())[1])")
     proc = subprocess.run([sys.executable, "-c", probe, str(png)], capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -243,3 +254,93 @@ def test_a_deep_image_over_the_byte_budget_is_refused_before_decoding(tmp_path):
     Image.fromarray(np.zeros((100, 100), np.int32), "I").save(png)
     with pytest.raises(InputError, match=r"deep\.tif: 100x100 I image decodes to"):
         load_image(png, max_pixels=12000)  # 40,000 bytes over 12,000 x 3
+
+
+# ------------------------------------------------------------ malformed inputs, one line
+def _coco(tmp_path: Path, d) -> Path:
+    p = tmp_path / "annotations.json"
+    p.write_text(json.dumps(d) if not isinstance(d, str) else d)
+    return p
+
+
+IMG = {"id": 1, "file_name": "images/a.jpg"}
+
+
+@pytest.mark.parametrize("d, needle", [
+    ([], "top level must be an object"),
+    ("[" * 200_000 + "]" * 200_000, "nested too deeply"),
+    ({"images": [{"id": [1], "file_name": "a.jpg"}], "annotations": []},
+     "images[0].id must be a number or a string"),
+    ({"images": [{"id": 1, "file_name": "x" * 1_000_000}], "annotations": []},
+     "images[0].file_name must be a path of 1 to 4096"),
+    ({"images": [IMG], "annotations": [{"image_id": [1], "category_id": 1,
+                                        "bbox": [0, 0, 1, 1]}]}, "annotations[0].image_id"),
+    ({"images": [IMG], "annotations": [{"image_id": 1, "category_id": {"a": 1},
+                                        "bbox": [0, 0, 1, 1]}]}, "annotations[0].category_id"),
+    ({"images": [IMG], "annotations": [{"image_id": 1, "category_id": 1,
+                                        "bbox": [0, 0, -5, 1]}]}, "negative width"),
+    ({"images": [IMG], "annotations": [{"image_id": 1, "category_id": 1,
+                                        "bbox": [0, 0, float("inf"), 1]}]}, "not finite"),
+])
+def test_a_malformed_annotations_file_is_one_line_naming_the_field(tmp_path, d, needle):
+    from rescu.io import load_coco_rps
+
+    with pytest.raises(InputError) as e:
+        load_coco_rps(_coco(tmp_path, d))
+    assert "annotations.json" in str(e.value) and needle in str(e.value)
+    assert len(str(e.value)) < 500
+
+
+@pytest.mark.parametrize("im, needle", [
+    ({"file_name": "a.jpg", "width": "abc", "height": 480, "vanishing_points": []},
+     "images[0].width must be a number of pixels"),
+    ({"file_name": "a.jpg", "width": 640, "height": 480, "vanishing_points": 3},
+     "images[0].vanishing_points must be a list"),
+    ({"file_name": "a.jpg", "width": 640, "height": 480,
+      "vanishing_points": [{"homogeneous": [1, "x", 0]}]}, "three finite numbers"),
+])
+def test_a_malformed_vanishing_points_file_names_file_and_field(tmp_path, im, needle):
+    from rescu.io import load_vanishing_points
+
+    p = tmp_path / "vanishing_points.json"
+    p.write_text(json.dumps({"images": [im]}))
+    with pytest.raises(InputError, match="vanishing_points.json: ") as e:
+        load_vanishing_points(p)
+    assert needle in str(e.value)
+
+
+@pytest.mark.parametrize("box, needle", [([0, 0, float("nan"), 3], "not finite"),
+                                         ([0, 0, -4, 3], "negative width"),
+                                         ([0, 0, 1e400, 3], "not finite")])
+def test_a_prediction_with_a_bad_box_is_refused_not_scored(tmp_path, box, needle):
+    from rescu.io import read_result
+
+    p = tmp_path / "a.json"
+    p.write_text(json.dumps({"image": "images/a.jpg", "width": 10, "height": 10,
+                             "method": "rescu-ii", "dominant_pattern": 0,
+                             "patterns": [{"id": 0, "score": 1.0, "count": 1,
+                                           "instances": [{"bbox": box, "score": 1.0,
+                                                          "source": "stage1"}]}]}))
+    with pytest.raises(InputError, match=r"a\.json: patterns\[0\]\.instances\[0\]\.bbox"):
+        read_result(p)
+    with pytest.raises(InputError) as e:
+        read_result(p)
+    assert needle in str(e.value)
+
+
+@pytest.mark.parametrize("where", ["/", "~", ""])
+def test_results_dir_at_the_root_or_home_is_refused(where):
+    from rescu.config import load_config
+
+    with pytest.raises(InputError, match="results_dir"):
+        load_config(overrides={"results_dir": where}, stage2=False)
+
+
+def test_escape_codes_in_a_file_name_do_not_reach_the_terminal(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    photo = shelf_photo(folder / "evil\x1b[2J\x1b]0;pwned\x07.png")
+    proc = _discover(photo, tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    assert "\x1b" not in proc.stdout + proc.stderr and "\x07" not in proc.stdout
+    assert "evil\\x1b[2J" in proc.stdout
