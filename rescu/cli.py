@@ -419,7 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("photos", nargs="+", metavar="PHOTO",
                    help="image files or folders of images (a folder's images/ subfolder is used "
                         "when present)")
-    d.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    d.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (created); required")
     d.add_argument("--method", default=METHODS[0], choices=list(METHODS),
                    help="rescu-ii (default): stage I extended by the self-supervised stage II; "
                         "rescu-i: stage I only (fast); grasp: the GRASP baseline")
@@ -476,19 +477,40 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("dataset_dir", help="dataset folder: images/ + annotations.json / "
                                        "vanishing_points.json")
     e.add_argument("pred_dir", help="folder of <image stem>.json predictions")
-    e.add_argument("--h", type=float, default=None,
+    e.add_argument("--iod", dest="h", type=float, default=None, metavar="H",
                    help=f"IOD threshold (default {config_defaults('evaluation')['iod_h']})")
+    e.add_argument("--h", dest="h", type=float, help=argparse.SUPPRESS)  # its old name
     e.add_argument("--out", metavar="DIR", default=None,
                    help="also write the per-image scores and tables (TSV, Markdown) here")
     e.set_defaults(func=cmd_evaluate)
+    p.set_defaults(subcommands={"discover": d, "evaluate": e})
     return p
+
+
+def _parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, but a mistyped option is named first (with the
+    nearest known one) by its subcommand's usage, before a required option it hides."""
+    import difflib
+
+    args, extra = parser.parse_known_args(argv)
+    sub = args.subcommands[args.command]
+    if extra:
+        known = [o for a in sub._actions for o in a.option_strings
+                 if a.help != argparse.SUPPRESS]
+        bad = extra[0].split("=", 1)[0]
+        close = difflib.get_close_matches(bad, known, n=1) if bad.startswith("-") else []
+        sub.error(f"unrecognized argument {extra[0]!r}"
+                  + (f" (did you mean {close[0]}?)" if close else ""))
+    if args.command == "discover" and args.out is None:
+        sub.error("the following arguments are required: --out")
+    return args
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     from .io import InputError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     try:
         return int(args.func(args))
     except (InputError, ValueError, FileNotFoundError) as e:

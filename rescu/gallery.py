@@ -4,7 +4,8 @@
 beside ``<name>.png``) and writes one self-contained HTML page (pictures embedded as
 JPEG, no script, no network) that opens from a file browser: per photo its overlay
 picture (a click opens the full-size PNG beside the page), the one-line summary (counts,
-confidence, the supported claims), the caption, or the failure.
+confidence, the supported claims), the caption; a photo that failed gets a message card
+in place of its picture (no picture is taller than 600 pixels on the page).
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ h1{font-size:24px;margin:4px 0}
 .lead{font-size:15px;color:#333}
 .grid{display:flex;flex-wrap:wrap;gap:18px;margin-top:12px}
 figure{margin:0;width:420px;max-width:100%}
-figure img{max-width:100%;height:auto;border:1px solid #ccc}
+figure img{max-width:100%;max-height:600px;height:auto;object-fit:contain;border:1px solid #ccc}
+.failcard{box-sizing:border-box;width:100%;min-height:120px;padding:14px;border:1px solid #d99;
+ background:#fff4f4;color:#a00;font-size:14px;overflow-wrap:anywhere}
 figcaption{font-size:15px}
 figcaption .name{font-weight:600}
 figcaption .found{color:#333;font-size:14px}
@@ -76,8 +79,12 @@ def write_gallery(out_dir: str | Path, names: Sequence[str] | None = None,
                           f"failed; {html.escape(str(f.get('degraded_to')))}'s result)</span>")
         cap = (res.caption or {}).get("enhanced") or ""
         png = out_dir / f"{name}.png"
-        pic = (f"<a href='{html.escape(png.name)}' title='full size'>"
-               f"{img_tag(png, width=420, alt=name)}</a>" if png.exists() else "")
+        if f and not f.get("degraded_to"):  # a message card, whatever its overlay's size
+            pic = (f"<div class='failcard'>could not be processed: "
+                   f"{html.escape(str(f.get('message')))}</div>")
+        else:
+            pic = (f"<a href='{html.escape(png.name)}' title='full size'>"
+                   f"{img_tag(png, width=420, alt=name)}</a>" if png.exists() else "")
         cards.append(
             f"<figure>{pic}<figcaption><div class='name'>{html.escape(Path(res.image).name or name)}"
             f"</div><div class='found'>{found}</div>"

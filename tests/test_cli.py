@@ -167,3 +167,47 @@ def test_slurm_profile_parses_in_dry_run(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "stage2_features" in proc.stdout + proc.stderr
+
+
+def test_a_failed_photo_is_a_message_card_in_the_gallery(tmp_path):
+    """A broken file's card holds the message, not its (1-pixel-wide) overlay."""
+    import re
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    shelf_photo(folder / "good.png")
+    (folder / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    out = tmp_path / "out"
+    proc = rescu("discover", str(folder), "--out", str(out), "--method", "rescu-i", "--quiet")
+    assert proc.returncode == 1, proc.stderr
+    page = (out / "index.html").read_text()
+    cards = re.findall(r"<figure>(.*?)</figure>", page)
+    broken = [c for c in cards if "broken.png" in c]
+    good = [c for c in cards if "good.png" in c]
+    assert len(broken) == 1 and len(good) == 1
+    assert "failcard" in broken[0] and "<img" not in broken[0]
+    assert "unreadable or truncated" in broken[0] or "not an image" in broken[0]
+    assert "<img" in good[0]
+    assert "max-height:600px" in page
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["discover", "x.png", "--ouput", "o"], "unrecognized argument '--ouput' (did you mean --out?)"),
+    (["discover", "--methd", "rescu-i", "x.png", "--out", "o"],
+     "unrecognized argument '--methd' (did you mean --method?)"),
+    (["discover", "x.png"], "the following arguments are required: --out"),
+])
+def test_a_mistyped_option_is_named_by_its_subcommand(args, needle):
+    proc = rescu(*args)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("rescu discover: error: ") and needle in last, proc.stderr
+
+
+def test_evaluate_names_its_threshold_iod_and_keeps_h(tmp_path):
+    from rescu import cli
+
+    p = cli.build_parser()
+    assert cli._parse(p, ["evaluate", "d", "p", "--iod", "0.3"]).h == 0.3
+    assert cli._parse(p, ["evaluate", "d", "p", "--h", "0.4"]).h == 0.4
+    assert "--iod H" in rescu("evaluate", "--help").stdout
