@@ -227,6 +227,56 @@ def _results_dir(argv: Sequence[str], default: str) -> str:
         return default
 
 
+def snakemake_pids(workdir: str | Path) -> list[int]:
+    """Process ids of the Snakemake processes (other than this one and its parent)
+    whose working folder is ``workdir`` (from ``/proc``; empty where there is none)."""
+    import os
+
+    root = os.path.realpath(workdir)
+    mine = {os.getpid(), os.getppid()}
+    pids = []
+    for entry in Path("/proc").glob("[0-9]*"):
+        try:
+            pid = int(entry.name)
+            if pid in mine:
+                continue
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+            if not any(Path(a.decode(errors="replace")).name == "snakemake" or a == b"snakemake"
+                       for a in argv[:3]):
+                continue
+            if os.path.realpath(os.readlink(entry / "cwd")) == root:
+                pids.append(pid)
+        except (OSError, ValueError):
+            continue
+    return sorted(pids)
+
+
+def recover_lock(cmd: Sequence[str], workdir: str | Path = ".",
+                 emit: Callable[[str], None] = print) -> bool:
+    """Before a Snakemake run in ``workdir``: a lock left by a killed run
+    (``.snakemake/locks`` not empty, no Snakemake of this folder alive) is removed with
+    ``cmd --unlock``, said in one line; a lock held by a live Snakemake is said in one
+    line naming its pid, and False returned (the run would fail). True: go on."""
+    locks = Path(workdir) / ".snakemake" / "locks"
+    if not cmd or Path(cmd[0]).name != "snakemake" or not locks.is_dir() \
+            or not any(locks.iterdir()):
+        return True
+    alive = snakemake_pids(workdir)
+    if alive:
+        emit(f"Another Snakemake (pid {', '.join(map(str, alive))}) is running in this "
+             f"folder and holds its lock: wait for it to finish, or stop it (kill "
+             f"{alive[0]}) and run again.")
+        return False
+    proc = subprocess.run([*cmd, "--unlock"], cwd=workdir, capture_output=True, text=True)
+    if proc.returncode != 0:
+        emit(f"A stopped run left its lock and unlocking failed (exit {proc.returncode}); "
+             f"run: snakemake --unlock")
+        return False
+    emit("A stopped run had left its lock; no Snakemake of this folder is running, so it "
+         "was unlocked (snakemake --unlock). Going on.")
+    return True
+
+
 def run(cmd: Sequence[str], results: str | Path, out: TextIO = sys.stdout,
         verbose: bool = False) -> int:
     """Run ``cmd``, print what :class:`RunMonitor` keeps (everything with ``verbose``),
@@ -247,6 +297,12 @@ def run(cmd: Sequence[str], results: str | Path, out: TextIO = sys.stdout,
         out.write(line + "\n")
         out.flush()
 
+    workdir = "."
+    for flag, value in zip(cmd, list(cmd[1:]) + [""]):
+        if flag in ("--directory", "-d"):
+            workdir = value
+    if not recover_lock(cmd, workdir, emit):
+        return 1
     mon = RunMonitor(emit, progress if tty else None)
     proc = subprocess.Popen(list(cmd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, bufsize=1)

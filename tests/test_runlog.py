@@ -106,3 +106,60 @@ def test_a_message_repeated_by_each_parse_of_the_snakefile_is_shown_once():
     mon.feed("rescu: dataset 'cars': folder x not found, skipped")
     assert shown == ["rescu: dataset 'chess': folder ../shared/data/chess not found, skipped",
                      "rescu: dataset 'cars': folder x not found, skipped"]
+
+
+def _fake_snakemake(tmp_path):
+    """A 'snakemake' that, with --unlock, empties .snakemake/locks (as the real one)."""
+    exe = tmp_path / "bin" / "snakemake"
+    exe.parent.mkdir()
+    exe.write_text("#!/bin/sh\nfor a in \"$@\"; do [ \"$a\" = --unlock ] && "
+                   "rm -f .snakemake/locks/*; done\nexit 0\n")
+    exe.chmod(0o755)
+    return exe
+
+
+def test_a_lock_left_by_a_killed_run_is_removed_in_one_line(tmp_path):
+    from rescu.runlog import recover_lock
+
+    exe = _fake_snakemake(tmp_path)
+    locks = tmp_path / ".snakemake" / "locks"
+    locks.mkdir(parents=True)
+    (locks / "0.input.lock").write_text("x")
+    said = []
+    assert recover_lock([str(exe), "--cores", "2"], tmp_path, said.append)
+    assert not any(locks.iterdir())
+    assert len(said) == 1 and "was unlocked" in said[0]
+    said.clear()
+    assert recover_lock([str(exe)], tmp_path, said.append) and said == []  # no lock: quiet
+
+
+def test_a_lock_held_by_a_live_snakemake_is_named_not_removed(tmp_path, monkeypatch):
+    from rescu import runlog
+
+    exe = _fake_snakemake(tmp_path)
+    locks = tmp_path / ".snakemake" / "locks"
+    locks.mkdir(parents=True)
+    (locks / "0.input.lock").write_text("x")
+    monkeypatch.setattr(runlog, "snakemake_pids", lambda w: [4242])  # a live one
+    said = []
+    assert not runlog.recover_lock([str(exe)], tmp_path, said.append)
+    assert (locks / "0.input.lock").exists()
+    assert len(said) == 1 and "pid 4242" in said[0] and "kill 4242" in said[0]
+
+
+def test_snakemake_processes_are_found_by_name_and_folder(tmp_path):
+    import subprocess
+    import sys
+    import time
+
+    from rescu.runlog import snakemake_pids
+
+    link = tmp_path / "snakemake"
+    link.symlink_to(sys.executable)
+    proc = subprocess.Popen([str(link), "-c", "import time; time.sleep(30)"], cwd=tmp_path)
+    try:
+        time.sleep(0.5)
+        assert proc.pid in snakemake_pids(tmp_path)
+        assert proc.pid not in snakemake_pids("/")       # another folder's
+    finally:
+        proc.kill()
