@@ -129,12 +129,20 @@ def _box(inst_bbox: Sequence[float], s: float) -> tuple[float, float, float, flo
     return cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2
 
 
-def legend_entries(result: ImageResult) -> list[tuple[tuple[int, int, int], str]]:
+def legend_entries(result: ImageResult, mode: str = "boxes"
+                   ) -> list[tuple[tuple[int, int, int], str]]:
     """``(colour, text)`` per RP: ``"RP0: 12 instances, confidence 0.83, translation
-    symmetry, VP outside the image"`` (``score`` when it has no confidence)."""
+    symmetry, VP outside the image"`` (``score`` when it has no confidence); in
+    ``full`` mode also one per image VP drawn (:func:`vp_legend_text`), white as its
+    mark."""
     from .captions.caption import pattern_confidence
 
     out = []
+    if mode == "full":
+        for k, v in enumerate(result.extra.get("vanishing_points") or []):
+            text = vp_legend_text(k, v)
+            if text:
+                out.append(((255, 255, 255), text))
     for p in result.patterns:
         kind, v = pattern_confidence(p)
         text = f"RP{p.id}: {p.count} instance{'s' if p.count != 1 else ''}, {kind} {v:.2f}"
@@ -149,7 +157,32 @@ def legend_entries(result: ImageResult) -> list[tuple[tuple[int, int, int], str]
             text += (", VP " + ("inside" if p.vanishing_point.inside_image else "outside")
                      + " the image")
         out.append((PALETTE[p.id % len(PALETTE)], text))
-    return out
+    n_vp = sum(1 for c, _ in out if c == (255, 255, 255))
+    return out[n_vp:] + out[:n_vp]  # the RPs first, then the VPs
+
+
+def vp_legend_text(k: int, v: dict) -> str | None:
+    """What the mark ``VP<k+1>`` of an image VP stands for and what supports it, e.g.
+    ``"VP1: vanishing point of 64 lines and 3 RP rows, outside the image (arrow towards
+    it)"``; None for an entry without a usable point.
+
+    >>> vp_legend_text(0, {"homogeneous": [1, 2, 0], "cues": {"lines": 64, "rp_rows": 0}})
+    'VP1: vanishing point of 64 lines, at infinity (arrow along its direction)'
+    """
+    try:
+        hx, hy, hw = (float(c) for c in v["homogeneous"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    cues = v.get("cues") or {}
+    n_lines = int(cues.get("lines", v.get("support", 0)) or 0)
+    n_rows = int(cues.get("rp_rows", 0) or 0)
+    what = [f"{n_lines} line{'s' if n_lines != 1 else ''}"] if n_lines else []
+    if n_rows:
+        what.append(f"{n_rows} RP row{'s' if n_rows != 1 else ''}")
+    where = ("at infinity (arrow along its direction)" if abs(hw) <= 1e-12 else
+             "inside the image (ring)" if v.get("inside_image") else
+             "outside the image (arrow towards it)")
+    return (f"VP{k + 1}: vanishing point of {' and '.join(what) or 'its lines'}, {where}")
 
 
 def draw_overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
@@ -227,7 +260,7 @@ def draw_overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
         lab = placer.place(tw, th, anchor, text)
         if lab is not None:
             _draw_label(img, lab, PALETTE[p.id % len(PALETTE)], fs, pad)
-    return np.vstack([img, _band(result, w)]), list(placer.placed)
+    return np.vstack([img, _band(result, w, mode)]), list(placer.placed)
 
 
 def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
@@ -236,8 +269,9 @@ def overlay(rgb: np.ndarray, scale_factor: float, result: ImageResult,
     return draw_overlay(rgb, scale_factor, result, picture_max_side, mode)[0]
 
 
-def _band(result: ImageResult, w: int) -> np.ndarray:
-    """The white band below the picture: the legend, then the caption (or the failure)."""
+def _band(result: ImageResult, w: int, mode: str = "boxes") -> np.ndarray:
+    """The white band below the picture: the legend (``mode`` ``full``: the image's VPs
+    too), then the caption (or the failure)."""
     import cv2
 
     from .captions.caption import NO_PATTERN
@@ -256,7 +290,7 @@ def _band(result: ImageResult, w: int) -> np.ndarray:
     fs = 0.5 if w >= 360 else 0.4
     lh = 18 if w >= 360 else 15
     chars = max(20, int(w / (18.5 * fs)))
-    legend = legend_entries(result)
+    legend = legend_entries(result, mode)
     lines = [(col if k == 0 else (), ln) for col, t in legend
              for k, ln in enumerate(_wrap(t, chars - 3))]
     cap = [(None, ln) for ln in _wrap(text, chars)] or [(None, "")]

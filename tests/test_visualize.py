@@ -55,3 +55,21 @@ def test_tiny_boxes_stay_visible_and_legend_shows_confidence(monkeypatch) -> Non
         "RP1: 3 instances, score 0.61"
     with pytest.raises(ValueError, match="mode"):
         V.draw_overlay(np.zeros((10, 10, 3), np.uint8), 1.0, res, mode="none")
+
+
+def test_every_vp_mark_has_its_legend_entry_saying_what_supports_it() -> None:
+    """A VP arrow on a photo without RPs is explained, not left bare (full mode only)."""
+    vps = [{"homogeneous": [5000.0, 40.0, 1.0], "inside_image": False,
+            "cues": {"lines": 64, "rp_rows": 0}},
+           {"homogeneous": [30.0, 30.0, 1.0], "inside_image": True,
+            "cues": {"lines": 12, "rp_rows": 3}}]
+    res = ImageResult("x", 160, 120, "m", [], extra={"vanishing_points": vps})
+    full = V.legend_entries(res, "full")
+    assert [t for _, t in full] == [
+        "VP1: vanishing point of 64 lines, outside the image (arrow towards it)",
+        "VP2: vanishing point of 12 lines and 3 RP rows, inside the image (ring)"]
+    assert V.legend_entries(res, "boxes") == []       # no VP drawn: none explained
+    rgb = np.full((120, 160, 3), 128, np.uint8)
+    a = V.overlay(rgb, 1.0, res, mode="full")
+    b = V.overlay(rgb, 1.0, res, mode="boxes")
+    assert a.shape[0] > b.shape[0]                      # the legend lines are drawn
