@@ -63,7 +63,15 @@ def _collect_photos(paths: Sequence[str]) -> list[Path]:
             found = list_images(folder)
             skipped = skipped_images(folder)
             if skipped:
-                print(f"rescu: note: skipped in {folder}: {', '.join(skipped)}",
+                print(printable(f"rescu: note: skipped in {folder}: {', '.join(skipped)}"),
+                      file=sys.stderr)
+            subs = sorted(q.name for q in folder.iterdir()
+                          if q.is_dir() and not q.name.startswith(".") and _has_images(q))
+            if subs:  # a folder's photos only, not its subfolders': say so
+                shown = ", ".join(subs[:5]) + (f" and {len(subs) - 5} more" if len(subs) > 5
+                                               else "")
+                print(printable(f"rescu: note: not searched, the subfolder(s) of {folder} "
+                                f"with photos: {shown} (name them to include them)"),
                       file=sys.stderr)
             if not found:
                 raise InputError(f"{p}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in folder")
@@ -74,6 +82,16 @@ def _collect_photos(paths: Sequence[str]) -> list[Path]:
     for p in photos:  # one photo named twice (a file and its folder) runs once
         unique.setdefault(p.resolve(), p)
     return list(unique.values())
+
+
+def _has_images(folder: Path) -> bool:
+    """Whether ``folder`` holds image files directly (False where it cannot be read)."""
+    from .io import list_images
+
+    try:
+        return bool(list_images(folder))
+    except OSError:
+        return False
 
 
 def printable(text: str) -> str:
@@ -266,6 +284,9 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
     from .core import ExampleError
     from .io import DiskFullError
 
+    log = logging.getLogger("rescu.cli")  # the run in rescu.log: what the terminal says
+    log.info("rescu discover: %d photo(s), method %s, results in %s", len(photos),
+             args.method, out)
     failed = degraded = 0
     refused: list[str] = []  # photos whose example boxes were refused: nothing written
     bar = tqdm(list(zip(photos, names)), desc="rescu discover", unit="image",
@@ -281,6 +302,7 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
             failed += 1
             refused.append(name)
             tqdm.write(printable(f"{photo.name}: FAILED: {e}"), file=sys.stdout)
+            log.warning("%s: FAILED: %s", photo, e)
             continue
         except DiskFullError as e:
             bar.close()
@@ -292,7 +314,9 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
         f = res.extra.get("failure")
         failed += bool(f) and not f.get("degraded_to")
         degraded += bool(f) and bool(f.get("degraded_to"))
-        tqdm.write(printable(_summary_line(photo.name, res)), file=sys.stdout)
+        line = _summary_line(photo.name, res)
+        tqdm.write(printable(line), file=sys.stdout)
+        (log.warning if f else log.info)("%s", line)
     kept = (f" ({degraded} with a failed step, the previous step's result kept)"
             if degraded else "")
     from .gallery import write_gallery
@@ -300,6 +324,7 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
     with outputs.locked(out):  # every photo of the folder's manifest, this run's first
         page = write_gallery(out, outputs.names_in(out, [n for n in names if n not in refused]))
         outputs.record_own(out, outputs.GALLERY)
+    log.info("%d of %d image(s) done%s", len(photos) - failed, len(photos), kept)
     print(printable(f"{len(photos) - failed} of {len(photos)} image(s) done{kept}; results "
                     f"in {out}/ (per-image JSON, overlay PNG; log in {out / 'rescu.log'})"))
     print(printable(f"Gallery: {page}"))

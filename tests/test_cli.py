@@ -211,3 +211,17 @@ def test_evaluate_names_its_threshold_iod_and_keeps_h(tmp_path):
     assert cli._parse(p, ["evaluate", "d", "p", "--iod", "0.3"]).h == 0.3
     assert cli._parse(p, ["evaluate", "d", "p", "--h", "0.4"]).h == 0.4
     assert "--iod H" in rescu("evaluate", "--help").stdout
+
+
+def test_the_log_says_what_ran_and_subfolders_are_named(tmp_path):
+    folder = tmp_path / "photos"
+    (folder / "more").mkdir(parents=True)
+    shelf_photo(folder / "a.png")
+    shelf_photo(folder / "more" / "b.png")
+    out = tmp_path / "out"
+    proc = rescu("discover", str(folder), "--out", str(out), "--method", "rescu-i", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "not searched, the subfolder(s)" in proc.stderr and "more" in proc.stderr
+    log = (out / "rescu.log").read_text()
+    assert "rescu discover: 1 photo(s), method rescu-i" in log
+    assert "a.png: " in log and "1 of 1 image(s) done" in log
