@@ -668,3 +668,20 @@ def test_dense_cost_times_a_variant_beside_the_defaults(capsys):
                     "--against", "objectness_crops=0"]) == 0
     out = capsys.readouterr().out
     assert "synthetic" in out and "variant: objectness_crops=0" in out
+
+
+def test_camera_speed_times_every_stage_of_a_small_photo(capsys):
+    import importlib.util as iu
+
+    from rescu.data.photos import package_photo_dir
+
+    spec = iu.spec_from_file_location("camera_speed", BENCH / "speed" / "camera_speed.py")
+    mod = iu.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--photo", str(package_photo_dir() / "brick.png"), "--mp", "0.05",
+                     "--method", "rescu-i"]) == 0
+    out = capsys.readouterr().out
+    line = [ln for ln in out.splitlines() if ln.startswith("brick.png")][0]
+    for stage in ("prepare", "features", "dense", "rescu-i", "scene"):
+        assert f"{stage} " in line, line
+    assert "peak" in line and "| brick.png | 0.05 |" in out
