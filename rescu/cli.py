@@ -448,7 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (created); required")
     d.add_argument("--method", default=METHODS[0], choices=list(METHODS),
                    help="rescu-ii (default): stage I extended by the self-supervised stage II; "
-                        "rescu-i: stage I only (fast); grasp: the GRASP baseline")
+                        "rescu-i: without stage II (whole objects still looked for unless "
+                        "--no-dense: with it, the fast mode); grasp: the GRASP baseline")
     d.add_argument("--config", metavar="YAML", default=None,
                    help="optional YAML file overriding sections of the default configuration "
                         "(rescu/defaults/config.yaml)")

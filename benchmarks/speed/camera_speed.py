@@ -2,6 +2,7 @@
 
     python benchmarks/speed/camera_speed.py                       # 0.25, 1, 4, 12 MP
     python benchmarks/speed/camera_speed.py --mp 1 --photo my.jpg --method rescu-i
+    python benchmarks/speed/camera_speed.py --mp 1 --method rescu-i --set dense.enabled=false
 
 For each photo (default: the first photo of ``../shared/data/spb_facades`` and of
 ``../shared/data/blood_cells`` when present, else the package photos ``brick.png`` and
@@ -45,7 +46,16 @@ def timed(stage, step):
         stages[stage] = stages.get(stage, 0.0) + time.perf_counter() - t
 
 core.attempt = timed
-cfg = load_config(None, stage2=sys.argv[2] == "rescu-ii")
+import yaml
+over = {}
+for item in json.loads(sys.argv[3]):
+    key, value = item.split("=", 1)
+    node = over
+    *parents, last = key.split(".")
+    for k in parents:
+        node = node.setdefault(k, {})
+    node[last] = yaml.safe_load(value)
+cfg = load_config(None, over or None, stage2=sys.argv[2] == "rescu-ii")
 t = time.perf_counter()
 out = core.run_image(sys.argv[1], cfg, sys.argv[2], validated=True)
 t_run = time.perf_counter() - t
@@ -94,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--photo", action="append", type=Path, default=None)
     ap.add_argument("--mp", action="append", type=float, default=None)
     ap.add_argument("--method", default="rescu-ii", choices=["rescu-ii", "rescu-i"])
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override, as rescu discover --set (e.g. dense.enabled=false)")
     a = ap.parse_args(argv)
     photos = a.photo or default_photos()
     sizes = a.mp or [0.25, 1.0, 4.0, 12.0]
@@ -102,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         for photo in photos:
             for mp in sizes:
                 path = resized(photo, mp, Path(tmp))
-                proc = subprocess.run([sys.executable, "-c", CHILD, str(path), a.method],
+                proc = subprocess.run([sys.executable, "-c", CHILD, str(path), a.method,
+                                       json.dumps(a.sets)],
                                       capture_output=True, text=True, cwd=REPO)
                 if proc.returncode != 0:
                     print(f"{path.name}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
