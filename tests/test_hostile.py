@@ -344,3 +344,21 @@ def test_escape_codes_in_a_file_name_do_not_reach_the_terminal(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "\x1b" not in proc.stdout + proc.stderr and "\x07" not in proc.stdout
     assert "evil\\x1b[2J" in proc.stdout
+
+
+def test_a_second_run_appends_to_the_log_another_run_writes(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    first = outputs.open_log(out)
+    first.write("first run\n")
+    first.flush()
+    second = outputs.open_log(out)              # the first still writes it: not emptied
+    second.write("second run\n")
+    second.flush()
+    assert (out / "rescu.log").read_text() == "first run\nsecond run\n"
+    outputs.close_log(out, first)
+    outputs.close_log(out, second)
+    third = outputs.open_log(out)               # nobody writes it: a fresh log
+    outputs.close_log(out, third)
+    assert (out / "rescu.log").read_text() == ""
+    assert outputs.foreign_own(out) == []       # recorded as rescu's
