@@ -53,6 +53,9 @@ OWN = (LOG, GALLERY)
 """The output folder's files of rescu's own beside the result sets (manifest ``"own"``)."""
 OPEN = "open"
 """The manifest's mark of an own file being written (the log during a run)."""
+EARLIER = "earlier"
+"""The mark given, on reading, to the own files of a manifest without ``"own"``: an
+earlier rescu wrote ``rescu.log`` and ``index.html`` there without recording them."""
 
 
 class OverwriteError(InputError):
@@ -101,7 +104,8 @@ def read_manifest(out_dir: str | os.PathLike[str]) -> dict[str, Any]:
     if bad:
         raise InputError(f"{path}: not rescu's manifest of results ({bad}); move it away or "
                          f"choose another output folder")
-    d.setdefault("own", {})
+    if "own" not in d:  # written before rescu recorded its log and page: they are its own
+        d["own"] = {rel: [EARLIER] for rel in OWN}
     return d
 
 
@@ -224,7 +228,8 @@ def foreign_own(out_dir: str | os.PathLike[str], manifest: dict[str, Any] | None
             continue
         hashes = own.get(rel) or []
         if p.is_symlink() or not p.is_file() or not (
-                (rel == LOG and OPEN in hashes) or _sha256(p) in hashes):
+                (rel == LOG and OPEN in hashes) or EARLIER in hashes
+                or _sha256(p) in hashes):
             found.append(p)
     return found
 

@@ -362,3 +362,17 @@ def test_a_second_run_appends_to_the_log_another_run_writes(tmp_path):
     outputs.close_log(out, third)
     assert (out / "rescu.log").read_text() == ""
     assert outputs.foreign_own(out) == []       # recorded as rescu's
+
+
+def test_a_folder_written_by_an_earlier_rescu_still_runs(photo, tmp_path):
+    """A manifest without "own" (rescu before it recorded its log and page): the log and
+    page there are rescu's, replaced without --force."""
+    out = tmp_path / "out"
+    assert _discover(photo, out).returncode == 0
+    m = json.loads((out / outputs.MANIFEST).read_text())
+    del m["own"]
+    (out / outputs.MANIFEST).write_text(json.dumps(m))
+    (out / "index.html").write_text("<p>an earlier gallery</p>")
+    assert _discover(photo, out).returncode == 0
+    assert "shelf" in (out / "index.html").read_text()
+    assert "own" in json.loads((out / outputs.MANIFEST).read_text())
