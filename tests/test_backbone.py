@@ -305,3 +305,24 @@ def test_remembered_maps_never_hand_one_backbones_map_to_another():
     with B.remembered_maps():
         maps = [float(B._feature_map(Fake(v), img)[0, 0, 0, 0]) for v in (1, 2, 3, 4)]
     assert maps == [1.0, 2.0, 3.0, 4.0]
+
+
+def test_shared_backbone_is_one_per_setting():
+    from rescu.extension.backbone import shared_backbone
+    from rescu.extension.params import Stage2Params
+    from rescu.extension.proposal_features import get_backbone
+
+    a = shared_backbone("efficientnet-lite0", feature_stride=16)
+    assert shared_backbone("efficientnet-lite0", None, 16, "cpu") is a
+    assert get_backbone(Stage2Params()) is a               # stage II's is the dense step's
+    assert shared_backbone("efficientnet-lite0", feature_stride=32) is not a
+
+
+def test_class_probabilities_batch_equals_one_crop_at_a_time(lite0):
+    crops = np.random.default_rng(5).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    both = lite0.class_probabilities(crops)
+    one = np.concatenate([lite0.class_probabilities(c[None]) for c in crops])
+    np.testing.assert_allclose(both, one, atol=1e-6)
+    x = lite0.preprocess(crops[0])
+    want = (crops[0].astype(np.float32) / 255.0 - lite0.mean) / lite0.std
+    assert torch.equal(x[0].permute(1, 2, 0), torch.from_numpy(want))

@@ -947,3 +947,49 @@ def test_one_box_per_object_keeps_a_rescu_ii_rps_feature_points_with_their_insta
     np.testing.assert_array_equal(p.feature_points, fp[:, [0, 2, 3, 5]])
     assert [i.bbox[0] for i in p.instances[:4]] == [0.0, 120.0, 180.0, 300.0]
     analyse_scene(res)
+
+
+def test_similarity_map_is_the_per_channel_cosine_and_norms_are_kept_per_map():
+    """similarity_map (one window sum of p . f, the windows' norms remembered for a
+    read-only map) equals the cosine of each window's mean feature, channel by channel;
+    a read-only map's norms are made once per window and dropped with the map; a
+    writeable map's are made afresh (it could change under the same identity)."""
+    import gc
+
+    import cv2
+
+    from rescu.extension import boxmaps
+    from rescu.extension.objects import similarity_map, window_norms
+
+    rng = np.random.default_rng(3)
+    f = rng.standard_normal((24, 17, 29)).astype(np.float32)
+    f /= np.linalg.norm(f, axis=0)
+    proto = f[:, 4:7, 5:8].mean((1, 2))
+    for side in (1, 3, (5, 2)):
+        k = (side, side) if np.isscalar(side) else side
+        m = np.stack([cv2.boxFilter(c, -1, k, normalize=True, borderType=cv2.BORDER_REFLECT)
+                      for c in f])
+        want = np.tensordot(proto / np.linalg.norm(proto), m, 1) / np.linalg.norm(m, axis=0)
+        np.testing.assert_allclose(similarity_map(f, proto, side), want, atol=1e-5)
+    assert window_norms(f, (3, 3)) is not window_norms(f, (3, 3))     # writeable: afresh
+    f.setflags(write=False)
+    a = window_norms(f, (3, 3))
+    assert window_norms(f, (3, 3)) is a and not a.flags.writeable
+    assert window_norms(f, (5, 2)) is not a
+    n = len(boxmaps._KEPT)
+    del f
+    gc.collect()
+    assert len(boxmaps._KEPT) == n - 2                    # dropped with their map
+
+
+def test_integral_map_of_a_read_only_map_is_made_once():
+    from rescu.extension.boxmaps import integral_map
+
+    f = np.arange(2 * 3 * 4, dtype=np.float32).reshape(2, 3, 4)
+    ii = integral_map(f)
+    assert ii[1, 3, 4] == f[1].sum() and integral_map(f) is not ii
+    f.setflags(write=False)
+    kept = integral_map(f)
+    assert integral_map(f) is kept and np.array_equal(kept, ii)
+    with pytest.raises(ValueError):
+        kept[0, 0, 0] = 1.0                               # shared: read-only

@@ -338,10 +338,20 @@ class FrozenBackbone:
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got shape {rgb.shape} "
                              f"dtype {rgb.dtype}")
-        x = (rgb.astype(np.float32) / 255.0 - self.mean) / self.std
-        # (1, 3, H, W) in channels-last memory: the HWC array itself, no transposing copy
-        return torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None].to(
-            self.device).contiguous(memory_format=torch.channels_last)
+        return self._normalised(rgb[None])
+
+    def _normalised(self, batch: np.ndarray):
+        """(B, H, W, 3) uint8 -> (B, 3, H, W) float tensor in channels-last memory (the
+        NHWC array itself, no transposing copy): ``(x / 255 - mean) / std``, worked in
+        place on one float32 copy (the same floats as the expression, a third of its
+        temporaries)."""
+        torch = _torch()
+        x = batch.astype(np.float32)
+        x /= 255.0
+        x -= self.mean
+        x /= self.std
+        return torch.from_numpy(x).permute(0, 3, 1, 2).to(self.device).contiguous(
+            memory_format=torch.channels_last)
 
     def _early(self, x):
         """EfficientNet-Lite0's stem and blocks up to the last stride-8 one on a normalised
@@ -450,7 +460,7 @@ class FrozenBackbone:
                              f"dtype {crops.dtype}")
         if not len(crops):
             return np.zeros((0, 1000), np.float32)
-        x = torch.cat([self.preprocess(c) for c in crops])
+        x = self._normalised(np.ascontiguousarray(crops))
         with torch.no_grad():
             return torch.softmax(self.model(x), 1).cpu().numpy().astype(np.float32)
 
@@ -468,6 +478,28 @@ class FrozenBackbone:
         torch = _torch()
         with torch.no_grad():
             return self.forward_tensor(self.preprocess(rgb))
+
+
+#: One backbone per (name, weights, stride, device) in this process (:func:`shared_backbone`).
+_SHARED: dict[tuple[str, str | None, int, str], FrozenBackbone] = {}
+
+
+def shared_backbone(name: str = "efficientnet-lite0", weights_path: str | None = None,
+                    feature_stride: int = 16, device: str = "cpu") -> FrozenBackbone:
+    """The process's one :class:`FrozenBackbone` of these settings, made on first use.
+
+    Every consumer of the same network (the dense step's maps and objectness, stage II's
+    proposal features, the prompted mode) shares it: loading the weights and folding the
+    norms costs about 0.1 s and 20 MB a copy, which ``rescu discover`` otherwise paid
+    once per photo and step. The backbone is frozen (eval mode, no gradients), so sharing
+    it changes no output; fine-tuning makes its own copy
+    (:func:`rescu.extension.finetune.finetune_backbone`).
+    """
+    key = (str(name), None if weights_path is None else str(weights_path),
+           int(feature_stride), str(device))
+    if key not in _SHARED:
+        _SHARED[key] = FrozenBackbone(name, weights_path, feature_stride, device)
+    return _SHARED[key]
 
 
 def box_rois(boxes: np.ndarray, map_hw: tuple[int, int],

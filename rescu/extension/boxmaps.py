@@ -11,7 +11,7 @@ Maps are ``(C, h, w)`` float32 arrays whose cells are ``cell_px`` pixels of the 
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -22,11 +22,58 @@ __all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "group_p
 
 def integral_map(f: np.ndarray) -> np.ndarray:
     """Summed-area table of ``f`` (C, h, w) -> (C, h + 1, w + 1) float64 (for
-    :func:`box_contrast`)."""
-    c, h, w = f.shape
-    ii = np.zeros((c, h + 1, w + 1), np.float64)
-    ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
-    return ii
+    :func:`box_contrast`).
+
+    For a read-only ``f`` (the dense source's maps) the table is made once and kept
+    while ``f`` lives (:func:`remembered`): the grouping, the completion, the confidence
+    and the scoring of stage I's RPs all read the same map's table. It is then read-only
+    too."""
+    def table() -> np.ndarray:
+        c, h, w = f.shape
+        ii = np.zeros((c, h + 1, w + 1), np.float64)
+        ii[:, 1:, 1:] = f.cumsum(1).cumsum(2)
+        return ii
+
+    return remembered(f, "integral", table)
+
+
+#: What :func:`remembered` keeps: ``(id(map), what) -> value``, each entry dropped when
+#: its map is freed.
+_KEPT: dict[tuple[int, object], np.ndarray] = {}
+
+
+def remembered(f: np.ndarray, what: object, make: Callable[[], np.ndarray]) -> np.ndarray:
+    """``make()``, computed once per read-only map ``f`` and ``what`` while ``f`` lives.
+
+    A quantity of a feature map that several steps ask for (its summed-area table, the
+    norms of its windows' means) is kept beside the map and dropped with it (a weak
+    reference's callback), so nothing outlives the photo's maps. A writeable ``f`` could
+    change under the same identity: its value is made afresh every time. The kept value
+    is marked read-only.
+
+    Parameters
+    ----------
+    f : ndarray, the map (its identity is the key)
+    what : hashable, which quantity (with its parameters)
+    make : () -> ndarray
+
+    Returns
+    -------
+    ndarray, ``make()``'s result (read-only when kept)
+    """
+    import weakref
+
+    if f.flags.writeable:
+        return make()
+    key = (id(f), what)
+    hit = _KEPT.get(key)
+    if hit is not None:
+        return hit
+    out = make()
+    out.setflags(write=False)
+    _KEPT[key] = out
+    weakref.finalize(f, _KEPT.pop, key, None)
+    return out
 
 
 def box_contrast(f: np.ndarray, boxes: np.ndarray, cell_px: float,

@@ -445,7 +445,7 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     s : float, backbone-input pixels per prepared-image pixel (longer side brought into
         [``min_side``, ``max_side``])
     """
-    from .backbone import FrozenBackbone
+    from .backbone import shared_backbone
 
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -458,7 +458,7 @@ def dense_map(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     if cpu and key in _LAST_MAP:
         return _LAST_MAP[key]
     if backbone is None:
-        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+        backbone = shared_backbone(params.backbone, feature_stride=16)
     longer = max(rgb.shape[:2])
     s = min(1.0, params.max_side / longer) if longer >= params.min_side \
         else params.min_side / longer
@@ -537,27 +537,34 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     Returns
     -------
     list of ``(f, s)``: the coarse level first, then the fine one, then the wide ones;
-    ``f`` (C, h, w) float32 (:func:`hypercolumn`) of ``rgb`` resized by ``s``
+    ``f`` (C, h, w) float32, read-only (:func:`hypercolumn`) of ``rgb`` resized by ``s``
     (backbone-input pixels per prepared-image pixel). The fine level is left out when it
     would enlarge the coarse one by less than 5 %. :func:`level_sizes` gives each
     level's blob sides.
     """
-    from .backbone import FrozenBackbone
+    from .backbone import shared_backbone
 
     if backbone is None:
-        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+        backbone = shared_backbone(params.backbone, feature_stride=16)
     f, s = dense_map(rgb, params, backbone)
     out = [(f, s)]
     longer = max(rgb.shape[:2])
     s_fine = min(s * params.fine_scale, params.fine_max_side / longer)
     if s_fine > 1.05 * s:
-        out.append((hypercolumn(backbone, level_image(rgb, s_fine), params.rotations),
-                    float(s_fine)))
+        out.append((_read_only(hypercolumn(backbone, level_image(rgb, s_fine),
+                                           params.rotations)), float(s_fine)))
     for w in params.wide_scales:
         if min(rgb.shape[:2]) * s * w >= WIDE_MIN_PX:
-            out.append((hypercolumn(backbone, level_image(rgb, s * w), params.rotations),
-                        float(s * w)))
+            out.append((_read_only(hypercolumn(backbone, level_image(rgb, s * w),
+                                               params.rotations)), float(s * w)))
     return out
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a``, marked read-only (a map every later step only reads; its windows' norms
+    are then remembered, :func:`rescu.extension.objects.window_norms`)."""
+    a.setflags(write=False)
+    return a
 
 
 def level_sizes(levels: Sequence[tuple[np.ndarray, float]], params: DenseParams
@@ -691,11 +698,11 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
     []
     """
-    from .backbone import FrozenBackbone
+    from .backbone import shared_backbone
     from .objects import whole_objects
 
     if backbone is None:
-        backbone = FrozenBackbone(params.backbone, feature_stride=16)
+        backbone = shared_backbone(params.backbone, feature_stride=16)
     rgb = np.asarray(rgb)
     if levels is None:
         levels = dense_levels(rgb, params, backbone) if params.whole_objects \
@@ -736,8 +743,8 @@ def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float
                ) -> tuple[np.ndarray, np.ndarray]:
         f, s = levels[level]
         if level not in made:
-            made[level] = turned_map(backbone, level_image(rgb, s), params.rotations,
-                                     (f.shape[1], f.shape[2]))
+            made[level] = _read_only(turned_map(backbone, level_image(rgb, s),
+                                                params.rotations, (f.shape[1], f.shape[2])))
         b, _, is_turned = complete_turned(f, made[level], 8.0, boxes,
                                           params.completion_margin,
                                           params.completion_floor, integral=integral)

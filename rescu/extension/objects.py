@@ -44,7 +44,8 @@ import numpy as np
 
 from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
-                      maximum_filter, prototype_of, second_boxes, separation)
+                      maximum_filter, prototype_of, remembered, second_boxes,
+                      separation)
 from .extent import (colour_contrast, colour_integrals, edge_contrast, extent_score,
                      gradient_integral, rect_sums, refine_extent)
 
@@ -81,14 +82,36 @@ def similarity_map(f: np.ndarray, proto: np.ndarray, side: int | tuple[int, int]
 
     sw, sh = (side, side) if np.isscalar(side) else side   # type: ignore[misc]
     ksize = (max(1, int(sw)), max(1, int(sh)))
-    acc = np.zeros(f.shape[1:], np.float32)
-    norm = np.zeros(f.shape[1:], np.float32)
     p = np.asarray(proto, np.float32) / (np.linalg.norm(proto) + 1e-9)
-    for c in range(f.shape[0]):
-        m = cv2.boxFilter(f[c], -1, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
-        acc += m * p[c]
-        norm += m * m
-    return acc / (np.sqrt(norm) + 1e-9)
+    # the windows' means are linear in f: the prototype's side of the cosine is one
+    # window sum of p . f, not one per channel
+    acc = cv2.boxFilter(np.tensordot(p, f, 1).astype(np.float32, copy=False), -1, ksize,
+                        normalize=True, borderType=cv2.BORDER_REFLECT)
+    return acc / (window_norms(f, ksize) + 1e-9)
+
+
+def window_norms(f: np.ndarray, ksize: tuple[int, int]) -> np.ndarray:
+    """The norm of the mean feature of the ``ksize`` (width, height) window centred at
+    each cell of ``f`` (C, h, w) (reflected at the border) -> (h, w) float32.
+
+    The half of :func:`similarity_map` that does not depend on the prototype (one box
+    filter per channel): for a read-only ``f`` (the dense source's maps) made once per
+    window size while ``f`` lives (:func:`rescu.extension.boxmaps.remembered`), so that
+    the completion, the turned completion and the confidence of every group on one map
+    filter its channels once.
+    """
+    import cv2
+
+    k = (max(1, int(ksize[0])), max(1, int(ksize[1])))
+
+    def norms() -> np.ndarray:
+        norm = np.zeros(f.shape[1:], np.float32)
+        for c in range(f.shape[0]):
+            m = cv2.boxFilter(f[c], -1, k, normalize=True, borderType=cv2.BORDER_REFLECT)
+            norm += m * m
+        return np.sqrt(norm)
+
+    return remembered(f, ("window_norms", k), norms)
 
 
 def complete_group(f: np.ndarray, cell_px: float, boxes: np.ndarray, margin: float,

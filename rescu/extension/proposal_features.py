@@ -82,18 +82,13 @@ def _empty_features(stage1: ImageResult, scale_factor: float, backbone: str,
     }
 
 
-_BACKBONE_CACHE: dict[tuple, Any] = {}
-
-
 def get_backbone(params: Stage2Params):
-    """The frozen backbone of ``params`` (cached per process)."""
-    from .backbone import FrozenBackbone
+    """The frozen backbone of ``params``, the process's one of those settings
+    (:func:`rescu.extension.backbone.shared_backbone`: the dense step uses the same)."""
+    from .backbone import shared_backbone
 
     p = params.backbone
-    key = (p.name, p.weights_path, p.feature_stride, p.device)
-    if key not in _BACKBONE_CACHE:
-        _BACKBONE_CACHE[key] = FrozenBackbone(p.name, p.weights_path, p.feature_stride, p.device)
-    return _BACKBONE_CACHE[key]
+    return shared_backbone(p.name, p.weights_path, p.feature_stride, p.device)
 
 
 def check_device(params: Stage2Params) -> None:
