@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = ["integral_map", "box_contrast", "box_cells", "box_features", "group_prototype",
            "prototype_of", "map_score", "maximum_filter", "unit_mean", "centre_part",
-           "OBJECT_PROBE", "separation", "second_boxes"]
+           "OBJECT_PROBE", "separation", "second_boxes", "read_only", "remembered"]
 
 
 def integral_map(f: np.ndarray) -> np.ndarray:
@@ -35,6 +35,17 @@ def integral_map(f: np.ndarray) -> np.ndarray:
         return ii
 
     return remembered(f, "integral", table)
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` itself, marked read-only: a map that every later step only reads, whose
+    summed-area table and window norms are then kept while it lives (:func:`remembered`).
+
+    >>> read_only(np.zeros(2)).flags.writeable
+    False
+    """
+    a.setflags(write=False)
+    return a
 
 
 #: What :func:`remembered` keeps: ``(id(map), what) -> value``, each entry dropped when

@@ -52,7 +52,7 @@ import numpy as np
 from ..discovery.sources import DenseParams, is_whole_object
 from ..boxes import cover_matrix, touching_sides
 from ..types import Instance, Pattern
-from .boxmaps import integral_map, map_score, maximum_filter, unit_mean
+from .boxmaps import integral_map, map_score, maximum_filter, read_only, unit_mean
 from .linkage import average_linkage_labels
 from .extent import colour_integrals, rect_sums
 from .turned import complete_turned, hypercolumn, level_image, turned_map
@@ -551,20 +551,13 @@ def dense_levels(rgb: np.ndarray, params: DenseParams, backbone: Any = None
     longer = max(rgb.shape[:2])
     s_fine = min(s * params.fine_scale, params.fine_max_side / longer)
     if s_fine > 1.05 * s:
-        out.append((_read_only(hypercolumn(backbone, level_image(rgb, s_fine),
+        out.append((read_only(hypercolumn(backbone, level_image(rgb, s_fine),
                                            params.rotations)), float(s_fine)))
     for w in params.wide_scales:
         if min(rgb.shape[:2]) * s * w >= WIDE_MIN_PX:
-            out.append((_read_only(hypercolumn(backbone, level_image(rgb, s * w),
+            out.append((read_only(hypercolumn(backbone, level_image(rgb, s * w),
                                                params.rotations)), float(s * w)))
     return out
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """``a``, marked read-only (a map every later step only reads; its windows' norms
-    are then remembered, :func:`rescu.extension.objects.window_norms`)."""
-    a.setflags(write=False)
-    return a
 
 
 def level_sizes(levels: Sequence[tuple[np.ndarray, float]], params: DenseParams
@@ -743,7 +736,7 @@ def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float
                ) -> tuple[np.ndarray, np.ndarray]:
         f, s = levels[level]
         if level not in made:
-            made[level] = _read_only(turned_map(backbone, level_image(rgb, s),
+            made[level] = read_only(turned_map(backbone, level_image(rgb, s),
                                                 params.rotations, (f.shape[1], f.shape[2])))
         b, _, is_turned = complete_turned(f, made[level], 8.0, boxes,
                                           params.completion_margin,
