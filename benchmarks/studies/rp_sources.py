@@ -54,11 +54,13 @@ DOMINANT = {
     "count-confidence": lambda n, c: (n * c, n),
     "count-confidence3": lambda n, c: (n * c ** 3, n),
     "count-near-best": lambda n, c: (n, c),
+    "objects": lambda n, c: (n, c),
 }
 """Rules for the dominant RP: ``code`` is :func:`rescu.scene.counting.dominant_pattern`
 (the most confident); the others rank an RP of ``n`` instances and confidence ``c`` by
 the key they give (ties: the earlier RP), among the RPs whose confidence is at least
-:data:`FLOOR` of the image's highest. ``--dominant`` also takes :data:`BEST`."""
+:data:`FLOOR` of the image's highest; ``objects`` only among the RPs of whole objects
+(``extra["source"] == "dense"``), the most confident when there is none. ``--dominant`` also takes :data:`BEST`."""
 
 BEST = "best"
 """The ``--dominant`` choice that looks at the ground truth (:func:`best_dominant`): an
@@ -81,14 +83,25 @@ def pick_dominant(patterns: list[Any], rule: str = "code") -> int | None:
     >>> rp = lambda n, c: Pattern(id=0, score=1.0, extra={"confidence": c},
     ...                           instances=[Instance(bbox=(0, 0, 1, 1))] * n)
     >>> [pick_dominant([rp(3, 0.9), rp(20, 0.35)], r) for r in DOMINANT]
-    [0, 1, 1, 0, 0]
+    [0, 1, 1, 0, 0, 0]
     >>> pick_dominant([rp(3, 0.9), rp(20, 0.75)], "count-near-best")
     1
+    >>> dense = lambda n, c: Pattern(id=0, score=1.0, extra={"confidence": c, "source": "dense"},
+    ...                              instances=[Instance(bbox=(0, 0, 1, 1))] * n)
+    >>> pick_dominant([rp(30, 0.9), dense(4, 0.4), dense(9, 0.35)], "objects")
+    2
     """
     from rescu.scene.counting import dominant_pattern
 
     key = DOMINANT[rule]
     if key is None:
+        return dominant_pattern(patterns)
+    if rule == "objects" and any(p.count and p.extra.get("source") == "dense"
+                                 for p in patterns):
+        return -max((p.count, float(p.extra.get("confidence", 0.0)), -k)
+                    for k, p in enumerate(patterns)
+                    if p.count and p.extra.get("source") == "dense")[2]
+    if rule == "objects":
         return dominant_pattern(patterns)
     conf = [float(p.extra.get("confidence", 0.0)) for p in patterns]
     share = FLOOR.get(rule, 0.0)
