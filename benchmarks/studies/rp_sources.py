@@ -60,7 +60,8 @@ DOMINANT = {
 (the most confident); the others rank an RP of ``n`` instances and confidence ``c`` by
 the key they give (ties: the earlier RP), among the RPs whose confidence is at least
 :data:`FLOOR` of the image's highest; ``objects`` only among the RPs of whole objects
-(``extra["source"] == "dense"``), the most confident when there is none. ``--dominant`` also takes :data:`BEST`."""
+(``extra["source"] == "dense"``), the most confident when there is none.
+``--dominant`` also takes :data:`BEST`."""
 
 BEST = "best"
 """The ``--dominant`` choice that looks at the ground truth (:func:`best_dominant`): an
