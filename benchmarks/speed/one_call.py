@@ -11,7 +11,7 @@ of the nine sets of ``../shared/data``, then the second of the first sets until 
 installed command's code, run as ``python -m rescu.cli``: the process start, the imports,
 the backbone's loading, the overlays and the gallery all count), and the script prints its
 wall seconds over the number of photos and the peak resident memory of its process tree
-(``ru_maxrss`` of the waited-for child: the CLI runs every photo in its own process, no
+(``ru_maxrss`` of the waited-for child: the CLI runs every photo itself, in one process, no
 worker; this parent imports neither NumPy nor torch, and the child is a fresh ``exec``,
 so the figure is the child's own). ``--repeat`` runs the call several times and prints
 each and the median. Run it on an idle machine; it asserts nothing.
