@@ -151,11 +151,18 @@ def safe_dir(out_dir: str | os.PathLike[str], rel: str) -> Path:
     cur = Path(out_dir)
     for part in Path(rel).parts:
         cur = check_path(cur / part, "a folder rescu writes into")
-        try:
-            cur.mkdir()
-        except FileExistsError:
-            if not stat.S_ISDIR(os.lstat(cur).st_mode):
-                raise InputError(f"{cur}: exists and is not a folder") from None
+        for _ in range(20):
+            try:
+                cur.mkdir()
+                break
+            except FileExistsError:
+                try:
+                    mode = os.lstat(cur).st_mode
+                except FileNotFoundError:  # another run removed it meanwhile: make it again
+                    continue
+                if not stat.S_ISDIR(mode):
+                    raise InputError(f"{cur}: exists and is not a folder") from None
+                break
     return cur
 
 
@@ -319,8 +326,8 @@ def staging(out_dir: str | os.PathLike[str] | None) -> Iterator[Path]:
         path = Path(tempfile.mkdtemp(prefix=f"rescu-{os.getpid()}-"))
     else:
         for attempt in range(20):
-            base = safe_dir(out_dir, WORK)
             try:
+                base = safe_dir(out_dir, WORK)
                 path = Path(tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base))
                 break
             except FileNotFoundError:  # another run's rmdir of the empty area
