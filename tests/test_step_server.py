@@ -97,7 +97,8 @@ def _long_job(tmp_path: Path) -> tuple[subprocess.Popen, int]:
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
     pid_file = Path(str(out) + ".pid")
     end = time.monotonic() + 60
-    while not pid_file.exists() and time.monotonic() < end:
+    # the job writes its pid after creating the file: wait for the digits, not the name
+    while not (pid_file.exists() and pid_file.read_text().strip()) and time.monotonic() < end:
         time.sleep(0.05)
     return client, int(pid_file.read_text())
 
