@@ -8,7 +8,8 @@ facade database) can say ``vp_truth: rectified``: its VP ground truth is then de
 (:func:`rectified_vp_truth`, written under the results folder): a rectified image's rows
 and columns meet at the horizontal and the vertical point at infinity. Two datasets are built by the pipeline itself: ``kind: synthetic``
 (the generated benchmark) and ``kind: package_photos`` (photos shipped inside installed
-packages).
+packages). ``kind: examples`` is the folder of real photos with ground truth shipped
+inside RESCU itself (:mod:`rescu.data.examples`), read where it is installed.
 """
 
 from __future__ import annotations
@@ -29,6 +30,10 @@ def dataset_root(name: str, spec: dict[str, Any], results_dir: str) -> Path:
         return Path(results_dir) / SYNTHETIC_DIR
     if kind == "package_photos":
         return Path(results_dir) / PHOTOS_DIR
+    if kind == "examples":
+        from .examples import examples_dir
+
+        return examples_dir()
     return Path(spec["path"])
 
 
