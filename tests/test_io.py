@@ -216,6 +216,27 @@ def test_run_datasets_selects_and_names_unknown_datasets(tmp_path):
         selected_datasets({**cfg, "run_datasets": []})
 
 
+def test_skipped_datasets_are_those_that_would_run_without_images(tmp_path):
+    from rescu.data.datasets import build_image_table, skipped_datasets
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "full" / "images").mkdir(parents=True)
+    io.write_image(tmp_path / "full" / "images" / "a.png", np.zeros((20, 20, 3), np.uint8))
+    cfg = {**load_config(), "run_datasets": None, "datasets": {
+        "examples": {"kind": "examples"}, "synthetic": {"kind": "synthetic"},
+        "gone": {"path": str(tmp_path / "gone")}, "empty": {"path": str(tmp_path / "empty")},
+        "full": {"path": str(tmp_path / "full")},
+        "off": {"path": str(tmp_path / "off"), "enabled": False}}}
+    assert skipped_datasets(cfg, str(tmp_path)) == {
+        "gone": f"folder {tmp_path / 'gone'} not found",
+        "empty": f"no images in {tmp_path / 'empty'}"}
+    table = build_image_table(cfg, str(tmp_path), log=lambda m: None)
+    assert set(table) == {"examples", "synthetic", "full"}
+    # a named dataset counts when it is skipped, whatever its `enabled`
+    assert skipped_datasets({**cfg, "run_datasets": "off,full"}, str(tmp_path)) == {
+        "off": f"folder {tmp_path / 'off'} not found"}
+
+
 def test_config_defaults_are_the_shipped_config():
     from rescu.config import DEFAULT_CONFIG, _read_yaml
     from rescu.params import config_defaults

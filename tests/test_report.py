@@ -324,6 +324,22 @@ def test_report_without_paper_tables(tmp_path):
     assert "<h2 id='rp'" in page and "IOD protocol" in page  # no iod_h given
 
 
+def test_report_names_the_datasets_the_run_skipped_and_how_to_add_one(tmp_path):
+    res, samples = fake_results(tmp_path, paper=False)
+    out = res / "report" / "index.html"
+    R.build_run_report(out, res, samples, skipped={
+        "chess": "folder ../shared/data/chess not found", "mine": "no images in /d/<x>"})
+    page = out.read_text()
+    note = page[page.index("Not in this run"):]
+    note = note[:note.index("</p>")]
+    assert "<b>chess</b> (folder ../shared/data/chess not found)" in note
+    assert "<b>mine</b> (no images in /d/&lt;x&gt;)" in note      # escaped
+    assert "<code>datasets</code>" in note and "Your own photos" in note
+    assert page.index("id='photos'") < page.index("Not in this run")
+    R.build_run_report(out, res, samples, skipped={})
+    assert "Not in this run" not in out.read_text()
+
+
 def test_report_shows_only_the_tables_the_run_made(tmp_path):
     """Ablation tables an earlier `paper` run left in the folder stay out of a default
     run's report (the pipeline names the tables it made)."""

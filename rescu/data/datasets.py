@@ -65,6 +65,32 @@ def selected_datasets(config: dict[str, Any]) -> set[str] | None:
     return set(names)
 
 
+def skipped_datasets(config: dict[str, Any], results_dir: str) -> dict[str, str]:
+    """The datasets that would run (:func:`selected_datasets`, else those enabled) but
+    are skipped, each with the reason: ``{name: "folder <path> not found"}`` or ``{name:
+    "no images in <folder>"}``; what :func:`build_image_table` leaves out.
+
+    >>> skipped_datasets({"datasets": {"mine": {"path": "/no/such/folder"}}}, "results")
+    {'mine': 'folder /no/such/folder not found'}
+    """
+    selected = selected_datasets(config)
+    out: dict[str, str] = {}
+    for name, spec in config["datasets"].items():
+        spec = spec or {}
+        runs = name in selected if selected is not None else spec.get("enabled", True)
+        if not runs or spec.get("kind", "folder") != "folder":
+            continue
+        root = dataset_root(name, spec, results_dir)
+        if not root.is_dir():
+            out[name] = f"folder {root} not found"
+            continue
+        folder, _ = _image_folder(root)
+        if not any(p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+                   and not p.name.startswith(".") for p in folder.iterdir()):
+            out[name] = f"no images in {folder}"
+    return out
+
+
 def build_image_table(config: dict[str, Any], results_dir: str,
                       log: Callable[[str], None] = print) -> dict[str, dict[str, Any]]:
     """The images of every configured dataset, known before anything runs.

@@ -88,6 +88,22 @@ def pick_photos(samples: Sequence[Sample], n: int,
     return picked + bad[:n - len(picked)]
 
 
+def skipped_note(skipped: Mapping[str, str]) -> str:
+    """One HTML paragraph naming the datasets left out of the run and why, and how to add
+    a dataset.
+
+    >>> print(skipped_note({"chess": "folder ../shared/data/chess not found"}))
+    <p class='note skipped'>Not in this run: <b>chess</b> (folder ../shared/data/chess not found). A dataset is a folder of photos (<code>images/</code> with <code>annotations.json</code> for the tables, or just photos) named under <code>datasets</code> in <code>config/config.yaml</code> or a file passed with <code>--configfile</code>; see the README, &quot;Your own photos&quot;.</p>
+    """
+    names = "; ".join(f"<b>{html.escape(n)}</b> ({html.escape(why)})"
+                      for n, why in skipped.items())
+    return ("<p class='note skipped'>Not in this run: " + names + ". A dataset is a folder "
+            "of photos (<code>images/</code> with <code>annotations.json</code> for the "
+            "tables, or just photos) named under <code>datasets</code> in "
+            "<code>config/config.yaml</code> or a file passed with "
+            "<code>--configfile</code>; see the README, &quot;Your own photos&quot;.</p>")
+
+
 def _full_link(s: Sample, out_html: Path, inner: str) -> str:
     """``inner`` (a picture) as a link to the full-size overlay, relative to the page."""
     href = os.path.relpath(Path(s.overlay).resolve(), Path(out_html).resolve().parent)
@@ -200,7 +216,8 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
                  samples: Sequence[Sample], datasets: Sequence[str] | None = None,
                  title: str = "RESCU report", meta: str = "", alpha: float = 0.05,
                  iod_h: float | None = None, decimals: int = 2, thumbs: int = 3,
-                 tables: Iterable[str | Path] | None = None, first_screen: int = 8) -> None:
+                 tables: Iterable[str | Path] | None = None, first_screen: int = 8,
+                 skipped: Mapping[str, str] | None = None) -> None:
     """Write the report: one HTML file with everything embedded but the TSV links.
 
     Parameters
@@ -220,6 +237,8 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
     tables : the table files this run made (default: every one in ``tables_dir``); one
         left out here is not shown even if an earlier run left it there (e.g. the
         ablations of a ``paper`` run)
+    skipped : configured datasets not in this run, each with the reason (its folder is
+        missing): named under the first photos, with how to add a dataset
     """
     out_html, t, fig = Path(out_html), Path(tables_dir), Path(figures_dir)
     made = None if tables is None else {Path(p).name for p in tables}
@@ -289,6 +308,8 @@ def build_report(out_html: str | Path, tables_dir: str | Path, figures_dir: str 
                 f"{html.escape(p.summary)}</div>{cap}</figcaption></figure>")
         parts.append("<section id='photos'><div class='picks'>" + "".join(cards)
                      + "</div></section>")
+    if skipped:
+        parts.append(skipped_note(skipped))
 
     # Per dataset: the headline beside the first pictures.
     for ds in names:
@@ -474,7 +495,8 @@ def build_run_report(out_html: str | Path, results: str | Path,
                      samples: Mapping[str, Sequence[str]],
                      evaluation: Mapping[str, Any] | None = None,
                      tables: Iterable[str | Path] | None = None,
-                     report: Mapping[str, Any] | None = None) -> None:
+                     report: Mapping[str, Any] | None = None,
+                     skipped: Mapping[str, str] | None = None) -> None:
     """The report of a pipeline run from its results folder.
 
     ``samples`` maps each dataset to the image stems whose overlays are shown;
@@ -482,7 +504,9 @@ def build_run_report(out_html: str | Path, results: str | Path,
     the top, ``samples_per_dataset``: pictures beside each dataset's headline);
     ``evaluation`` is the config's ``evaluation`` section (``significance_alpha``,
     ``iod_h``, ``decimals``) for the notes and number formats; ``tables`` the table
-    files the run made (default: all in ``<results>/tables``).
+    files the run made (default: all in ``<results>/tables``); ``skipped`` the configured
+    datasets left out of the run, each with the reason (the report names them and says
+    how to add a dataset).
     """
     from ..captions.caption import NO_PATTERN, pattern_confidence, summary_line
     from ..io import read_result
@@ -514,7 +538,8 @@ def build_run_report(out_html: str | Path, results: str | Path,
                  iod_h=evaluation.get("iod_h"),
                  decimals=int(evaluation.get("decimals", 2)), tables=tables,
                  thumbs=int((report or {}).get("samples_per_dataset", 3)),
-                 first_screen=int((report or {}).get("first_screen", 8)))
+                 first_screen=int((report or {}).get("first_screen", 8)),
+                 skipped=skipped)
 
 
 # ----------------------------------------------------------------------------- the page as seen

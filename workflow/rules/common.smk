@@ -3,7 +3,7 @@
 import sys
 from pathlib import Path
 
-from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table
+from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table, skipped_datasets
 from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.discovery.ablation import SOURCE_ROWS
@@ -37,6 +37,8 @@ wildcard_constraints:
 # dataset name -> {"root": folder with images/ (+ ground truth), "images": {stem: path},
 #                  "kind": ..., "has_rps": bool, "has_vps": bool}
 DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m, file=sys.stderr))
+# dataset name -> why it is not in this run (its folder is missing or holds no images)
+SKIPPED = skipped_datasets(config, results_dir=RESULTS)
 
 
 CODE_DIR = f"{RESULTS}/.code"

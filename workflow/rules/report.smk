@@ -33,6 +33,7 @@ rule report:
         ),
     params:
         samples=report_samples(),
+        skipped=SKIPPED,
         results=RESULTS,
         evaluation=config["evaluation"],
         report=config["report"],
