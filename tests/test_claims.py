@@ -104,29 +104,39 @@ def test_vp_off_the_lines_is_inconsistent_and_one_short_row_too_few() -> None:
 
 
 # ----------------------------------------------------------------------------- image VPs
-def test_image_vps_at_infinity_or_weak_are_rejected() -> None:
-    far = {"homogeneous": [1.0, 0.0, 1e-9], "inside_image": False, "support": 80}
-    weak = {"homogeneous": [320.0, 240.0, 1.0], "inside_image": True, "support": 3}
-    good = {"homogeneous": [900.0, 250.0, 1.0], "inside_image": False, "support": 60}
-    res = CL.supported_claims(image_result(vanishing_points=[far, weak]))
-    assert res.vanishing_point is None and res.extra["vp_status"] == "weak"
-    assert [v["status"] for v in res.extra["rejected_vanishing_points"]] == ["at_infinity",
-                                                                             "weak"]
-    assert res.extra["vanishing_points"] == []
-    flat = CL.supported_claims(image_result(vanishing_points=[far]))
-    assert flat.extra["vp_status"] == "frontal"
-    ok = CL.supported_claims(image_result(vanishing_points=[far, good]))
-    assert ok.extra["vp_status"] == "supported" and ok.extra["vanishing_points"] == [good]
+def test_image_vps_need_more_lines_than_chance_and_frontal_ones_are_at_infinity() -> None:
+    lines = {"lines": 400, "rp_rows": 0, "weight": 5000.0, "inlier_angle_deg": 2.0}
+    far = {"homogeneous": [1.0, 0.3, 1e-9], "inside_image": False, "support": 80,
+           "cues": {"lines": 80, "rp_rows": 0}, "direction": [0.9, 0.27, 0.01]}
+    weak = {"homogeneous": [320.0, 240.0, 1.0], "inside_image": True, "support": 3,
+            "cues": {"lines": 3, "rp_rows": 0}}
+    good = {"homogeneous": [900.0, 250.0, 1.0], "inside_image": False, "support": 60,
+            "cues": {"lines": 60, "rp_rows": 0}}
+    # a frontal view: its VP is reported at infinity (w = 0), along its image direction
+    res = CL.supported_claims(image_result(vanishing_points=[far, weak], vp_lines=lines))
+    assert res.extra["vp_status"] == "frontal"
+    [v] = res.extra["vanishing_points"]
+    assert v["status"] == "at_infinity" and v["homogeneous"][2] == 0.0 and v["nfa"] < 1e-30
+    assert np.allclose(v["homogeneous"][:2], np.array([1.0, 0.3]) / np.hypot(1.0, 0.3))
+    assert v["direction"][2] == 0.0
+    assert res.vanishing_point is not None and res.vanishing_point.homogeneous[2] == 0.0
+    [r] = res.extra["rejected_vanishing_points"]
+    assert r["status"] == "weak" and r["support"] == 3
+    # a finite VP comes first, the one at infinity after it
+    ok = CL.supported_claims(image_result(vanishing_points=[far, good], vp_lines=lines))
+    assert ok.extra["vp_status"] == "supported"
+    assert [v["homogeneous"][2] for v in ok.extra["vanishing_points"]] == [1.0, 0.0]
     assert ok.vanishing_point is not None and ok.vanishing_point.homogeneous[0] == 900.0
-    # a VP that gathers a few of many lines (fur, letters) is chance
-    lines = {"lines": 400, "rp_rows": 0, "weight": 5000.0}
-    few = dict(good, weight=400.0)
+    # a VP that gathers a few of many lines (fur, letters, the rims of cells) is chance:
+    # about 9 of 400 lines of random directions pass within 2 degrees of any point
+    few = dict(good, support=20, cues={"lines": 20, "rp_rows": 0})
     chance = CL.supported_claims(image_result(vanishing_points=[few], vp_lines=lines))
     assert chance.vanishing_point is None and chance.extra["vp_status"] == "weak"
-    many = CL.supported_claims(image_result(
-        vanishing_points=[dict(good, weight=2000.0, cues={"lines": 150})], vp_lines=lines))
-    assert many.extra["vp_status"] == "supported"
-    # a VP drawn mostly from RP rows: evidence only when an RP's own VP passed its test
+    assert chance.extra["rejected_vanishing_points"][0]["nfa"] > 1.0
+    many = dict(good, support=60, cues={"lines": 60, "rp_rows": 0})
+    assert CL.supported_claims(image_result(vanishing_points=[many], vp_lines=lines)
+                               ).extra["vp_status"] == "supported"
+    # RP rows count only when an RP's own VP passed its test
     rows_vp = {"homogeneous": [3412.0, 263.0, 1.0], "inside_image": False, "support": 77,
                "weight": 13144.0, "cues": {"lines": 14, "rp_rows": 63}}
     joint = {"lines": 135, "rp_rows": 118, "weight": 32131.0}
@@ -140,6 +150,15 @@ def test_image_vps_at_infinity_or_weak_are_rejected() -> None:
     assert res.extra["vp_status"] == "supported"
     assert CL.convergence_deg([1.0, 0.0, 0.0], (640, 480)) == 0.0
     assert CL.convergence_deg([320.0, 240.0, 1.0], (640, 480)) == pytest.approx(180.0)
+
+
+def test_line_nfa_is_the_expected_number_of_chance_points() -> None:
+    # 2 degrees: a random line passes with p = 1/45; n (n - 1) (n - 2) / 2 frames tried
+    assert CL.line_nfa(1, 3, 2.0) == pytest.approx(3.0 * (1.0 - (44 / 45) ** 3))
+    assert CL.line_nfa(0, 100, 2.0) == 100 * 99 * 98 / 2      # every frame tried
+    assert CL.line_nfa(5, 4, 2.0) == 0.0                       # more inliers than lines
+    assert CL.line_nfa(30, 400, 2.0) < CL.line_nfa(20, 400, 2.0) < CL.line_nfa(20, 800, 2.0)
+    assert CL.line_nfa(20, 400, 1.0) < CL.line_nfa(20, 400, 2.0)
 
 
 # ----------------------------------------------------------------------------- TS, layout

@@ -21,19 +21,28 @@ the JSON which test failed:
   the same tests, each line meeting the VP (a row in perspective: its top and bottom
   features converge; a frontal one: parallel).
 * **The image's vanishing points** (``vanishing_points`` of the joint estimator) each
-  need ``min_image_support`` inlier lines holding at least ``min_image_share`` of the
-  weight of all lines the estimator was given (``vp_lines``: a VP that gathers a few of
-  many lines in every direction, fur or letters, is chance); where no RP's own VP
-  passed its test, the RP rows are no evidence of convergence (a frontal grid's rows
-  meet anywhere far away) and only the VP's LSD segments count, in number (at least
-  ``min_image_support`` and ``min_image_share`` of all segments); and a finite point at
-  which the image diagonal subtends at least ``min_image_convergence_deg`` (lines across
-  the image that converge less than that are parallel in the picture: a frontal view).
-  Those that fail move to ``rejected_vanishing_points`` with a ``status``
-  (``"at_infinity"``, ``"weak"``); ``vanishing_point`` is the first supported one (dominant first), or null
-  with the image's ``vp_status``: ``"frontal"`` (every VP found lies at infinity),
-  ``"weak"`` (too few lines), ``"none"`` (no VP from any cue). Without the joint list
-  (fewer than three lines) the RP-only VP is kept when an RP's VP is supported.
+  need line evidence that chance does not explain, an a-contrario test (Desolneux, Moisan
+  and Morel; the test LSD itself and Almansa et al.'s VP detector, PAMI 2003, use): of
+  the ``n`` lines the estimator was given (``vp_lines``), ``k`` pass within the inlier
+  angle ``a`` of the VP (``vp_lines.inlier_angle_deg``); were the lines' directions
+  independent and uniform, each would do so with probability ``p = 2a / 180``, and the
+  number of false alarms ``NFA = n (n - 1) (n - 2) / 2 x P[Binomial(n, p) >= k]`` (the
+  estimator proposes a frame from each triplet of lines: two for the first VP, a third
+  for the second) must be at most ``max_image_nfa``; and ``k`` at least
+  ``min_image_support``. Where no RP's own VP passed its test, the RP rows are no
+  evidence of convergence (a frontal grid's rows meet anywhere far away) and only the
+  VP's LSD segments count (``k`` and ``n`` of segments alone). A VP that gathers a few of
+  many lines in every direction (fur, letters, the rims of cells) then fails; one of a
+  hundred lines of a street passes. A VP that passes is *at infinity* when the image
+  diagonal subtends less than ``min_image_convergence_deg`` at it (lines across the
+  image converge less than that: parallel in the picture, a frontal view): it is reported
+  as a point at infinity (``w = 0``, ``status`` ``"at_infinity"``), after the finite ones.
+  Those that fail move to ``rejected_vanishing_points`` with ``status`` ``"weak"`` and
+  their ``nfa``; ``vanishing_point`` is the first reported one (a finite one first), or
+  null. The image's ``vp_status``: ``"supported"`` (a finite VP), ``"frontal"`` (only
+  VPs at infinity), ``"weak"`` (no VP passed), ``"none"`` (no VP from any cue). Without
+  the joint list (fewer than three lines) the RP-only VP is kept when an RP's VP is
+  supported.
 * **Translation symmetry** is already a test (the cross ratio of rows of at least
   ``scene.symmetry.min_instances`` instances within ``t`` of 4/3); each pattern gets
   ``ts_status``: ``"equal_spacing"``, ``"unequal_spacing"`` or ``"too_few_instances"``.
@@ -76,9 +85,9 @@ class ClaimParams:
         Largest angle between a row and the ray from its middle to the VP, degrees.
     min_image_support : int
         Fewest inlier lines of one of the image's VPs.
-    min_image_share : float
-        Smallest share of the weight of all lines (``vp_lines.weight``) in the inlier
-        weight of one of the image's VPs, [0, 1].
+    max_image_nfa : float
+        Largest number of false alarms of one of the image's VPs (its line support
+        against uniform line directions; module docstring), > 0.
     min_image_convergence_deg : float
         Smallest angle the image diagonal subtends at one of the image's VPs, degrees.
     """
@@ -90,7 +99,7 @@ class ClaimParams:
     min_convergence_deg: float
     max_residual_deg: float
     min_image_support: int
-    min_image_share: float
+    max_image_nfa: float
     min_image_convergence_deg: float
 
     def __post_init__(self) -> None:
@@ -100,9 +109,9 @@ class ClaimParams:
         if int(self.min_rows) < 2:
             raise ValueError("ClaimParams.min_rows must be >= 2 (one row meets a VP "
                              "anywhere along it)")
-        if not 0.0 <= float(self.min_image_share) <= 1.0:
-            raise ValueError(f"ClaimParams.min_image_share must be in [0, 1], got "
-                             f"{self.min_image_share}")
+        if not float(self.max_image_nfa) > 0.0:
+            raise ValueError(f"ClaimParams.max_image_nfa must be > 0, got "
+                             f"{self.max_image_nfa}")
         if not 0.0 < float(self.parallel_alpha) < 1.0:
             raise ValueError(f"ClaimParams.parallel_alpha must be in (0, 1), got "
                              f"{self.parallel_alpha}")
@@ -290,32 +299,77 @@ def convergence_deg(homogeneous: Any, size: tuple[int, int]) -> float:
     return float(np.degrees(2.0 * np.arctan2(np.hypot(w, h) / 2.0, dist)))
 
 
+#: The inlier angle of ``vp_lines`` written before it was recorded there, degrees (the
+#: joint estimator's ``refine_angle_deg`` then).
+DEFAULT_INLIER_ANGLE_DEG = 2.0
+
+
+def line_nfa(k: int, n: int, angle_deg: float) -> float:
+    """Number of false alarms of a point that ``k`` of ``n`` lines pass within
+    ``angle_deg`` of: ``n (n - 1) (n - 2) / 2 x P[Binomial(n, 2 angle / 180) >= k]``
+    (lines of independent uniform directions; the joint estimator proposes a Manhattan
+    frame from each triplet of lines, :mod:`rescu.scene.vp.manhattan`).
+
+    >>> line_nfa(112, 298, 2.0) < 1e-50      # a street: 112 of 298 segments
+    True
+    >>> line_nfa(10, 100, 2.0) > 1           # 10 of 100 edges of cells: chance
+    True
+    """
+    from scipy.special import bdtrc
+
+    n, k = max(int(n), 0), int(k)
+    p = min(1.0, 2.0 * float(angle_deg) / 180.0)
+    tail = 1.0 if k <= 0 else float(bdtrc(k - 1, n, p)) if k <= n else 0.0
+    return max(n * (n - 1) * (n - 2) / 2.0, 1.0) * tail
+
+
+def image_vp_evidence(v: dict[str, Any], size: tuple[int, int],
+                      params: ClaimParams = ClaimParams(),
+                      lines: dict[str, Any] | None = None, rows_count: bool = True
+                      ) -> tuple[str, float]:
+    """``("supported" | "at_infinity" | "weak", nfa)`` for one entry of the joint
+    estimator's ``vanishing_points`` (``homogeneous``, ``support``, ``cues``); see the
+    module docstring.
+
+    ``lines`` is the result's ``vp_lines`` (``lines``, ``rp_rows``, ``inlier_angle_deg``;
+    None: the VP's own inliers are all the lines there were). With ``rows_count`` the
+    VP's inliers and the lines are those of every cue, RP rows included; without (no RP's
+    own VP passed its test) its LSD segments alone."""
+    cues = v.get("cues") or {}
+    lines = lines or {}
+    angle = float(lines.get("inlier_angle_deg", DEFAULT_INLIER_ANGLE_DEG))
+    if rows_count:
+        k = int(v.get("support", 0))
+        n = int(lines.get("lines", 0)) + int(lines.get("rp_rows", 0)) if lines else k
+    else:
+        k = int(cues.get("lines", v.get("support", 0)))
+        n = int(lines.get("lines", 0)) if lines else k
+    nfa = line_nfa(k, max(n, k), angle)
+    if k < params.min_image_support or nfa > params.max_image_nfa:
+        return "weak", nfa
+    if convergence_deg(v.get("homogeneous", [0, 0, 0]), size) < params.min_image_convergence_deg:
+        return "at_infinity", nfa
+    return "supported", nfa
+
+
 def image_vp_status(v: dict[str, Any], size: tuple[int, int],
                     params: ClaimParams = ClaimParams(),
                     lines: dict[str, Any] | None = None, rows_count: bool = True) -> str:
-    """``"supported"``, ``"at_infinity"`` or ``"weak"`` for one entry of the joint
-    estimator's ``vanishing_points`` (``homogeneous``, ``support``, ``weight``,
-    ``cues``).
+    """The status of :func:`image_vp_evidence` alone."""
+    return image_vp_evidence(v, size, params, lines, rows_count)[0]
 
-    ``lines`` is the result's ``vp_lines`` (None: the share is not tested). With
-    ``rows_count`` the VP's inlier weight, RP rows included, must hold
-    ``min_image_share`` of all lines' weight; without (no RP's own VP passed its test:
-    its rows are parallel, or too few) only its LSD segments count, in number: at least
-    ``min_image_support`` of them and ``min_image_share`` of all segments."""
-    if convergence_deg(v.get("homogeneous", [0, 0, 0]), size) < params.min_image_convergence_deg:
-        return "at_infinity"
-    if not rows_count:
-        n = int((v.get("cues") or {}).get("lines", v.get("support", 0)))
-        total = int((lines or {}).get("lines", 0))
-        if n < params.min_image_support or (total and n < params.min_image_share * total):
-            return "weak"
-        return "supported"
-    if int(v.get("support", 0)) < params.min_image_support:
-        return "weak"
-    total_weight = (lines or {}).get("weight")
-    if total_weight and float(v.get("weight", 0.0)) < params.min_image_share * total_weight:
-        return "weak"
-    return "supported"
+
+def at_infinity(v: dict[str, Any]) -> dict[str, Any]:
+    """A VP entry moved to infinity along its image direction (``w = 0``, unit ``x, y``;
+    a 3D ``direction`` made parallel to the image plane alike)."""
+    hx, hy, _ = (float(c) for c in v["homogeneous"])
+    nrm = float(np.hypot(hx, hy)) or 1.0
+    out = {**v, "homogeneous": [hx / nrm, hy / nrm, 0.0], "inside_image": False}
+    if v.get("direction") is not None:
+        dx, dy, _ = (float(c) for c in v["direction"])
+        dn = float(np.hypot(dx, dy)) or 1.0
+        out["direction"] = [dx / dn, dy / dn, 0.0]
+    return out
 
 
 def ts_status(pattern: Pattern) -> str:
@@ -358,21 +412,26 @@ def supported_claims(result: ImageResult, params: ClaimParams = ClaimParams()) -
     size = (int(res.width), int(res.height))
     listed = res.extra.get("vanishing_points")
     if listed:
-        kept, rejected = [], []
+        finite, far, rejected = [], [], []
         for v in listed:
-            st = image_vp_status(v, size, params, res.extra.get("vp_lines"),
-                                 rows_count=any_supported)
-            (kept if st == "supported" else rejected).append(v if st == "supported"
-                                                             else {**v, "status": st})
+            st, nfa = image_vp_evidence(v, size, params, res.extra.get("vp_lines"),
+                                        rows_count=any_supported)
+            nfa_r = float(f"{nfa:.3g}")
+            if st == "supported":
+                finite.append({**v, "nfa": nfa_r})
+            elif st == "at_infinity":
+                far.append({**at_infinity(v), "nfa": nfa_r, "status": st})
+            else:
+                rejected.append({**v, "nfa": nfa_r, "status": st})
+        kept = finite + far
         res.extra["vanishing_points"] = kept
         res.extra["rejected_vanishing_points"] = rejected
         if kept:
             res.vanishing_point = VanishingPoint.from_json(kept[0])
-            status = "supported"
+            status = "supported" if finite else "frontal"
         else:
             res.vanishing_point = None
-            status = ("frontal" if all(r["status"] == "at_infinity" for r in rejected)
-                      else "weak")
+            status = "weak"
     elif res.vanishing_point is not None:  # RP-only: supported when an RP's VP is
         status = "supported" if any_supported else (
             "frontal" if "frontal" in statuses else "weak")

@@ -14,9 +14,10 @@ RP-only VP of the scene step is kept as ``rp_vanishing_point``, and the new fiel
   "weight", "cues": {"lines": n, "rp_rows": n}}``;
 * ``focal_px``: the focal length (original pixels) the directions are in, and
   ``focal_estimated``: whether it was estimated (principal point at the image centre);
-* ``vp_lines``: ``{"lines": n, "rp_rows": n, "weight": w}``, the lines every VP was
-  drawn from and their total weight (on the scale of each VP's ``weight``), which the
-  claim tests compare a VP's inlier weight with (:mod:`rescu.scene.claims`).
+* ``vp_lines``: ``{"lines": n, "rp_rows": n, "weight": w, "inlier_angle_deg": a}``, the
+  lines every VP was drawn from, their total weight (on the scale of each VP's
+  ``weight``) and the angle within which a line supports a VP (``refine_angle_deg``),
+  which the claim tests weigh a VP's support against (:mod:`rescu.scene.claims`).
 
 Documented empty result: with fewer than three lines in all (a blank image, no pattern),
 ``vanishing_points`` is ``[]``, ``focal_px`` is null and ``vanishing_point`` stays the
@@ -123,7 +124,8 @@ def image_vanishing_points(rgb: np.ndarray, scale_factor: float, result: ImageRe
     # of each cue and their total weight, on the scale of each VP's ``weight``
     total = sum(float(np.sum(ln.weights)) * cw for _, ln, cw in cues if cw > 0)
     out.extra["vp_lines"] = {"lines": int(len(cues[0][1])), "rp_rows": int(len(rp_proc)),
-                             "weight": round(total / scale_factor, 3)}
+                             "weight": round(total / scale_factor, 3),
+                             "inlier_angle_deg": float(params.refine_angle_deg)}
     return out
 
 
