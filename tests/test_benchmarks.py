@@ -685,3 +685,34 @@ def test_camera_speed_times_every_stage_of_a_small_photo(capsys):
     for stage in ("prepare", "features", "dense", "rescu-i", "scene"):
         assert f"{stage} " in line, line
     assert "peak" in line and "| brick.png | 0.05 |" in out
+
+
+def test_tree_memory_counts_a_child_and_a_step_server_outside_the_tree(tmp_path, capsys):
+    """``tree_memory.py``: the memory of the command's children, and of a step server in a
+    session of its own, which /usr/bin/time does not see."""
+    import json
+    import subprocess
+
+    spec = importlib.util.spec_from_file_location("tree_memory", BENCH / "speed" / "tree_memory.py")
+    tm = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tm)
+    with pytest.raises(SystemExit):
+        tm.main([])
+    assert "no command" in capsys.readouterr().err
+    hold = ("import sys, time; b = bytearray(int(sys.argv[1]) << 20); "
+            "b[::4096] = b'x' * len(b[::4096]); time.sleep(3)")
+    # a "step server" started in its own session before the command: counted
+    server = subprocess.Popen([sys.executable, "-c", hold, "150", "rescu.step_server"],
+                              start_new_session=True)
+    try:
+        out = tmp_path / "m.json"
+        code = tm.main(["--interval", "0.1", "--json", str(out), "--", sys.executable, "-c",
+                        "import subprocess, sys; subprocess.run([sys.executable, '-c', "
+                        f"{hold!r}, '100'])"])
+    finally:
+        server.kill()
+        server.wait()
+    got = json.loads(out.read_text())
+    assert code == 0 and got["exit"] == 0 and got["most_processes"] >= 3
+    assert got["peak_sum_pss_mib"] >= 240 and got["peak_sum_rss_mib"] >= 240
+    assert 140 <= got["peak_process_rss_mib"] <= 220
