@@ -369,6 +369,25 @@ def test_first_screen_in_chromium(run, tmp_path):
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed")
+def test_the_readme_screenshot_command_works(run, tmp_path, capsys):
+    """The command that makes the README's picture (docs/results.md, "Speed and memory"):
+    a screenshot of the report's first screen and its layout check, exit 0."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "speed" / "report_screenshot.py"
+    spec = importlib.util.spec_from_file_location("report_screenshot", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    _, out, _ = run
+    png = tmp_path / "shot.png"
+    assert mod.main([str(out), str(png)]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["problems"] == [] and got["pictures_on_first_screen"] >= 3
+    img = cv2.imread(str(png))
+    assert img.shape[:2] == (900, 1400) and img.std() > 10
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed")
 def test_the_check_notices_a_wide_table(tmp_path):
     """The layout check is not blind: a table wider than the window is reported."""
     page = tmp_path / "wide.html"
