@@ -36,9 +36,14 @@ wildcard_constraints:
 
 # dataset name -> {"root": folder with images/ (+ ground truth), "images": {stem: path},
 #                  "kind": ..., "has_rps": bool, "has_vps": bool}
-DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: print(m, file=sys.stderr))
-# dataset name -> why it is not in this run (its folder is missing or holds no images)
+DATASETS = build_image_table(config, results_dir=RESULTS, log=lambda m: None)
+# dataset name -> why it is not in this run (its folder is missing or holds no images):
+# one line on the terminal, and the report names each with its reason
 SKIPPED = skipped_datasets(config, results_dir=RESULTS)
+if SKIPPED:
+    print(f"rescu: not in this run (folder missing or without images): "
+          f"{', '.join(SKIPPED)}; the report says why and how to add a dataset",
+          file=sys.stderr)
 
 
 CODE_DIR = f"{RESULTS}/.code"
