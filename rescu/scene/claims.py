@@ -352,13 +352,6 @@ def image_vp_evidence(v: dict[str, Any], size: tuple[int, int],
     return "supported", nfa
 
 
-def image_vp_status(v: dict[str, Any], size: tuple[int, int],
-                    params: ClaimParams = ClaimParams(),
-                    lines: dict[str, Any] | None = None, rows_count: bool = True) -> str:
-    """The status of :func:`image_vp_evidence` alone."""
-    return image_vp_evidence(v, size, params, lines, rows_count)[0]
-
-
 def at_infinity(v: dict[str, Any]) -> dict[str, Any]:
     """A VP entry moved to infinity along its image direction (``w = 0``, unit ``x, y``;
     a 3D ``direction`` made parallel to the image plane alike)."""
