@@ -894,7 +894,7 @@ def _assert_one_box_per_coin(patterns, part_cover):
     assert c.max() <= part_cover, c.max()
 
 
-@pytest.mark.xfail(strict=True, reason="known flaw of the dense step (docs/results.md, 'One "
+@pytest.mark.xfail(strict=True, reason="known flaw of the dense step (docs/studies/whole-objects.md, 'One "
                    "object, one box'): one coin keeps a plain and a turned box, 25 boxes; "
                    "RESCU-I keeps one (the next test)")
 def test_coins_photo_is_one_rp_with_one_box_per_coin():

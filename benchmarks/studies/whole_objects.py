@@ -1,5 +1,5 @@
 """Whole objects (rescu.extension.objects) on a finished run, every image of each dataset,
-at several confidence thresholds: the figures of docs/results.md, "Whole objects".
+at several confidence thresholds: the figures of docs/studies/whole-objects.md.
 
 For each image of the run's ``<dataset>/prepared/`` folder: the dense step with whole
 objects (:func:`rescu.extension.dense.find_dense`, the config's ``dense`` section with

@@ -34,7 +34,7 @@ that the parts are one pattern: the frozen ImageNet features of every stage-I in
   like rather than in rows, and the dense source's grouping splits one kind of object
   into groups by colour and orientation. By default it is the rows' limit: without the
   line test the appearance test joins split groups of cars, but also groups of board
-  edges on chess (``docs/results.md``, "The dominant RP").
+  edges on chess (``docs/studies/whole-objects.md``, "The dominant RP").
 
 Merging is agglomerative: the most similar admissible pair (largest
 ``S_AB / min(S_AA, S_BB)``) is merged first and the evidence recomputed for the merged
