@@ -277,13 +277,16 @@ def test_the_client_refuses_a_server_of_another_user(short):
          "import socket, sys\n"
          "s = socket.socket(socket.AF_UNIX); s.bind(sys.argv[1]); s.listen(1)\n"
          "import os; os.chmod(sys.argv[1], 0o777)\n"
+         "open(sys.argv[2] + '.ready', 'w').close()\n"
          "c, _ = s.accept(); c.settimeout(5)\n"
          "try:\n    data = c.recv(1 << 16)\nexcept OSError:\n    data = b''\n"
          "open(sys.argv[2], 'wb').write(data)\n", path, got],
         user=OTHER_UID)
     try:
+        # wait until it listens and anyone may connect: the socket file exists from bind
+        # on, and a connection before listen is refused (no server, nothing to refuse)
         end = time.monotonic() + 20
-        while not os.path.exists(path) and time.monotonic() < end:
+        while not os.path.exists(got + ".ready") and time.monotonic() < end:
             time.sleep(0.02)
         with pytest.raises(step_server.UnsafeError, match=f"uid {OTHER_UID}"):
             step_server._connect(path)
