@@ -99,6 +99,35 @@ def test_find_like_turned_objects(backbone):
     assert plain.count < turned.count
 
 
+def test_find_like_other_sizes(backbone):
+    """Objects 0.6x the example's side: found on the map of the photo resized by 1 / 0.6
+    when ``sizes`` holds 0.6, with boxes of their own size; without, boxes of the
+    example's size hold them but are too large for them (IOD <= 0.5)."""
+    rng = np.random.default_rng(5)
+    img = np.full((300, 560, 3), 120, np.uint8) + rng.integers(0, 10, (300, 560, 3),
+                                                               dtype=np.uint8)
+    obj = rng.integers(0, 255, (4, 4, 3), dtype=np.uint8)
+    big = [(20, 30), (140, 30), (260, 30)]
+    for x, y in big:
+        img[y:y + 48, x:x + 48] = obj.repeat(12, 0).repeat(12, 1)          # 48 x 48
+    small = [(30, 160), (130, 160), (230, 160), (330, 160)]
+    for x, y in small:
+        img[y:y + 28, x:x + 28] = obj.repeat(7, 0).repeat(7, 1)            # 28 x 28
+    ex = np.array([[20, 30, 48, 48]], float)
+    base = {**PromptParams().__dict__, "turn": False}
+    one = find_like(img, ex, backbone, PromptParams.from_dict(base))
+    both = find_like(img, ex, backbone, PromptParams.from_dict({**base, "sizes": [0.6, 1.0]}))
+    from rescu.evaluation.metrics import match_boxes
+
+    truth = np.array([(x, y, 48, 48) for x, y in big] + [(x, y, 28, 28) for x, y in small],
+                     float)
+    assert len(match_boxes(both.boxes, truth, 0.5)) == 7 and both.count == 7, both.boxes
+    assert len(match_boxes(one.boxes, truth, 0.5)) < 7
+    assert np.allclose(both.boxes[both.boxes[:, 2] < 40][:, 2:], 28.8, atol=2.0)
+    with pytest.raises(ValueError, match="sizes"):
+        PromptParams.from_dict({**base, "sizes": [0.1]})
+
+
 def test_api_prompted_pattern_first_and_dominant(tmp_path):
     import cv2
 

@@ -84,6 +84,12 @@ class PromptParams:
     unprompted : bool
         With examples, the RPs found without them are still reported after the prompted
         one; false: the prompted RP alone.
+    sizes : tuple of float
+        Object sides looked for, as ratios to the examples' mean side, each in
+        [0.25, 4]: a ratio ``r`` other than 1 adds the map of the resized photo resized
+        again by ``1 / r`` (capped by ``max_side``; turned too with ``turn``), where
+        objects ``r`` x the examples' side look like them; their boxes are ``r`` x the
+        examples' size.
     """
 
     target_side: float
@@ -98,6 +104,7 @@ class PromptParams:
     relative_score: float
     min_box_px: float
     unprompted: bool
+    sizes: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
         if not self.target_side >= 16:
@@ -114,6 +121,10 @@ class PromptParams:
             raise ValueError(f"min_score must be in [-1, 1], got {self.min_score}")
         if not self.min_box_px >= 1:
             raise ValueError(f"min_box_px must be >= 1, got {self.min_box_px}")
+        object.__setattr__(self, "sizes", tuple(float(r) for r in self.sizes))
+        if not self.sizes or not all(0.25 <= r <= 4.0 for r in self.sizes):
+            raise ValueError(f"sizes must be 1 to several ratios in [0.25, 4], got "
+                             f"{list(self.sizes)}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "PromptParams":
@@ -321,18 +332,23 @@ class _View:
     f: np.ndarray
     turned: bool
     wh: tuple[int, int]
+    zoom: float = 1.0
 
     def boxes(self, cells: np.ndarray, kh: int, kw: int, bw: float, bh: float) -> np.ndarray:
         """Boxes (n, 4) in resized-photo pixels, centred on the windows whose top-left
         cells are ``cells`` (rows, cols; a (kh, kw) window), of the examples' size
-        ``bw x bh`` (as seen in this view's own orientation before turning back)."""
+        ``bw x bh`` in this view (as seen in its own orientation before turning back):
+        ``bw / zoom x bh / zoom`` in the resized photo, whose pixels this view's
+        ``zoom`` x enlarges (``wh``: the view's (width, height) before turning)."""
         cy = (cells[:, 0] + kh / 2.0) * CELL
         cx = (cells[:, 1] + kw / 2.0) * CELL
         if not self.turned:
-            return np.c_[cx - bw / 2, cy - bh / 2, np.full(len(cx), bw), np.full(len(cx), bh)]
-        W = self.wh[0]  # turned point (x', y') <- photo point (W - y', x')
-        ox, oy = W - cy, cx
-        return np.c_[ox - bh / 2, oy - bw / 2, np.full(len(cx), bh), np.full(len(cx), bw)]
+            b = np.c_[cx - bw / 2, cy - bh / 2, np.full(len(cx), bw), np.full(len(cx), bh)]
+        else:
+            W = self.wh[0]  # turned point (x', y') <- photo point (W - y', x')
+            ox, oy = W - cy, cx
+            b = np.c_[ox - bh / 2, oy - bw / 2, np.full(len(cx), bh), np.full(len(cx), bw)]
+        return b / self.zoom
 
 
 def _cover_filter(boxes: np.ndarray, order: np.ndarray, max_covered: float,
@@ -401,6 +417,19 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
     if p.turn:
         views.append(_View(hypercolumn(backbone, np.ascontiguousarray(np.rot90(img))),
                            True, (sw, sh)))
+    for r in p.sizes:
+        # objects r x the examples' side look like the examples in the photo resized by
+        # 1 / r more (capped by max_side)
+        z = min(1.0 / r, p.max_side / max(sw, sh))
+        if r == 1.0 or abs(z - 1.0) < 0.05:
+            continue
+        zi = _scaled(img, z)
+        zwh = (zi.shape[1], zi.shape[0])
+        zx = zwh[0] / sw
+        views.append(_View(hypercolumn(backbone, zi), False, zwh, zx))
+        if p.turn:
+            views.append(_View(hypercolumn(backbone, np.ascontiguousarray(np.rot90(zi))),
+                               True, zwh, zx))
     plain = views[0].f
     # the examples' windows: kh x kw cells centred on each example's centre
     ecells = np.c_[np.round((exs[:, 1] + exs[:, 3] / 2) / CELL - kh / 2.0),
