@@ -231,9 +231,40 @@ def _summary_line(name: str, res: Any) -> str:
         return f"{name}: FAILED in {f.get('stage')}: {f.get('message')}"
     line = summary_line(res)
     cap = (res.caption or {}).get("enhanced")
-    if line == NO_PATTERN or not cap:
+    if line == NO_PATTERN:
+        return f"{name}: {line}{_set_aside(res)}{note}"
+    if not cap:
         return f"{name}: {line}{note}"
     return f'{name}: {line} — "{cap}"{note}'
+
+
+def _set_aside(res: Any) -> str:
+    """For a photo with no RP: what the confidence set aside, if anything (the RPs of
+    ``extra["candidate_patterns"]`` dropped for low confidence, two or more instances),
+    and how to count what the user sees: on photos full of small objects the objects
+    are often there, under the threshold (docs/studies/confidence.md).
+
+    >>> from rescu.types import ImageResult
+    >>> box = {"bbox": [0, 0, 5, 5]}
+    >>> r = ImageResult(image="x", width=9, height=9, method="rescu-ii", extra={
+    ...     "candidate_patterns": [
+    ...         {"dropped": "low confidence", "confidence": 0.16, "instances": [box] * 9},
+    ...         {"dropped": "low confidence", "confidence": 0.1, "instances": [box] * 3},
+    ...         {"dropped": "one structure", "confidence": 0.5, "instances": [box] * 4}]})
+    >>> _set_aside(r)
+    ' Set aside under the confidence threshold: 2 candidates, the most confident 9 instances at 0.16 (candidate_patterns in the JSON); --example X,Y,W,H counts what you point at.'
+    >>> _set_aside(ImageResult(image="x", width=9, height=9, method="rescu-ii"))
+    ''
+    """
+    low = [c for c in res.extra.get("candidate_patterns") or []
+           if c.get("dropped") == "low confidence" and len(c.get("instances") or []) >= 2]
+    if not low:
+        return ""
+    best = max(low, key=lambda c: float(c.get("confidence") or 0.0))
+    return (f" Set aside under the confidence threshold: {len(low)} candidate"
+            f"{'s' if len(low) != 1 else ''}, the most confident "
+            f"{len(best['instances'])} instances at {float(best.get('confidence') or 0):.2f}"
+            " (candidate_patterns in the JSON); --example X,Y,W,H counts what you point at.")
 
 
 def _terminate(signum: int, frame: Any) -> None:
