@@ -28,11 +28,11 @@ $(STAMP): requirements.txt pyproject.toml
 	touch $(STAMP)
 
 # a quiet terminal: a progress line, warnings and failures, the report's path and a
-# one-line summary (rescu/runlog.py; full output in results/logs/run.log); make run V=1:
-# Snakemake's full output
+# one-line summary (rescu_workflow/runlog.py; full output in results/logs/run.log);
+# make run V=1: Snakemake's full output
 V ?=
 run: setup
-	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/python -m rescu.runlog $(if $(V),--verbose) -- \
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/python -m rescu_workflow.runlog $(if $(V),--verbose) -- \
 	  $(BIN)/snakemake --cores $(CORES)
 
 # every table of the paper: the main methods and the ablations on every image of each

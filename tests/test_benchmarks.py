@@ -702,7 +702,7 @@ def test_tree_memory_counts_a_child_and_a_step_server_outside_the_tree(tmp_path,
     hold = ("import sys, time; b = bytearray(int(sys.argv[1]) << 20); "
             "b[::4096] = b'x' * len(b[::4096]); time.sleep(3)")
     # a "step server" started in its own session before the command: counted
-    server = subprocess.Popen([sys.executable, "-c", hold, "150", "rescu.step_server"],
+    server = subprocess.Popen([sys.executable, "-c", hold, "150", "rescu_workflow.step_server"],
                               start_new_session=True)
     try:
         out = tmp_path / "m.json"

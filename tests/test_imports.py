@@ -1,11 +1,11 @@
-"""rescu.imports: the package's import graph, and the library files each workflow step
+"""rescu_workflow.code_deps: the package's import graph, and the library files each workflow step
 runs (the rules' code dependencies)."""
 
 from pathlib import Path
 
 import pytest
 
-from rescu.imports import import_closure, step_dependencies
+from rescu_workflow.code_deps import import_closure, step_dependencies
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "workflow" / "scripts"
@@ -50,7 +50,7 @@ def test_evaluation_sits_above_the_stages():
     """Only the evaluation itself and the command line (which runs its tables) import
     ``rescu.evaluation``; the stages measure box overlaps with ``rescu.boxes``, which
     imports nothing of the package."""
-    from rescu.imports import import_graph
+    from rescu_workflow.code_deps import import_graph
 
     graph = import_graph()
     allowed = ("rescu.evaluation", "rescu.cli")

@@ -1,4 +1,4 @@
-"""The quiet terminal of `make run` (rescu.runlog): progress, failures, the end."""
+"""The quiet terminal of `make run` (rescu_workflow.runlog): progress, failures, the end."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from rescu import runlog as R
+from rescu_workflow import runlog as R
 
 SNAKEMAKE_OUTPUT = """\
 Assuming unrestricted shared filesystem usage.
@@ -97,7 +97,7 @@ def test_run_prints_report_and_summary(tmp_path: Path) -> None:
 
 
 def test_a_message_repeated_by_each_parse_of_the_snakefile_is_shown_once():
-    from rescu.runlog import RunMonitor
+    from rescu_workflow.runlog import RunMonitor
 
     shown = []
     mon = RunMonitor(shown.append)
@@ -119,7 +119,7 @@ def _fake_snakemake(tmp_path):
 
 
 def test_a_lock_left_by_a_killed_run_is_removed_in_one_line(tmp_path):
-    from rescu.runlog import recover_lock
+    from rescu_workflow.runlog import recover_lock
 
     exe = _fake_snakemake(tmp_path)
     locks = tmp_path / ".snakemake" / "locks"
@@ -134,7 +134,7 @@ def test_a_lock_left_by_a_killed_run_is_removed_in_one_line(tmp_path):
 
 
 def test_a_lock_held_by_a_live_snakemake_is_named_not_removed(tmp_path, monkeypatch):
-    from rescu import runlog
+    from rescu_workflow import runlog
 
     exe = _fake_snakemake(tmp_path)
     locks = tmp_path / ".snakemake" / "locks"
@@ -152,7 +152,7 @@ def test_snakemake_processes_are_found_by_name_and_folder(tmp_path):
     import sys
     import time
 
-    from rescu.runlog import snakemake_pids
+    from rescu_workflow.runlog import snakemake_pids
 
     link = tmp_path / "snakemake"
     link.symlink_to(sys.executable)

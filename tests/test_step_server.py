@@ -1,4 +1,4 @@
-"""The step server (rescu.step_server, python -m rescu.step_server): a job run in a child
+"""The step server (rescu_workflow.step_server, python -m rescu_workflow.step_server): a job run in a child
 of the server gets its streams, arguments and environment, exits with the status a process
 of its own would, computes the same bytes, and does not outlive its client."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rescu import step_server
+from rescu_workflow import step_server
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN_STEP = ROOT / "workflow" / "run_step.py"
@@ -60,7 +60,7 @@ def _step(tmp_path: Path, x: int, server: bool, out: Path, torch: bool = False,
           **kw) -> subprocess.CompletedProcess:
     script = tmp_path / "step.py"
     script.write_text(SCRIPT)
-    args = ([sys.executable, "-m", "rescu.step_server", "--idle=20"] if server else
+    args = ([sys.executable, "-m", "rescu_workflow.step_server", "--idle=20"] if server else
             [sys.executable]) + [str(RUN_STEP)]
     env = {**os.environ, "RESCU_TEST_VALUE": "v1"}
     return subprocess.run(args + [str(script), _job(out, x, torch), str(tmp_path / "log")],
@@ -91,7 +91,7 @@ def _long_job(tmp_path: Path) -> tuple[subprocess.Popen, int]:
     script = tmp_path / "step.py"
     script.write_text(SCRIPT)
     out = tmp_path / "long.npy"
-    client = subprocess.Popen([sys.executable, "-m", "rescu.step_server", "--idle=20",
+    client = subprocess.Popen([sys.executable, "-m", "rescu_workflow.step_server", "--idle=20",
                                str(RUN_STEP), str(script), _job(out, 5),
                                str(tmp_path / "log")],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
@@ -169,7 +169,7 @@ def test_servers_differ_by_the_thread_settings_libraries_read_at_load():
 
 @pytest.mark.parametrize("idle", ["0", "-1", "soon"])
 def test_an_idle_time_that_is_not_positive_is_refused(tmp_path, idle):
-    r = subprocess.run([sys.executable, "-m", "rescu.step_server", f"--idle={idle}",
+    r = subprocess.run([sys.executable, "-m", "rescu_workflow.step_server", f"--idle={idle}",
                         str(RUN_STEP), "x.py", "{}"], capture_output=True, text=True,
                        cwd=tmp_path)
     assert r.returncode == 1 and "--idle must be a number of seconds > 0" in r.stderr

@@ -11,7 +11,7 @@ Prints
    its start-up not); and the seconds its ``benchmark:`` file records per job. Once as
    a ``script:`` rule, then run as the per-image rules run their scripts (``shell:``
    through ``workflow/run_step.py``, ``step_params`` in ``workflow/rules/common.smk``),
-   without and with the step server (:mod:`rescu.step_server`), and the
+   without and with the step server (:mod:`rescu_workflow.step_server`), and the
    same two with a script that imports torch, as the steps that run the backbone do;
 2. the seconds a fresh interpreter takes to import what each per-image step imports
    (median of 3);
@@ -79,7 +79,7 @@ TORCH_SCRIPT = SCRIPT.replace("pipeline.limit_threads(snakemake.threads)",
                               "pipeline.limit_threads(snakemake.threads, torch=True)")
 
 # form -> (Snakefile, what runs run_step.py (the step server's command), script)
-SERVER = ["-m", "rescu.step_server", "--idle=30"]
+SERVER = ["-m", "rescu_workflow.step_server", "--idle=30"]
 FORMS = {
     "script:": (SNAKEFILE, [], SCRIPT),
     "shell: through workflow/run_step.py": (STEP_SNAKEFILE, [], SCRIPT),

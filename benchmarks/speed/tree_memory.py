@@ -4,7 +4,7 @@
 
 Runs the command and, every ``--interval`` seconds until it exits, reads the memory of
 every process of the run: the command's descendants, and the step servers
-(:mod:`rescu.step_server`) and their forked step processes, which run in sessions of
+(:mod:`rescu_workflow.step_server`) and their forked step processes, which run in sessions of
 their own and outlive the job that started them (``/usr/bin/time`` and Snakemake's
 ``benchmark:`` files see neither: they count the small client processes). A step server
 already running when the command starts is counted too when the command's jobs use it
@@ -30,7 +30,7 @@ import time
 
 def _is_server(p) -> bool:
     try:
-        return "rescu.step_server" in " ".join(p.cmdline()) and p.uids().real == os.getuid()
+        return "rescu_workflow.step_server" in " ".join(p.cmdline()) and p.uids().real == os.getuid()
     except Exception:
         return False
 

@@ -7,7 +7,7 @@ from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table, sk
 from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.discovery.ablation import SOURCE_ROWS
-from rescu.imports import PACKAGE_DIR, step_dependencies
+from rescu_workflow.code_deps import PACKAGE_DIR, step_dependencies
 from rescu.names import METHODS
 
 RESULTS = config["results_dir"]
@@ -63,9 +63,9 @@ def step_params(script, **params):
     as under ``script:``. ``params``: JSON values
     (config sections), or functions of the wildcards giving one.
 
-    With ``step_server.enabled`` the command is ``python -m rescu.step_server
+    With ``step_server.enabled`` the command is ``python -m rescu_workflow.step_server
     --idle=SECONDS run_step.py ...``: the job runs in a child of the step server, which
-    has already imported its libraries (:mod:`rescu.step_server`).
+    has already imported its libraries (:mod:`rescu_workflow.step_server`).
 
     Snakemake does not record a function's value as a parameter, nor a command's paths
     as code (``STEP_SHELL`` is the rule's code, the same text wherever the checkout or
@@ -82,7 +82,8 @@ def step_params(script, **params):
     server = config["step_server"]
     runner = [sys.executable, RUN_STEP]
     if server["enabled"]:  # the command only: a switch that changes no output reruns no job
-        runner[1:1] = ["-m", "rescu.step_server", f"--idle={float(server['idle_seconds']):g}"]
+        runner[1:1] = ["-m", "rescu_workflow.step_server",
+                       f"--idle={float(server['idle_seconds']):g}"]
     head = " ".join(shlex.quote(str(a)) for a in (*runner, path))
 
     def step(wildcards, input, output, threads):
@@ -125,7 +126,7 @@ def step_code(script):
     """The code input of a rule that runs ``workflow/scripts/<script>.py``: one stamp file,
     ``<results>/.code/<script>.txt``, listing with their SHA-256 every rescu/ source file
     the script runs (the script's imports and those inside the step functions it calls,
-    closed over the package's imports: :func:`rescu.imports.step_dependencies`), the
+    closed over the package's imports: :func:`rescu_workflow.code_deps.step_dependencies`), the
     script itself and ``workflow/run_step.py`` (which runs the per-image rules' scripts,
     :func:`step_params`; Snakemake itself tracks a ``script:``, not a ``shell:``'s).
 

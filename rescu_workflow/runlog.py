@@ -1,8 +1,8 @@
 """A quiet terminal for a pipeline run: one progress line, warnings and failures, and at
 the end where the report is and what was found.
 
-``python -m rescu.runlog [--verbose] [--results DIR] -- snakemake --cores 2 ...`` runs
-the command, keeps its full output in ``<results>/logs/run.log`` (Snakemake also keeps
+``python -m rescu_workflow.runlog [--verbose] [--results DIR] -- snakemake --cores 2 ...``
+runs the command, keeps its full output in ``<results>/logs/run.log`` (Snakemake also keeps
 its own log under ``.snakemake/log/``) and prints instead:
 
 * a progress line ``[##....] 12 of 30 images, 150 of 423 steps, about 6 min left``
@@ -220,7 +220,7 @@ def _results_dir(argv: Sequence[str], default: str) -> str:
         user = yaml.safe_load(Path("config/config.yaml").read_text()) or {}
         if "results_dir" in user:
             return str(user["results_dir"])
-        from .params import config_defaults
+        from rescu.params import config_defaults
 
         return str(config_defaults()["results_dir"])
     except (OSError, KeyError, TypeError, ValueError, AttributeError):
@@ -337,8 +337,8 @@ def run(cmd: Sequence[str], results: str | Path, out: TextIO = sys.stdout,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m rescu.runlog [--verbose] [--results DIR] -- COMMAND ...``."""
-    p = argparse.ArgumentParser(prog="python -m rescu.runlog",
+    """``python -m rescu_workflow.runlog [--verbose] [--results DIR] -- COMMAND ...``."""
+    p = argparse.ArgumentParser(prog="python -m rescu_workflow.runlog",
                                 description="Run a pipeline command with a quiet terminal.")
     p.add_argument("--verbose", action="store_true", help="pass the full output through")
     p.add_argument("--results", default=None,

@@ -1,4 +1,4 @@
-"""The package's own import graph, read from the source.
+"""The ``rescu`` package's own import graph, read from the source.
 
 The workflow derives each rule's code dependencies from it (a rule reruns when a module
 its step imports, at any depth, changes), and ``tests/test_layout.py`` checks with it
@@ -11,9 +11,19 @@ from __future__ import annotations
 
 import ast
 import functools
+import importlib.util
 from pathlib import Path
 
-PACKAGE_DIR = Path(__file__).resolve().parent
+
+def _package_dir(name: str = "rescu") -> Path:
+    """The folder of an installed package, found without importing it."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        raise ImportError(f"package {name!r} not found")
+    return Path(list(spec.submodule_search_locations)[0]).resolve()
+
+
+PACKAGE_DIR = _package_dir()
 """The folder of the ``rescu`` package."""
 
 

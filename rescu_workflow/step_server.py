@@ -9,12 +9,12 @@ wheels). Over an image's seven or so jobs that is about a fifth of what a run of
 real sets costs (``benchmarks/speed/job_overhead.py``,
 ``benchmarks/speed/step_imports.py``).
 
-With the server the job's command is ``python -m rescu.step_server --idle=SECONDS
+With the server the job's command is ``python -m rescu_workflow.step_server --idle=SECONDS
 workflow/run_step.py SCRIPT JOB LOG`` (:func:`main`; ``step_params`` in
 ``workflow/rules/common.smk`` writes it when ``step_server.enabled``), and the job's
 process is a small *client* that imports nothing but the standard library: it connects
-to a Unix socket, where a server that imported those libraries once (:data:`PRELOAD`, never ``rescu`` itself, so that every step runs the
-checkout's code as it is) forks a child for the job. The child takes the client's
+to a Unix socket, where a server that imported those libraries once (:data:`PRELOAD`,
+never ``rescu`` itself, so that every step runs the checkout's code as it is) forks a child for the job. The child takes the client's
 standard input, output and error (passed over the socket), its working directory,
 environment, ``sys.argv`` and ``sys.path``, runs the step as the client would have, and
 sends back its exit status, which the client exits with. What the step computes is the
@@ -253,7 +253,8 @@ def _start(path: str, idle_s: float) -> socket.socket | None:
         except FileNotFoundError:
             pass
         boot = ("import sys, json; sys.path[:] = json.loads(sys.argv[1]); "
-                "from rescu.step_server import serve; serve(sys.argv[2], float(sys.argv[3]))")
+                "from rescu_workflow.step_server import serve; "
+                "serve(sys.argv[2], float(sys.argv[3]))")
         proc = subprocess.Popen(
             [sys.executable, "-c", boot, json.dumps(sys.path), path, repr(float(idle_s))],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -464,8 +465,8 @@ def run_file(path: str, argv: Sequence[str]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m rescu.step_server [--idle=SECONDS] RUNNER ARG ...``: run ``python RUNNER
-    ARG ...`` in a child of the step server (started when none runs; it ends after
+    """``python -m rescu_workflow.step_server [--idle=SECONDS] RUNNER ARG ...``: run
+    ``python RUNNER ARG ...`` in a child of the step server (started when none runs; it ends after
     ``SECONDS`` idle, default 30), or in this process where no server can be used; exit
     with its status. The pipeline's per-image jobs run so with ``step_server.enabled``
     (``RUNNER`` = ``workflow/run_step.py``)."""
@@ -478,9 +479,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         except ValueError:
             idle_s = float("nan")
         if not idle_s > 0:
-            sys.exit(f"rescu.step_server: --idle must be a number of seconds > 0, got {value!r}")
+            sys.exit("rescu_workflow.step_server: --idle must be a number of seconds > 0, "
+                     f"got {value!r}")
     if not args:
-        sys.exit("usage: python -m rescu.step_server [--idle=SECONDS] RUNNER [ARG ...]")
+        sys.exit("usage: python -m rescu_workflow.step_server [--idle=SECONDS] RUNNER [ARG ...]")
     runner, rest = args[0], args[1:]
     status = run_via_server(rest, runner, idle_s)
     if status is not None:
