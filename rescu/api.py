@@ -24,7 +24,7 @@ from .types import ImageResult
 
 def discover(image: str | Path, out_dir: str | Path | None = None, method: str = "rescu-ii",
              config: dict[str, Any] | None = None, keep_work: bool = False,
-             name: str | None = None, validated: bool = False,
+             name: str | None = None,
              force: bool = False, overlay: str | None = None,
              examples: Any = None) -> ImageResult:
     """Discover the recurring patterns of one photo and describe the scene.
@@ -48,9 +48,6 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
     name : str, optional
         The name of the output files instead of the photo's stem (``<name>.json``, ...);
         a plain file name (no folder part).
-    validated : bool
-        ``config`` was already checked by :func:`rescu.config.validate_config` (the CLI
-        checks it once for all photos); otherwise it is checked here.
     force : bool
         Replace files in ``out_dir`` that rescu did not write (never ``image`` itself).
     overlay : {"full", "boxes", "none"}, optional
@@ -128,9 +125,8 @@ def discover(image: str | Path, out_dir: str | Path | None = None, method: str =
         raise (InputError(e) if image.exists() else FileNotFoundError(str(e))) from None
     if config is None:
         cfg = load_config(stage2=method == "rescu-ii")
-    else:
-        cfg = config if validated else validate_config(config, "config",
-                                                       stage2=method == "rescu-ii")
+    else:  # checked once per content in a process (a batch: one check)
+        cfg = validate_config(config, "config", stage2=method == "rescu-ii")
     stem = outputs.check_name(image.stem if name is None else name)
     if out_dir is not None:
         out = Path(out_dir)
@@ -165,7 +161,7 @@ def _run(image: Path, cfg: dict[str, Any], method: str, staged: Path | None,
     ``out_dir`` (and its staging folder ``staged``; both None: nothing is written), the
     result set made under ``staged`` (the overlay picture drawn in mode ``overlay``, none
     for ``"none"``) and committed."""
-    ran = core.run_image(image, cfg, method, name=image.name, validated=True, keep=keep_work,
+    ran = core.run_image(image, cfg, method, name=image.name, keep=keep_work,
                          examples=examples)
     result = ran.result
     if out_dir is None or staged is None:  # both None together (discover)

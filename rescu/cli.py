@@ -326,7 +326,7 @@ def _discover_photos(args: argparse.Namespace, cfg: dict[str, Any], photos: list
         bar.set_postfix_str(photo.name)
         try:
             res = discover(photo, out_dir=out, method=args.method, config=cfg,
-                           keep_work=args.keep_work, name=name, validated=True,
+                           keep_work=args.keep_work, name=name,
                            force=args.force, overlay=args.overlay,
                            examples=examples.get(photo))
         except ExampleError as e:  # this photo's boxes: the others go on

@@ -333,6 +333,11 @@ def validate_config(config: dict[str, Any], source: str = "config",
     stage2 : bool
         Also check what stage II needs (the backbone's weights).
 
+    A configuration whose content was found valid before in this process is not checked
+    again (its JSON text is remembered, :data:`_VALID`): the CLI, :func:`rescu.discover`
+    and :func:`rescu.core.run_image` each call this on what they are given, and a batch
+    of photos costs one check.
+
     >>> cfg = load_config(stage2=False)
     >>> validate_config(cfg, stage2=False) is cfg
     True
@@ -350,6 +355,9 @@ def validate_config(config: dict[str, Any], source: str = "config",
             if _has_path(layer, path[:2]):
                 origin = name
         raise InputError(f"{origin}: {bad}")
+    key = _fingerprint(config, stage2)
+    if key is not None and key in _VALID:
+        return config
     errors = schema_errors(config)
     if errors:
         path, text = errors[0]
@@ -367,7 +375,35 @@ def validate_config(config: dict[str, Any], source: str = "config",
             if _has_path(layer, section[:1]):
                 origin = name
         raise InputError(f"{origin}: {e}") from None
+    if key is not None:
+        while len(_VALID) >= _VALID_MAX:
+            _VALID.pop(next(iter(_VALID)))
+        _VALID[key] = None
     return config
+
+
+_VALID: dict[str, None] = {}
+"""Fingerprints (:func:`_fingerprint`) of the configurations :func:`validate_config`
+found valid in this process, oldest first."""
+_VALID_MAX = 16
+
+
+def _fingerprint(config: Mapping[str, Any], stage2: bool) -> str | None:
+    """The configuration's content as canonical JSON (keys sorted) with the check's
+    ``stage2``; None for content that is not JSON (never remembered). A configuration
+    changed in place after a check has another fingerprint and is checked again.
+
+    >>> _fingerprint({"b": 1, "a": [1.5, "x"]}, False)
+    '0{"a": [1.5, "x"], "b": 1}'
+    >>> _fingerprint({"a": object()}, True) is None
+    True
+    """
+    import json
+
+    try:
+        return f"{int(stage2)}{json.dumps(config, sort_keys=True, allow_nan=False)}"
+    except (TypeError, ValueError):
+        return None
 
 
 def load_config(path: str | Path | None = None,

@@ -539,13 +539,13 @@ def run(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
 
 
 def run_image(image: np.ndarray | str | Path, config: dict[str, Any] | None = None,
-              method: str = "rescu-ii", name: str | None = None,
-              validated: bool = False, keep: bool = False,
+              method: str = "rescu-ii", name: str | None = None, keep: bool = False,
               examples: Any = None) -> RunOutput:
     """:func:`run` with everything it made: the prepared image, the rectified views and,
-    with ``keep``, the intermediate records (:class:`RunOutput`). ``validated``: the
-    caller already checked ``config``. ``examples``: as :func:`run`'s, checked against
-    the photo's size once it is read (:class:`ExampleError`)."""
+    with ``keep``, the intermediate records (:class:`RunOutput`). ``config`` is checked
+    (:func:`rescu.config.validate_config`: once per content in a process). ``examples``:
+    as :func:`run`'s, checked against the photo's size once it is read
+    (:class:`ExampleError`)."""
     from .config import load_config, validate_config
 
     if method not in METHODS:
@@ -553,8 +553,7 @@ def run_image(image: np.ndarray | str | Path, config: dict[str, Any] | None = No
     if config is None:
         cfg = load_config(stage2=method == "rescu-ii")
     else:
-        cfg = config if validated else validate_config(config, "config",
-                                                       stage2=method == "rescu-ii")
+        cfg = validate_config(config, "config", stage2=method == "rescu-ii")
     im = cfg["image"]
     if isinstance(image, (str, Path)):
         prep = prepare_file(image, name, max_side=im["max_side"], min_side=im["min_side"],
@@ -686,22 +685,19 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
 
 def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
              cfg: dict[str, Any]) -> ImageResult:
-    """RESCU-II's ``res`` with one box per object, as RESCU-I's and as the pipeline's
-    prediction step gives it (:func:`rescu.extension.objects.one_box_per_object` on the
-    dense source's map, which the dense step made in this process); ``res`` as it is
-    without the dense source or after a failed dense step."""
-    d = cfg["dense"]
-    if not d["enabled"] or s1.extra.get("dense_failure"):
-        return res
-    from .extension.dense import DenseParams, dense_map
-    from .extension.objects import one_box_applies, one_box_per_object
+    """RESCU-II's ``res`` with one box per object, as the pipeline's prediction step
+    gives it (:func:`rescu.extension.objects.one_box_after_stage2`), on the dense
+    source's map, which the dense step made in this process."""
+    from .extension.dense import dense_map
+    from .extension.objects import one_box_after_stage2
 
-    dp = DenseParams.from_dict(d)
-    if one_box_applies(dp):
+    def get_map(dp: Any) -> tuple[np.ndarray, float]:
         with _threads(cfg, "in_process"):
-            fmap = dense_map(prep.rgb, dp)
-        one_box_per_object(res, fmap, prep.scale_factor, dp)
-    return res
+            return dense_map(prep.rgb, dp)
+
+    d = cfg["dense"]
+    return one_box_after_stage2(res, s1, d if d["enabled"] else None, prep.scale_factor,
+                                get_map)
 
 
 class _threads:

@@ -373,26 +373,22 @@ def stage2_train(feats_h5: str, stage1_json: str, out_ckpt: str,
 
 def _one_box(res: Any, s1: Any, meta: dict[str, Any], dense_map_h5: str | None,
              dense_params: dict[str, Any] | None) -> None:
-    """RESCU-II's result ``res`` with one box per object, as RESCU-I's
-    (:func:`rescu.extension.objects.one_box_per_object` on the map the dense step kept),
-    in place. Nothing without the dense source (no map or no ``dense`` section), after
-    a failed dense step (``s1``'s ``dense_failure``: its file holds no map), or with an
-    unreadable map file (logged: stage II's instances are then all kept)."""
-    if dense_map_h5 is None or dense_params is None or s1.extra.get("dense_failure"):
-        return
-    from .extension.dense import DenseParams, load_map
-    from .extension.objects import one_box_applies, one_box_per_object
+    """RESCU-II's result ``res`` with one box per object on the map the dense step kept
+    (:func:`rescu.extension.objects.one_box_after_stage2`), in place; nothing without
+    the dense source (no map or no ``dense`` section); an unreadable map file is logged
+    and stage II's instances are then all kept."""
+    from .extension.dense import load_map
+    from .extension.objects import one_box_after_stage2
 
-    dp = DenseParams.from_dict(dense_params)
-    if not one_box_applies(dp):
-        return
-    try:
-        fmap = load_map(dense_map_h5, dp)
-    except io.InputError as e:
-        log.warning("%s; RESCU-II keeps every box stage II found", e)
-        return
-    if fmap is not None:
-        one_box_per_object(res, fmap, float(meta["scale_factor"]), dp)
+    def get_map(dp: Any) -> tuple[Any, float] | None:
+        try:
+            return load_map(dense_map_h5, dp)
+        except io.InputError as e:
+            log.warning("%s; RESCU-II keeps every box stage II found", e)
+            return None
+
+    one_box_after_stage2(res, s1, dense_params if dense_map_h5 is not None else None,
+                         float(meta["scale_factor"]), get_map)
 
 
 def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: str,

@@ -99,3 +99,31 @@ def test_fast_yaml_reader_gives_the_safe_loaders_values(path: str) -> None:
 
     text = (REPO / path).read_text()
     assert load_yaml(text) == yaml.safe_load(text)
+
+
+def test_a_configuration_is_checked_once_per_content(monkeypatch) -> None:
+    # the CLI, discover and run_image each check what they are given: a batch of photos
+    # costs one check, and a configuration changed in place after it is checked again
+    import rescu.config as C
+
+    calls = []
+    real = C.schema_errors
+    monkeypatch.setattr(C, "schema_errors", lambda c: calls.append(1) or real(c))
+    monkeypatch.setattr(C, "_VALID", {})
+    cfg = C.load_config(stage2=False)
+    n = len(calls)
+    for _ in range(3):
+        assert C.validate_config(cfg, stage2=False) is cfg
+    assert len(calls) == n + (0 if n else 1)
+    cfg["grasp"]["rcl_size"] = 0
+    with pytest.raises(C.InputError, match="grasp.rcl_size = 0"):
+        C.validate_config(cfg, stage2=False)
+    first = n + (0 if n else 1) + 1
+    assert len(calls) == first
+    cfg["grasp"]["rcl_size"] = C.load_config(stage2=False)["grasp"]["rcl_size"]
+    C.validate_config(cfg, stage2=False)   # the content found valid before
+    assert len(calls) == first
+    cfg["grasp"]["rcl_size"] += 1          # new content: checked once
+    C.validate_config(cfg, stage2=False)
+    C.validate_config(cfg, stage2=False)
+    assert len(calls) == first + 1

@@ -32,7 +32,7 @@ def cfg():
 
 
 def run(photo, out, cfg, **kw):
-    return discover(photo, out_dir=out, method="rescu-i", config=cfg, validated=True, **kw)
+    return discover(photo, out_dir=out, method="rescu-i", config=cfg, **kw)
 
 
 def files(folder: Path) -> dict[str, bytes]:

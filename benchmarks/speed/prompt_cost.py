@@ -55,13 +55,13 @@ def main(argv: list[str] | None = None) -> int:
             ex = example_boxes(counted_boxes(images, gts[fn], fn), 1)
             path = a.data / name / fn
             if not warm:
-                core.run_image(path, cfg, validated=True)
-                core.run_image(path, cfg, validated=True, examples=ex)
+                core.run_image(path, cfg)
+                core.run_image(path, cfg, examples=ex)
                 warm = True
             t0 = time.perf_counter()
-            core.run_image(path, cfg, validated=True)
+            core.run_image(path, cfg)
             t1 = time.perf_counter()
-            core.run_image(path, cfg, validated=True, examples=ex)
+            core.run_image(path, cfg, examples=ex)
             t2 = time.perf_counter()
             rows.append((name, t1 - t0, t2 - t1))
         mine = [r for r in rows if r[0] == name]

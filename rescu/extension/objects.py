@@ -701,3 +701,41 @@ def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: f
               for p in res.patterns]
     drop_second_boxes(res, second_boxes(fmap[0], 8.0, groups, params.separation_reach,
                                         params.min_object_separation), params)
+
+
+def one_box_after_stage2(res: Any, s1: Any, dense: dict[str, Any] | None,
+                         scale_factor: float,
+                         get_map: Callable[[Any], tuple[np.ndarray, float] | None]) -> Any:
+    """RESCU-II's result ``res`` with one box per object, as RESCU-I's
+    (:func:`one_box_per_object`), in place; the one rule of both drivers
+    (:func:`rescu.core.run`, which makes the map, and the pipeline's prediction step,
+    which reads the dense step's).
+
+    Nothing without the dense source (``dense`` None), after a failed dense step
+    (``s1``'s ``extra["dense_failure"]``: there is no map), when
+    :func:`one_box_applies` says no (the map is then not asked for) or when ``get_map``
+    gives None (a map that cannot be read: stage II's instances are all kept).
+
+    Parameters
+    ----------
+    res, s1 : :class:`rescu.types.ImageResult`, RESCU-II's and the stage-I result it
+        extends
+    dense : the configuration's ``dense`` section, or None
+    scale_factor : prepared pixels per original pixel
+    get_map : DenseParams -> :func:`rescu.extension.dense.dense_map` of the prepared
+        image, or None
+
+    Returns
+    -------
+    ``res``
+    """
+    from ..discovery.sources import DenseParams
+
+    if dense is None or s1.extra.get("dense_failure"):
+        return res
+    dp = DenseParams.from_dict(dense)
+    if one_box_applies(dp):
+        fmap = get_map(dp)
+        if fmap is not None:
+            one_box_per_object(res, fmap, scale_factor, dp)
+    return res
