@@ -308,7 +308,7 @@ def merge_pair_rows(stage1: ImageResult, rp_index: Sequence[int], inst_feats: np
     if f.ndim != 2 or len(f) != len(irp):
         raise ValueError(f"inst_feats must be (N, D) with N = len(inst_rp) = {len(irp)}, "
                          f"got {f.shape}")
-    from rescu.discovery.extent import unrefined_boxes
+    from rescu.discovery.edge_extent import unrefined_boxes
 
     boxes = [np.array([i.bbox for i in stage1.patterns[pi].instances], float).reshape(-1, 4)
              for pi in rp_index]

@@ -277,7 +277,7 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
 
     With ``rgb`` (the processed image, (H, W, 3) uint8) and ``stage1.refine_boxes``,
     RESCU-I's boxes are moved onto the edges each RP's instances share
-    (:mod:`rescu.discovery.extent`); GRASP's never are. With ``dense`` (the dense
+    (:mod:`rescu.discovery.edge_extent`); GRASP's never are. With ``dense`` (the dense
     source's result, possibly failed) RESCU-I's RPs are combined with it
     (:func:`rescu.discovery.sources.add_dense`, section ``dense``) and, with ``rgb``,
     scored (:func:`rescu.extension.dense.score_and_split`). With ``dense.mode: dense`` and
@@ -325,12 +325,12 @@ def rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
     """RESCU-I's RP matrices as patterns (original pixels); with ``gray`` (the processed
     image, (H, W) uint8; processed = original x ``scale_factor``) and ``p.refine_boxes``,
     their boxes moved onto the edges each RP's instances share
-    (:func:`rescu.discovery.extent.refine_pattern_boxes`)."""
+    (:func:`rescu.discovery.edge_extent.refine_pattern_boxes`)."""
     from .discovery import stage1 as S1
 
     pats = S1.rps_to_patterns(feats, rps)
     if gray is not None and p.refine_boxes and pats:
-        from .discovery.extent import refine_pattern_boxes
+        from .discovery.edge_extent import refine_pattern_boxes
 
         refine_pattern_boxes(gray, scale_factor, pats, p.refine_shifts, p.refine_scales)
     return pats

@@ -545,7 +545,7 @@ def test_merge_pair_rows_labels_each_pair_and_reports_the_merge_decision() -> No
         ED.merge_pair_rows(res, [0, 2, 3], feats[:5], inst_rp, gts)
     # RESCU-I's box refinement shrank the right part's boxes to a quarter: the size
     # test fails on the moved boxes, and passes with the recorded transform undone
-    from rescu.discovery.extent import transform_boxes
+    from rescu.discovery.edge_extent import transform_boxes
 
     t = [0.0, 0.0, 0.25, 0.25]
     moved = transform_boxes(np.array(right, float), t, (400, 400))

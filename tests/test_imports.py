@@ -31,7 +31,7 @@ def test_each_step_depends_on_its_own_modules_only():
     assert {"discovery/stage1.py", "discovery/search.py", "discovery/urp.py"} <= dep["stage1"]
     # RESCU-I scores its RPs with the dense source's backbone map (dense.mode objects),
     # nothing of stage II or the scene (the map itself, hypercolumn, is in the turned module)
-    scoring = {"extension/dense.py", "extension/objects.py", "extension/extent.py",
+    scoring = {"extension/dense.py", "extension/objects.py", "extension/contrast_extent.py",
                "extension/boxmaps.py", "extension/backbone.py", "extension/turned.py",
                "extension/linkage.py"}
     assert not any(n.startswith(("scene/", "extension/")) and n not in scoring

@@ -302,7 +302,7 @@ def test_a_thin_ring_fits_the_extent_to_the_whole_disc():
 def test_edges_on_the_outline_grow_the_extent_to_the_whole_disc():
     # the same blobs: with the edge term (dense.extent_edges) the extent grows them to the
     # whole discs against the default ring too; the edge contrast peaks at the disc's box
-    from rescu.extension.extent import edge_contrast, extent_score, gradient_integral
+    from rescu.extension.contrast_extent import edge_contrast, extent_score, gradient_integral
 
     img, truth, args = _blobs_on_disc_centres()
     c = truth[:, :2] + truth[:, 2:] / 2

@@ -130,7 +130,7 @@ def test_features_before_the_box_refinement_for_the_merge(six):
     """A stage-I RP that records RESCU-I's box refinement gets the features of its
     boxes before it too (``merge_instance_features``, what the merge compares)."""
     img, boxes, s1, p, feats, *_ = six
-    from rescu.discovery.extent import transform_boxes
+    from rescu.discovery.edge_extent import transform_boxes
 
     for t in ([0.25, 0.0, 1.0, 1.0],            # moved right: the same backbone scale
               [0.25, 0.0, 0.5, 0.5]):           # and halved: a scale of their own

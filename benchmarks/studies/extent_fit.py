@@ -2,14 +2,14 @@
 colour contrast compares each box with: the extent alone, on the ground truth's objects.
 
 The dense source's blobs lie on objects but are often smaller than them (a coin's face,
-a car's roof); the extent step (:func:`rescu.extension.extent.refine_extent`) gives all
+a car's roof); the extent step (:func:`rescu.extension.contrast_extent.refine_extent`) gives all
 of an RP's boxes one scale, aspect and shift, where the boxes' colour differs most from a
 ring around them. Here every GT RP of every image (the boxes of one category, two or
 more) stands in for an RP found on the right objects: its boxes are replaced by squares
 of ``--start`` x their side (sqrt of the area), on the same centres, and the extent
 (the config's ``dense.extent_scales``, ``extent_aspects``, ``extent_shifts``) is asked
 to grow them back, once per ring width of ``--ring`` (with ``--edges W``, the score adds
-W x :func:`rescu.extension.extent.edge_contrast`, ``dense.extent_edges``). Prints, per
+W x :func:`rescu.extension.contrast_extent.edge_contrast`, ``dense.extent_edges``). Prints, per
 dataset and ring, the
 mean IoU of each box with its GT box (mean over the GT RPs), and that of the squares it
 started from. The photo is resized to ``--side`` px on its longer side first (the
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     from rescu.boxes import iou_matrix
     from rescu.config import load_config
     from rescu.discovery.sources import DenseParams
-    from rescu.extension.extent import colour_integrals, gradient_integral, refine_extent
+    from rescu.extension.contrast_extent import colour_integrals, gradient_integral, refine_extent
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))

@@ -131,7 +131,7 @@ class DenseParams:
         prototype correlated over the map of the image turned by 90 degrees
         (:func:`rescu.extension.turned.complete_turned`; one more backbone pass per map).
     extent : bool
-        Refine each RP's box extent (:func:`rescu.extension.extent.refine_extent`).
+        Refine each RP's box extent (:func:`rescu.extension.contrast_extent.refine_extent`).
     extent_scales, extent_aspects, extent_shifts : tuple of float
         Its candidate transforms: box side x scale, width / height, centre shift as a
         fraction of the box.
@@ -140,10 +140,10 @@ class DenseParams:
         larger turned (objects lying both ways, such as parked cars).
     extent_ring : float
         Width of the ring the extent's contrast compares each box with, x the box's
-        sides (:func:`rescu.extension.extent.colour_contrast`).
+        sides (:func:`rescu.extension.contrast_extent.colour_contrast`).
     extent_edges : float
         Weight of the edges on the boxes' outlines in the extent's score
-        (:func:`rescu.extension.extent.edge_contrast`); 0: the colour contrast alone.
+        (:func:`rescu.extension.contrast_extent.edge_contrast`); 0: the colour contrast alone.
     part_cover : float
         A box lying inside a kept RP's box (or around one) by more than this fraction of
         the smaller is a part of the same object (:func:`rescu.extension.objects.suppress_parts`).

@@ -130,7 +130,7 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
         than ``min_centre_distance`` x the median larger box side (0: off).
     refine_boxes : bool
         Move each RP's instance boxes onto the edges its instances share (one shift and
-        scale per RP; :mod:`rescu.discovery.extent`). Needs the image; done by
+        scale per RP; :mod:`rescu.discovery.edge_extent`). Needs the image; done by
         :func:`rescu.pipeline.stage1` for RESCU-I.
     refine_shifts, refine_scales : list of float
         The candidate centre shifts (fractions of the box side) and side scales.

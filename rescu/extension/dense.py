@@ -54,7 +54,7 @@ from ..boxes import cover_matrix, touching_sides
 from ..types import Instance, Pattern
 from .boxmaps import integral_map, map_score, maximum_filter, read_only, unit_mean
 from .linkage import average_linkage_labels
-from .extent import colour_integrals, rect_sums
+from .contrast_extent import colour_integrals, rect_sums
 from .turned import complete_turned, hypercolumn, level_image, turned_map
 
 __all__ = ["DenseParams", "DenseCandidate", "hypercolumn", "box_means", "feature_blobs",
@@ -214,7 +214,7 @@ def central_colours(integrals: tuple[np.ndarray, np.ndarray], boxes: np.ndarray
     (n, 3) float64, L, a, b in [0, 255]
 
     >>> import numpy as np
-    >>> from rescu.extension.extent import colour_integrals
+    >>> from rescu.extension.contrast_extent import colour_integrals
     >>> rgb = np.zeros((20, 40, 3), np.uint8); rgb[:, 20:] = 255
     >>> central_colours(colour_integrals(rgb), np.array([[0, 0, 20, 20], [20, 0, 20, 20]]))[:, 0]
     array([  0., 255.])

@@ -64,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from ..discovery.extent import unrefined_boxes
+from ..discovery.edge_extent import unrefined_boxes
 from ..discovery.sources import is_whole_object
 from ..boxes import cover_matrix, iou_matrix
 from ..params import checked_mapping, config_section

@@ -15,7 +15,7 @@ counters work once they hold a few exemplars:
    ``completion_floor``), suppressed at the instance size, are its instances. Objects
    that the blob detector missed (weaker contrast, a neighbour's ring in the way) are
    found when they look like the others.
-2. **Extent** (:func:`rescu.extension.extent.refine_extent`): one scale, aspect and
+2. **Extent** (:func:`rescu.extension.contrast_extent.refine_extent`): one scale, aspect and
    shift for all of the RP's boxes, chosen where the colour inside the boxes differs
    most from a ring around them (Fisher ratio in CIELAB, :func:`colour_contrast`;
    optionally plus the edges on the boxes' outlines, :func:`edge_contrast`): the
@@ -46,7 +46,7 @@ from ..boxes import cover_matrix, nms, touching_sides
 from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map, map_score,
                       maximum_filter, prototype_of, remembered, second_boxes,
                       separation)
-from .extent import (colour_contrast, colour_integrals, edge_contrast, extent_score,
+from .contrast_extent import (colour_contrast, colour_integrals, edge_contrast, extent_score,
                      gradient_integral, rect_sums, refine_extent)
 
 

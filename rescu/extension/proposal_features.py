@@ -261,9 +261,9 @@ def backbone_scale(inst: np.ndarray, size: tuple[int, int], params: Stage2Params
 def _unrefined_boxes(stage1: ImageResult, rps: list[tuple[int, np.ndarray]], sf: float,
                      size: tuple[int, int]) -> np.ndarray | None:
     """The stage-I instance boxes (rows as ``instance_boxes``, processed pixels, clipped)
-    before RESCU-I's box refinement (:func:`rescu.discovery.extent.unrefined_boxes`);
+    before RESCU-I's box refinement (:func:`rescu.discovery.edge_extent.unrefined_boxes`);
     None when no RP was refined."""
-    from ..discovery.extent import unrefined_boxes
+    from ..discovery.edge_extent import unrefined_boxes
     from .proposals import clip_boxes
 
     pats = [stage1.patterns[i] for i, _ in rps]

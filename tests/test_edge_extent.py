@@ -1,11 +1,11 @@
-"""Box phase and extent from shared edges (rescu.discovery.extent)."""
+"""Box phase and extent from shared edges (rescu.discovery.edge_extent)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from rescu.discovery.extent import (edge_box_transform, gradient_images, mean_gradient_frame,
+from rescu.discovery.edge_extent import (edge_box_transform, gradient_images, mean_gradient_frame,
                                     refine_pattern_boxes, transform_boxes, untransform_boxes)
 from rescu.evaluation.metrics import iou_matrix
 from rescu.types import Instance, Pattern
