@@ -577,3 +577,21 @@ def test_feature_blobs_embeddings_are_the_unit_window_means():
     for (s, y, x), e in zip(cells, emb):
         m = box_means(f, sizes[s])
         assert np.array_equal(e, m[:, y, x] / (np.linalg.norm(m, axis=0)[y, x] + 1e-9))
+
+
+def test_the_dense_step_reads_none_of_the_keys_it_runs_under_fixed_values():
+    # the workflow's dense rule gets dense_step_section(config["dense"]): the keys it
+    # fixes besides enabled and mode are RESCU-I's selection, which the step must not
+    # read, or a change of them would have to rerun it
+    from rescu.discovery.sources import DENSE_STEP_FIXED, dense_step_section
+
+    img, _ = _photo(np.random.default_rng(3))
+    base = dense_step_section({**DenseParams.from_dict(None).__dict__, "max_patterns": 4})
+    other = {"confidence_stage1_score_scale": 0.7, "min_separation": 0.3,
+             "min_object_separation": 0.2, "checkerboard_min_corners": 9,
+             "checkerboard_border": 1, "checkerboard_min_alternation": 0.9,
+             "checkerboard_seed": 5}
+    assert set(other) == set(DENSE_STEP_FIXED) - {"enabled", "mode"}
+    a = find_dense(img, DenseParams.from_dict(base))
+    b = find_dense(img, DenseParams.from_dict({**base, **other}))
+    assert a and [p.to_json() for p in a] == [p.to_json() for p in b]

@@ -351,6 +351,30 @@ class DenseParams:
         return cls(**d)
 
 
+#: The ``dense`` keys the workflow's dense step runs under fixed values, whatever the
+#: configuration says. ``enabled`` and ``mode``: the step always runs and makes what
+#: every mode takes (mode ``both``). The others decide only which of its RPs RESCU-I
+#: reports, after the step (its score of stage I's RPs, what it sets aside as one
+#: structure or as a board's squares): the step
+#: (:func:`rescu.extension.dense.find_dense`) reads none of them
+#: (``tests/test_dense.py``). So changing one of them reruns RESCU-I, not the dense step.
+DENSE_STEP_FIXED: dict[str, Any] = {
+    "enabled": True, "mode": "both", "confidence_stage1_score_scale": 0.0,
+    "min_separation": -2.0, "min_object_separation": -2.0, "checkerboard_min_corners": 0,
+    "checkerboard_border": 0, "checkerboard_min_alternation": 0.75, "checkerboard_seed": 0}
+
+
+def dense_step_section(dense: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``dense`` section as the dense step gets it: ``dense`` with the keys of
+    :data:`DENSE_STEP_FIXED` at their fixed values (the workflow's ``dense`` rule).
+
+    >>> s = dense_step_section({"min_separation": 0.3, "max_side": 640, "mode": "objects"})
+    >>> s["min_separation"], s["max_side"], s["mode"]
+    (-2.0, 640, 'both')
+    """
+    return {**dense, **DENSE_STEP_FIXED}
+
+
 def combine_sources(sparse: list[Pattern], dense: list[Pattern], params: DenseParams
                     ) -> list[Pattern]:
     """Stage I's RPs and the dense ones as one list (ids renumbered 0..).

@@ -7,22 +7,18 @@ from rescu.data.datasets import PHOTOS_DIR, SYNTHETIC_DIR, build_image_table, sk
 from rescu.extension.params import PREDICT_SECTION
 from rescu.data.synth import synthetic_image_names
 from rescu.discovery.ablation import SOURCE_ROWS
+from rescu.discovery.sources import dense_step_section
 from rescu_workflow.code_deps import PACKAGE_DIR, step_dependencies
 from rescu.names import METHODS
 
 RESULTS = config["results_dir"]
 PAPER = bool(config.get("paper", False))  # also the ablations and their tables (make paper)
 DENSE = bool(config["dense"]["enabled"])  # the dense RP source (rule dense) feeds RESCU-I
-# the dense step's parameters: what finds the dense RPs, not whether or how RESCU-I takes them
-# (so switching dense.enabled or dense.mode, or changing how RESCU-I scores stage I's RPs
-# or which RPs it sets aside as one structure or as a board's squares, does not rerun the
-# dense or ablation jobs; separation_reach is the dense step's too: it records each RP's
-# separation)
-DENSE_STEP = {**config["dense"], "enabled": True, "mode": "both",
-              "confidence_stage1_score_scale": 0.0, "min_separation": -2.0,
-              "min_object_separation": -2.0, "checkerboard_min_corners": 0,
-              "checkerboard_border": 0, "checkerboard_min_alternation": 0.75,
-              "checkerboard_seed": 0}
+# the dense step's parameters: what finds the dense RPs, not whether or how RESCU-I takes
+# them (rescu.discovery.sources.DENSE_STEP_FIXED: switching dense.enabled or dense.mode, or
+# changing how RESCU-I scores stage I's RPs or which RPs it sets aside as one structure or
+# as a board's squares, reruns no dense or ablation job)
+DENSE_STEP = dense_step_section(config["dense"])
 # the stage-I ablation's source rows (sparse-only, dense-only, sparse+dense; they need the dense step)
 ABLATION_SOURCES = bool(config["ablation"].get("sources", True))
 LOGS = f"{RESULTS}/logs"  # per-step logs live with the results they belong to
