@@ -93,7 +93,7 @@ def _typed(overrides: Any) -> Any:
     return overrides
 
 
-def _schema_error_text(e: Any, config: Any) -> str:
+def _schema_error_text(e: Any, config: Mapping[str, Any]) -> str:
     """``key = value: what is allowed`` for one jsonschema error (the most specific one
     for ``oneOf`` / ``anyOf``)."""
     import difflib

@@ -44,13 +44,22 @@ import logging
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Mapping, TypeVar, Union
 
 import numpy as np
 
 from . import io
 from .names import METHODS
 from .types import Failure, Features, ImageResult, Pattern, RPMatrix, failure_record
+
+if TYPE_CHECKING:  # annotations only: each step imports its modules when it runs
+    from .discovery.sources import DenseParams
+    from .discovery.stage1 import Stage1Params
+    from .extension.params import Stage2Params
+
+#: Section ``stage2``: the configuration's mapping, or parameters already built (an
+#: ablation variant's)
+Stage2Section = Union[Mapping[str, Any], "Stage2Params"]
 
 log = logging.getLogger("rescu")
 
@@ -320,7 +329,7 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
     return res, out
 
 
-def rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Any,
+def rescu_i_patterns(feats: Features, rps: list[RPMatrix], p: Stage1Params,
                      gray: np.ndarray | None, scale_factor: float) -> list[Pattern]:
     """RESCU-I's RP matrices as patterns (original pixels); with ``gray`` (the processed
     image, (H, W) uint8; processed = original x ``scale_factor``) and ``p.refine_boxes``,
@@ -343,7 +352,8 @@ def _gray(rgb: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- stage II
-def stage2_features(prep: Prepared, s1: ImageResult, params: Any) -> dict[str, Any]:
+def stage2_features(prep: Prepared, s1: ImageResult, params: Stage2Section
+                    ) -> dict[str, Any]:
     """Proposals and pooled backbone features of one image (section ``stage2``, a mapping
     or :class:`~rescu.extension.params.Stage2Params`), as
     stored: ``{name: array | {name: array}}`` (:func:`as_stored`)."""
@@ -353,7 +363,7 @@ def stage2_features(prep: Prepared, s1: ImageResult, params: Any) -> dict[str, A
                                              _stage2(params)))
 
 
-def _stage2(params: Any) -> Any:
+def _stage2(params: Stage2Section) -> Stage2Params:
     """Section ``stage2`` as :class:`rescu.extension.params.Stage2Params` (a mapping is
     checked and converted; parameters already built, e.g. an ablation variant's, are
     used as they are)."""
@@ -375,7 +385,8 @@ def as_stored(arrays: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def stage2_train(feats2: dict[str, Any], s1: ImageResult, params: Any) -> dict[str, Any]:
+def stage2_train(feats2: dict[str, Any], s1: ImageResult, params: Stage2Section
+                 ) -> dict[str, Any]:
     """The per-image head trained on cached features: the checkpoint
     ``{"head": state, "info": training record}``."""
     from .extension.train import train_heads
@@ -385,7 +396,7 @@ def stage2_train(feats2: dict[str, Any], s1: ImageResult, params: Any) -> dict[s
 
 
 def stage2_predict(feats2: dict[str, Any], ckpt: dict[str, Any], s1: ImageResult,
-                   params: Any, method: str = "rescu-ii") -> ImageResult:
+                   params: Stage2Section, method: str = "rescu-ii") -> ImageResult:
     """RESCU-II instances: stage-I instances plus the head's positive proposals; the
     head's training record and prediction's own in ``extra["stage2"]``."""
     from .extension.predict import predict_stage2
@@ -691,7 +702,7 @@ def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
     from .extension.dense import dense_map
     from .extension.objects import one_box_after_stage2
 
-    def get_map(dp: Any) -> tuple[np.ndarray, float]:
+    def get_map(dp: DenseParams) -> tuple[np.ndarray, float]:
         with _threads(cfg, "in_process"):
             return dense_map(prep.rgb, dp)
 

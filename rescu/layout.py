@@ -59,6 +59,10 @@ def fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     direction : (2,) float, unit
     rms : float
         RMS orthogonal distance of the points to the line, pixels.
+
+    >>> c, d, rms = fit_line(np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]]))
+    >>> c.tolist(), np.abs(d).tolist(), round(rms, 6)
+    ([10.0, 0.0], [1.0, 0.0], 0.0)
     """
     p = np.asarray(points, float)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
@@ -108,6 +112,12 @@ def group_rows(centres: np.ndarray, sizes: np.ndarray, row_tolerance: float = 0.
     list of (K,) int arrays
         Instance indices of each row, ordered along the row (by projection onto the row
         direction, from left to right, or top to bottom for a vertical row).
+
+    A 3 x 2 grid of 10-px instances gives its two rows, no diagonal:
+
+    >>> centres = np.array([[10, 10], [30, 10], [50, 10], [10, 40], [30, 40], [50, 40]], float)
+    >>> [r.tolist() for r in group_rows(centres, np.full(6, 10.0))]
+    [[0, 1, 2], [3, 4, 5]]
     """
     c = np.asarray(centres, float)
     if c.ndim != 2 or c.shape[1] != 2:
@@ -212,7 +222,12 @@ def checked_points(centres: np.ndarray, feature_points: np.ndarray | None
 
 
 def instance_centres_sizes(bboxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 2) and sizes (smaller side, (N,)) of boxes (N, 4) ``[x, y, w, h]``."""
+    """Centres (N, 2) and sizes (smaller side, (N,)) of boxes (N, 4) ``[x, y, w, h]``.
+
+    >>> c, s = instance_centres_sizes(np.array([[0, 0, 20, 10], [30, 0, 10, 10]]))
+    >>> c.tolist(), s.tolist()
+    ([[10.0, 5.0], [35.0, 5.0]], [10.0, 10.0])
+    """
     b = np.asarray(bboxes, float).reshape(-1, 4)
     return b[:, :2] + b[:, 2:] / 2, np.minimum(b[:, 2], b[:, 3])
 
@@ -258,7 +273,11 @@ def duplicate_instances(centres: np.ndarray, sizes: np.ndarray,
                         feature_points: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: instances that duplicate another one (centres closer than half the
     smaller of the two sizes); of each such pair the one with fewer features (then the
-    later index) is the duplicate."""
+    later index) is the duplicate.
+
+    >>> duplicate_instances(np.array([[10, 10], [12, 10], [40, 10]]), np.full(3, 10.0)).tolist()
+    [False, True, False]
+    """
     c = np.asarray(centres, float).reshape(-1, 2)
     sz = np.asarray(sizes, float).reshape(-1)
     n = len(c)

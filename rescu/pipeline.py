@@ -45,9 +45,12 @@ import logging
 import os
 import traceback
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only
+    from .discovery.sources import DenseParams
 
 from . import core, io
 from .core import (RETAIN_BYTES, degraded_result, empty_result, is_degraded,  # noqa: F401
@@ -380,7 +383,7 @@ def _one_box(res: Any, s1: Any, meta: dict[str, Any], dense_map_h5: str | None,
     from .extension.dense import load_map
     from .extension.objects import one_box_after_stage2
 
-    def get_map(dp: Any) -> tuple[Any, float] | None:
+    def get_map(dp: DenseParams) -> tuple[Any, float] | None:
         try:
             return load_map(dense_map_h5, dp)
         except io.InputError as e:

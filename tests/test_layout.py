@@ -131,3 +131,18 @@ def test_subpackages_import_nothing_and_say_what_they_hold() -> None:
             stmts = [n for n in tree.body if not (isinstance(n, ast.Expr)
                                                   and isinstance(n.value, ast.Constant))]
             assert not stmts, f"{path}: a subpackage's __init__ holds only its docstring"
+
+
+def test_no_parameters_typed_any() -> None:
+    # a function's parameters (``params``, ``*_params``, ``p``, ``dp``, ``cfg``,
+    # ``config``) say which Params class or section they are, never plain ``Any``
+    names = ("p", "dp", "cfg", "config")
+    bad = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for a in node.args.args + node.args.kwonlyargs:
+                    if (a.annotation is not None and ast.unparse(a.annotation) == "Any"
+                            and (a.arg.endswith("params") or a.arg in names)):
+                        bad.append(f"{path.name}:{node.lineno} {node.name}({a.arg}: Any)")
+    assert not bad, bad

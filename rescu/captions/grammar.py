@@ -19,7 +19,11 @@ _NUMBER_WORDS = ("zero one two three four five six seven eight nine ten eleven t
 
 
 def count_word(n: int) -> str:
-    """``2 -> "two"`` ... ``20 -> "twenty"``, then digits (``21 -> "21"``)."""
+    """``2 -> "two"`` ... ``20 -> "twenty"``, then digits (``21 -> "21"``).
+
+    >>> count_word(2), count_word(20), count_word(21)
+    ('two', 'twenty', '21')
+    """
     n = int(n)
     if n < 0:
         raise ValueError(f"count must be >= 0, got {n}")
@@ -122,7 +126,11 @@ status atlas""".split())
 
 
 def is_plural(noun: str) -> bool:
-    """Heuristic: whether an English noun is already plural (or the same in both)."""
+    """Heuristic: whether an English noun is already plural (or the same in both).
+
+    >>> [is_plural(w) for w in ("windows", "glass", "sheep", "cell")]
+    [True, False, True, False]
+    """
     w = noun.lower()
     if w in _UNCHANGED_PLURALS or w in _KNOWN_PLURALS:
         return True
@@ -135,6 +143,9 @@ def pluralize(noun: str) -> str:
     """Plural of an English noun (regular rules + common irregulars); plurals unchanged.
 
     Keeps the capitalisation of the first letter.
+
+    >>> [pluralize(w) for w in ("window", "Box", "person", "cars")]
+    ['windows', 'Boxes', 'people', 'cars']
     """
     if not noun:
         return noun
@@ -180,7 +191,11 @@ class Token:
 
 def tokenize(text: str) -> list[Token]:
     """The tokens of ``text`` (words with inner apostrophes or hyphens, white space,
-    other characters); ``"".join(t.text for t in tokenize(s)) == s``."""
+    other characters); ``"".join(t.text for t in tokenize(s)) == s``.
+
+    >>> [t.text for t in tokenize("Two cars, parked.")]
+    ['Two', ' ', 'cars', ',', ' ', 'parked', '.']
+    """
     return [Token(t) for t in _TOKEN_RE.findall(text)]
 
 
@@ -305,7 +320,11 @@ def _sentence_start(toks: list[Token], i: int) -> bool:
 
 
 def capitalise(s: str) -> str:
-    """``s`` with its first character upper-cased (the rest unchanged)."""
+    """``s`` with its first character upper-cased (the rest unchanged).
+
+    >>> capitalise("five windows"), capitalise("")
+    ('Five windows', '')
+    """
     return s[:1].upper() + s[1:] if s else s
 
 

@@ -15,10 +15,20 @@ T-junctions, not in X-corners between alternating cells.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Protocol
 
 import cv2
 import numpy as np
+
+
+class BoardParams(Protocol):
+    """The ``checkerboard_*`` fields :func:`board_outline` reads (those of
+    :class:`rescu.discovery.sources.DenseParams`, which imports this module)."""
+
+    checkerboard_min_corners: int
+    checkerboard_border: int
+    checkerboard_min_alternation: float
+    checkerboard_seed: int
 
 PROBE = (3, 3)
 """Smallest corner grid the detector looks for (columns, rows of inner corners); with
@@ -210,7 +220,8 @@ def share_inside(boxes: np.ndarray, outline: np.ndarray) -> float:
     return float(np.mean(inside))
 
 
-def board_outline(rgb: np.ndarray, scale_factor: float, dp: Any) -> np.ndarray | None:
+def board_outline(rgb: np.ndarray, scale_factor: float, dp: BoardParams
+                  ) -> np.ndarray | None:
     """Outline ((K, 2), original pixels) of the checkerboard in the prepared image
     ``rgb`` ((H, W, 3) uint8, processed = original x ``scale_factor``):
     :func:`checkerboard_outline` with the ``checkerboard_*`` fields of ``dp`` (a

@@ -45,13 +45,13 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from ..discovery.sources import DenseParams, is_whole_object
 from ..boxes import cover_matrix, touching_sides
-from ..types import Instance, Pattern
+from ..types import ImageResult, Instance, Pattern
 from .boxmaps import integral_map, map_score, maximum_filter, read_only, unit_mean
 from .linkage import average_linkage_labels
 from .contrast_extent import colour_integrals, rect_sums
@@ -746,7 +746,8 @@ def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float
     return turned
 
 
-def score_and_split(res: Any, found: Any, dense_params: Any, rgb: np.ndarray,
+def score_and_split(res: ImageResult, found: ImageResult, dense_params: Mapping[str, Any],
+                    rgb: np.ndarray,
                     meta: dict[str, Any], backbone: Any = None,
                     fmap: tuple[np.ndarray, float] | None = None) -> None:
     """RESCU-I with ``dense.mode: objects``: every RP of ``res`` gets a confidence

@@ -38,7 +38,7 @@ pixels.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -48,6 +48,9 @@ from .boxmaps import (OBJECT_PROBE, box_features, group_prototype, integral_map,
                       separation)
 from .contrast_extent import (colour_contrast, colour_integrals, edge_contrast, extent_score,
                      gradient_integral, rect_sums, refine_extent)
+
+if TYPE_CHECKING:  # annotations only
+    from ..discovery.sources import DenseParams
 
 
 __all__ = ["similarity_map", "box_features", "complete_group", "distinctiveness",
@@ -223,7 +226,7 @@ def distinctiveness(sim: np.ndarray, sims: np.ndarray, boxes: np.ndarray,
 
 
 def rp_confidence(f: np.ndarray, cell_px: float, s: float, boxes: np.ndarray,
-                  integrals: tuple[np.ndarray, np.ndarray], params: Any,
+                  integrals: tuple[np.ndarray, np.ndarray], params: DenseParams,
                   objects: bool = True, integral: np.ndarray | None = None
                   ) -> dict[str, float]:
     """The confidence of any RP (from any source) from its instance boxes.
@@ -430,7 +433,7 @@ def score_term(score: float, scale: float) -> float:
 
 
 def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
-                  rgb: np.ndarray, ranked: Iterable[Any], params: Any,
+                  rgb: np.ndarray, ranked: Iterable[Any], params: DenseParams,
                   turned: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None
                   ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """RPs of whole objects from the dense source's ranked groups (steps 1-4 of the
@@ -558,7 +561,7 @@ def whole_objects(levels: Sequence[tuple[np.ndarray, float]], cell_px: float,
 
 
 def _wins(new: tuple[float, np.ndarray, dict[str, Any]],
-          kept: Sequence[tuple[float, np.ndarray, dict[str, Any]]], params: Any) -> bool:
+          kept: Sequence[tuple[float, np.ndarray, dict[str, Any]]], params: DenseParams) -> bool:
     """Whether a group of :func:`whole_objects` (``(score, boxes, info)``) takes the
     objects it shares with the kept RPs ``kept``: when it is more confident than each of
     them (the confidences without the ranking score, which compares groups within one
@@ -571,14 +574,14 @@ def _wins(new: tuple[float, np.ndarray, dict[str, Any]],
     return _reported(new, params) or not any(_reported(o, params) for o in kept)
 
 
-def _reported_confidence(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> float:
+def _reported_confidence(o: tuple[float, np.ndarray, dict[str, Any]], params: DenseParams) -> float:
     """The confidence a kept RP of :func:`whole_objects` (``(score, boxes, info)``) is
     reported with: its confidence x its ranking-score term (:func:`score_term`), 4
     decimals."""
     return round(o[2]["confidence"] * score_term(o[0], params.confidence_score_scale), 4)
 
 
-def _reported(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> bool:
+def _reported(o: tuple[float, np.ndarray, dict[str, Any]], params: DenseParams) -> bool:
     """Whether a kept RP of :func:`whole_objects` reaches ``params.min_confidence`` with
     the confidence it is reported with (:func:`_reported_confidence`)."""
     return _reported_confidence(o, params) >= params.min_confidence
@@ -586,7 +589,7 @@ def _reported(o: tuple[float, np.ndarray, dict[str, Any]], params: Any) -> bool:
 
 def _give_up_objects(out: list[tuple[float, np.ndarray, dict[str, Any]]], share: list[int],
                      b: np.ndarray, levels: Sequence[tuple[np.ndarray, float]],
-                     cell_px: float, integrals: tuple[np.ndarray, np.ndarray], params: Any,
+                     cell_px: float, integrals: tuple[np.ndarray, np.ndarray], params: DenseParams,
                      maps: "_Integrals | None" = None
                      ) -> list[tuple[float, np.ndarray, dict[str, Any]]]:
     """The kept RPs of :func:`whole_objects` (``out``) once those at positions ``share``
@@ -634,7 +637,7 @@ def _clip(b: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float,
-                   params: Any, f: np.ndarray, s: float) -> None:
+                   params: DenseParams, f: np.ndarray, s: float) -> None:
     """Give every pattern without one a confidence (:func:`rp_confidence`), in place.
 
     For the RPs of stage I (the dense source's RPs carry theirs): the frozen backbone's
@@ -668,7 +671,7 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
                                      integral=ii))
 
 
-def one_box_applies(params: Any) -> bool:
+def one_box_applies(params: DenseParams) -> bool:
     """Whether :func:`one_box_per_object` acts under ``params`` (DenseParams): mode
     ``objects`` and ``min_object_separation`` above -2 (callers skip making or reading
     the map otherwise)."""
@@ -676,7 +679,7 @@ def one_box_applies(params: Any) -> bool:
 
 
 def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: float,
-                       params: Any) -> None:
+                       params: DenseParams) -> None:
     """Drop the reported instances of ``res`` that are a second box on an object an
     earlier one holds (RPs most confident first, as reported; each in its own order),
     in place: :func:`rescu.extension.boxmaps.second_boxes` at ``params.separation_reach``
@@ -705,7 +708,7 @@ def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: f
 
 def one_box_after_stage2(res: Any, s1: Any, dense: dict[str, Any] | None,
                          scale_factor: float,
-                         get_map: Callable[[Any], tuple[np.ndarray, float] | None]) -> Any:
+                         get_map: Callable[[DenseParams], tuple[np.ndarray, float] | None]) -> Any:
     """RESCU-II's result ``res`` with one box per object, as RESCU-I's
     (:func:`one_box_per_object`), in place; the one rule of both drivers
     (:func:`rescu.core.run`, which makes the map, and the pipeline's prediction step,

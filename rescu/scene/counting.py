@@ -23,7 +23,12 @@ from ..types import Pattern
 
 
 def pattern_counts(patterns: Sequence[Pattern]) -> list[int]:
-    """Number of instances of each pattern."""
+    """Number of instances of each pattern.
+
+    >>> from rescu.types import Instance, Pattern
+    >>> pattern_counts([Pattern(id=0, score=1.0, instances=[Instance(bbox=(0, 0, 1, 1))] * 3)])
+    [3]
+    """
     return [p.count for p in patterns]
 
 
@@ -36,6 +41,13 @@ def dominant_pattern(patterns: Sequence[Pattern]) -> int | None:
     :func:`rescu.extension.objects.rp_confidence`) when the patterns carry confidences,
     else the one with the most instances; ties: more instances, higher score, then lower
     index. Patterns with no instance are never dominant.
+
+    >>> from rescu.types import Instance, Pattern
+    >>> box = Instance(bbox=(0, 0, 1, 1))
+    >>> few = Pattern(id=0, score=0.9, instances=[box] * 3, extra={"confidence": 0.7})
+    >>> many = Pattern(id=1, score=0.5, instances=[box] * 5, extra={"confidence": 0.4})
+    >>> dominant_pattern([few, many]), dominant_pattern([]) is None
+    (0, True)
     """
     for i, p in enumerate(patterns):
         if p.extra.get("source") == "prompt" and p.count:
@@ -69,6 +81,9 @@ def count_pairs(det_counts: Sequence[int], gt_counts: Sequence[int],
     -------
     list of (int, int)
         One pair per matched ground-truth RP, in ground-truth order (see module docstring).
+
+    >>> count_pairs([5, 3, 8], [6, 9], [0, None, 1])
+    [(5, 6), (8, 9)]
     """
     for d, g in enumerate(assignment):
         if g is not None and not 0 <= g < len(gt_counts):
@@ -94,6 +109,9 @@ def counting_patterns(det_counts: Sequence[int], assignment: Sequence[int | None
     dict
         ``{ground-truth RP index: detected RP index}``: of the detected RPs assigned to a
         ground-truth RP, the one with the most instances (ties: the first).
+
+    >>> counting_patterns([5, 7, 8], [0, 0, None])
+    {0: 1}
     """
     if len(assignment) != len(det_counts):
         raise ValueError(f"assignment must have one entry per detected RP "
@@ -110,6 +128,10 @@ def count_errors(pairs: Sequence[tuple[int, int]]) -> dict[str, float]:
 
     Returns ``{"count_mae", "count_exact_rate", "count_mean_relative_error", "n_pairs"}``;
     the rates are NaN when there is no pair. The relative error is ``|pred - gt| / gt``.
+
+    >>> e = count_errors([(5, 6), (8, 8)])
+    >>> e["count_mae"], e["count_exact_rate"], round(e["count_mean_relative_error"], 4)
+    (0.5, 0.5, 0.0833)
     """
     a = np.asarray(pairs, float).reshape(-1, 2)
     n = len(a)

@@ -51,7 +51,11 @@ def fit_projective_row(k: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float]
 
 
 def row_model(abc: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Positions ``(a k + b) / (c k + 1)`` of lattice indices k (pixels)."""
+    """Positions ``(a k + b) / (c k + 1)`` of lattice indices k (pixels).
+
+    >>> row_model(np.array([10.0, 5.0, 0.0]), np.arange(4)).tolist()
+    [5.0, 15.0, 25.0, 35.0]
+    """
     a, b, c = abc
     k = np.asarray(k, float)
     return (a * k + b) / (c * k + 1)
@@ -64,6 +68,11 @@ def gap_hypotheses(n: int, max_gaps: int) -> list[np.ndarray]:
     -------
     list of (n,) int arrays
         ``k`` with ``k[0] = 0``, increasing; fewer gaps first, then lexicographic.
+
+    Three instances with one lattice position missing between them:
+
+    >>> [k.tolist() for k in gap_hypotheses(3, 1)]
+    [[0, 2, 3], [0, 1, 3]]
     """
     out = []
     for g in range(1, max_gaps + 1):
@@ -77,7 +86,13 @@ def gap_hypotheses(n: int, max_gaps: int) -> list[np.ndarray]:
 
 def steps_ok(abc: np.ndarray, k_lo: int, k_hi: int, max_step_ratio: float) -> bool:
     """The row model is defined, increasing, and its image steps between lattice indices
-    k_lo..k_hi are within a factor ``max_step_ratio`` of each other."""
+    k_lo..k_hi are within a factor ``max_step_ratio`` of each other.
+
+    >>> steps_ok(np.array([10.0, 5.0, 0.0]), 0, 3, 1.5)      # equal steps
+    True
+    >>> steps_ok(np.array([10.0, 5.0, 0.2]), 0, 5, 1.5)      # steps shrink 3 x
+    False
+    """
     ks = np.arange(k_lo, k_hi + 1, dtype=float)
     den = abc[2] * ks + 1
     if np.any(den <= 1e-9):
@@ -159,7 +174,12 @@ OFF_LATTICE = np.iinfo(np.int64).min
 
 
 def lattice_map(Hm: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Lattice points (P, 2) -> pixels (P, 2); NaN where behind the horizon (w <= 0)."""
+    """Lattice points (P, 2) -> pixels (P, 2); NaN where behind the horizon (w <= 0).
+
+    >>> H = np.array([[20.0, 0, 5], [0, 30, 7], [0, 0, 1]])
+    >>> lattice_map(H, np.array([[0, 0], [1, 2]])).tolist()
+    [[5.0, 7.0], [25.0, 67.0]]
+    """
     q = np.c_[np.asarray(uv, float), np.ones(len(uv))] @ np.asarray(Hm, float).T
     w = q[:, 2:]
     return np.where(w > 1e-9, q[:, :2] / np.where(w > 1e-9, w, 1.0), np.nan)
@@ -251,7 +271,11 @@ def grid_missing_cells(ua: np.ndarray, ub: np.ndarray, max_missing: int
 
 
 def lattice_step(Hm: np.ndarray, u: float, v: float) -> float:
-    """Image length (pixels) of one lattice step along the row at column u of row v."""
+    """Image length (pixels) of one lattice step along the row at column u of row v.
+
+    >>> lattice_step(np.array([[20.0, 0, 5], [0, 30, 7], [0, 0, 1]]), 0, 0)
+    20.0
+    """
     a, b = lattice_map(Hm, np.array([[u - 0.5, v], [u + 0.5, v]], float))
     return float(np.linalg.norm(b - a))
 
