@@ -159,6 +159,33 @@ def degraded_result(kept: ImageResult, method: str, failure: Failure) -> ImageRe
     return res
 
 
+def failed_output(meta: dict[str, Any], kept: ImageResult | None, method: str,
+                  failure: Failure) -> ImageResult:
+    """What a step that refines ``kept`` leaves when it failed, or did not run for a
+    failure upstream: the one rule of both drivers (:func:`run` and
+    :mod:`rescu.pipeline`).
+
+    ``kept`` is the result the step refines (its input; stage I's for stage II). When
+    there is one to keep (not None, and not itself a failure that blocks the steps after
+    it: :func:`blocking`), it is kept, degraded (:func:`degraded_result`, ``method`` set);
+    else the output is a result with no pattern for the image of ``meta`` that carries
+    ``failure`` (:func:`empty_result`).
+
+    >>> from rescu.types import Instance, Pattern
+    >>> s1 = ImageResult(image="a.png", width=8, height=8, method="rescu-i", patterns=[
+    ...     Pattern(id=0, score=1.0, instances=[Instance(bbox=(0, 0, 2, 2))] * 2)])
+    >>> f = {"stage": "stage2-train", "message": "boom"}
+    >>> out = failed_output({"image": "a.png"}, s1, "rescu-ii", f)
+    >>> out.method, len(out.patterns), out.extra["failure"]["degraded_to"]
+    ('rescu-ii', 1, 'rescu-i')
+    >>> len(failed_output({"image": "a.png"}, None, "rescu-ii", f).patterns)
+    0
+    """
+    if kept is None or blocking(kept.extra.get("failure")) is not None:
+        return empty_result(meta, method, failure)
+    return degraded_result(kept, method, failure)
+
+
 def empty_result(meta: dict[str, Any], method: str, failure: Failure | None) -> ImageResult:
     """A result with no pattern for the image described by ``meta``."""
     w, h = meta.get("original_size", [0, 0])
@@ -650,7 +677,7 @@ def _describe(prep: Prepared, cfg: dict[str, Any], src: ImageResult, kept: dict[
     def step(stage: str, fn: Callable[[ImageResult], ImageResult]) -> None:
         nonlocal src
         res, f = attempt(stage, lambda: fn(src))
-        src = as_written(res) if f is None else degraded_result(src, src.method, f)
+        src = as_written(res) if f is None else failed_output(prep.meta, src, src.method, f)
 
     if examples is not None:
         step("prompt", lambda s: find_prompted(prep, s, examples, cfg))
@@ -689,7 +716,7 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
                 res, f = attempt("stage2-predict", lambda: _one_box(
                     prep, s1, stage2_predict(feats2, ckpt, s1, p), cfg))
     if f is not None:
-        return degraded_result(s1, "rescu-ii", f)
+        return failed_output(prep.meta, s1, "rescu-ii", f)
     kept["rescu-ii"] = res = as_written(res)
     return res
 

@@ -115,12 +115,10 @@ def _guard(stage: str, upstream: Failure | None, run: Callable[[], None],
 def _keep_input(meta: dict[str, Any], src: ImageResult,
                 out_json: str) -> Callable[[Failure], None]:
     """The ``write_empty`` of a step that refines ``src``: on an upstream failure (nothing
-    to keep) an empty result, on the step's own failure its input, degraded."""
-    upstream = _blocking(src.extra.get("failure"))
-
+    to keep) an empty result, on the step's own failure its input, degraded
+    (:func:`rescu.core.failed_output`)."""
     def empty(f: Failure) -> None:
-        io.write_json(out_json, empty_result(meta, src.method, f) if upstream is not None
-                      else degraded_result(src, src.method, f))
+        io.write_json(out_json, core.failed_output(meta, src, src.method, f))
 
     return empty
 
@@ -414,9 +412,8 @@ def stage2_predict(feats_h5: str, ckpt_path: str, stage1_json: str, out_json: st
 
     def empty(f: Failure) -> None:
         # a failure in stage II (features, train or here): keep stage I's patterns
-        s1 = _kept_stage1(stage1_json)
-        io.write_json(out_json, empty_result(meta, "rescu-ii", f) if s1 is None
-                      else degraded_result(s1, "rescu-ii", f))
+        io.write_json(out_json, core.failed_output(meta, _kept_stage1(stage1_json),
+                                                   "rescu-ii", f))
 
     return _guard("stage2-predict", ckpt.get("failure"), run, empty)
 
@@ -457,9 +454,8 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
     def empty(f: Failure) -> None:
         s1 = _kept_stage1(stage1_json)
         for name in variants:
-            m = f"rescu-ii[{name}]"
-            io.write_json(out_jsons[name], empty_result(meta, m, f) if s1 is None
-                          else degraded_result(s1, m, f))
+            io.write_json(out_jsons[name],
+                          core.failed_output(meta, s1, f"rescu-ii[{name}]", f))
 
     return _guard("stage2-predict-variants", ckpt.get("failure"), run, empty)
 
@@ -507,9 +503,8 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
 
     def empty(f: Failure) -> None:
         for name in variants:
-            m = f"rescu-ii[{name}]"
-            io.write_json(out_jsons[name], empty_result(meta, m, f) if s1.extra.get("failure")
-                          else degraded_result(s1, m, f))
+            io.write_json(out_jsons[name],
+                          core.failed_output(meta, s1, f"rescu-ii[{name}]", f))
 
     return _guard("stage2-ablation", s1.extra.get("failure"), run, empty)
 
