@@ -57,8 +57,7 @@ if TYPE_CHECKING:  # annotations only: each step imports its modules when it run
     from .discovery.stage1 import Stage1Params
     from .extension.params import Stage2Params
 
-#: Section ``stage2``: the configuration's mapping, or parameters already built (an
-#: ablation variant's)
+#: Section ``stage2``: the mapping, or parameters already built (an ablation variant's)
 Stage2Section = Union[Mapping[str, Any], "Stage2Params"]
 
 log = logging.getLogger("rescu")
@@ -161,25 +160,17 @@ def degraded_result(kept: ImageResult, method: str, failure: Failure) -> ImageRe
 
 def failed_output(meta: dict[str, Any], kept: ImageResult | None, method: str,
                   failure: Failure) -> ImageResult:
-    """What a step that refines ``kept`` leaves when it failed, or did not run for a
-    failure upstream: the one rule of both drivers (:func:`run` and
-    :mod:`rescu.pipeline`).
+    """What a step that refines ``kept`` (its input; stage I's result for stage II)
+    leaves when it failed or a failure upstream stopped it, in both drivers (:func:`run`,
+    :mod:`rescu.pipeline`): ``kept`` degraded (:func:`degraded_result`) when there is
+    one to keep (not None, not itself :func:`blocking`), else :func:`empty_result`.
 
-    ``kept`` is the result the step refines (its input; stage I's for stage II). When
-    there is one to keep (not None, and not itself a failure that blocks the steps after
-    it: :func:`blocking`), it is kept, degraded (:func:`degraded_result`, ``method`` set);
-    else the output is a result with no pattern for the image of ``meta`` that carries
-    ``failure`` (:func:`empty_result`).
-
-    >>> from rescu.types import Instance, Pattern
-    >>> s1 = ImageResult(image="a.png", width=8, height=8, method="rescu-i", patterns=[
-    ...     Pattern(id=0, score=1.0, instances=[Instance(bbox=(0, 0, 2, 2))] * 2)])
     >>> f = {"stage": "stage2-train", "message": "boom"}
-    >>> out = failed_output({"image": "a.png"}, s1, "rescu-ii", f)
-    >>> out.method, len(out.patterns), out.extra["failure"]["degraded_to"]
-    ('rescu-ii', 1, 'rescu-i')
-    >>> len(failed_output({"image": "a.png"}, None, "rescu-ii", f).patterns)
-    0
+    >>> s1 = ImageResult(image="a.png", width=8, height=8, method="rescu-i")
+    >>> failed_output({}, s1, "rescu-ii", f).extra["failure"]["degraded_to"]
+    'rescu-i'
+    >>> failed_output({}, None, "rescu-ii", f).extra["failure"]
+    {'stage': 'stage2-train', 'message': 'boom'}
     """
     if kept is None or blocking(kept.extra.get("failure")) is not None:
         return empty_result(meta, method, failure)
@@ -723,9 +714,8 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
 
 def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
              cfg: dict[str, Any]) -> ImageResult:
-    """RESCU-II's ``res`` with one box per object, as the pipeline's prediction step
-    gives it (:func:`rescu.extension.objects.one_box_after_stage2`), on the dense
-    source's map, which the dense step made in this process."""
+    """RESCU-II's ``res`` with one box per object (as the pipeline's prediction step:
+    :func:`rescu.extension.objects.one_box_after_stage2`) on this process's dense map."""
     from .extension.dense import dense_map
     from .extension.objects import one_box_after_stage2
 
