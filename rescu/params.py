@@ -179,9 +179,160 @@ def config_section(*path: str) -> Callable[[type[T]], type[T]]:
                                f"{'.'.join(path + (name,))!r}")
             v = section[name]
             setattr(cls, name, tuple(v) if isinstance(v, list) else v)
+        own = getattr(cls, "__post_init__", None)
+
+        def __post_init__(self: Any) -> None:
+            check_schema_fields(self, path)
+            if own is not None:
+                own(self)
+
+        __post_init__.__doc__ = (f"Every field the schema has at {'.'.join(path)!r} checked "
+                                 f"against it (:func:`check_schema_fields`), then "
+                                 f"{'the checks of ' + cls.__name__ if own else 'nothing more'}.")
+        cls.__post_init__ = __post_init__  # type: ignore[attr-defined]
         return cls
 
     return decorate
+
+
+@functools.cache
+def _schema() -> dict[str, Any]:
+    """The configuration's JSON Schema (``rescu/defaults/config.schema.yaml``), parsed once
+    per process."""
+    import importlib.resources
+
+    return load_yaml((importlib.resources.files("rescu") / "defaults" / "config.schema.yaml")
+                     .read_text())
+
+
+def schema_at(*path: str) -> dict[str, Any]:
+    """The schema of the configuration mapping at ``path`` (its ``$ref`` followed).
+
+    >>> sorted(schema_at("scene", "completion")["properties"])[:2]
+    ['cr_tolerance', 'enabled']
+    >>> schema_at("stage1")["properties"]["max_nested_cover"]
+    {'type': 'number', 'exclusiveMinimum': 0, 'maximum': 1}
+    """
+    node = _deref(_schema())
+    for i, key in enumerate(path):
+        props = node.get("properties") or {}
+        if key not in props:
+            raise KeyError(f"the configuration's schema has no {'.'.join(path[:i + 1])!r}")
+        node = _deref(props[key])
+    return node
+
+
+def schema_enum(*path: str) -> tuple[Any, ...]:
+    """The values the schema allows for the key at ``path`` (its ``enum``, or its items'
+    for a list of names), in the schema's order: the code's tuples of names read them
+    here, so each list of allowed values is written once.
+
+    >>> schema_enum("dense", "mode")
+    ('both', 'dense', 'objects')
+    >>> schema_enum("stage1", "adaptive")
+    ('P_d', 'P_s', 'P_theta')
+    """
+    node = schema_at(*path)
+    if "enum" not in node and "items" in node:
+        node = _deref(node["items"])
+    return tuple(node["enum"])
+
+
+def _deref(node: dict[str, Any]) -> dict[str, Any]:
+    """``node`` with its ``$ref`` (a JSON pointer into the schema, ``#/...``) followed."""
+    while "$ref" in node:
+        target: Any = _schema()
+        for part in node["$ref"].lstrip("#/").split("/"):
+            target = target[part]
+        node = target
+    return node
+
+
+@functools.cache
+def _field_validators(path: tuple[str, ...]) -> dict[str, Any]:
+    """One JSON Schema validator per leaf key (not a mapping) of the section at ``path``."""
+    import jsonschema
+
+    defs = _schema().get("$defs", {})
+    out = {}
+    for name, sub in (schema_at(*path).get("properties") or {}).items():
+        leaf = _deref(sub)
+        if leaf.get("type") == "object" or "properties" in leaf:
+            continue  # a nested section: its own dataclass checks it
+        out[name] = jsonschema.Draft202012Validator({**sub, "$defs": defs})
+    return out
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as the configuration holds it: tuples as lists, NumPy scalars as Python's."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:
+        return value.item()
+    return value
+
+
+def check_schema_fields(obj: Any, path: tuple[str, ...],
+                        key_of: Mapping[str, str] | None = None) -> None:
+    """Check each field of the dataclass instance ``obj`` that the configuration's schema
+    has at ``path`` against the schema: its type, bounds, allowed values and list lengths.
+
+    The bounds of a key are written once, in the schema; the dataclasses'
+    ``__post_init__`` check only what one key alone cannot say (relations between keys).
+    :func:`config_section` runs this first in every ``__post_init__``; a dataclass whose
+    fields are named unlike the keys passes ``key_of`` (field -> key). Raises ValueError
+    ``"<Class>.<field> (configuration key <path>.<field>) = <value>: <what is wrong>"``.
+
+    >>> from rescu.discovery.stage1 import Stage1Params
+    >>> Stage1Params(max_nested_cover=1.5)
+    Traceback (most recent call last):
+    ...
+    ValueError: Stage1Params.max_nested_cover (configuration key stage1.max_nested_cover) = 1.5: 1.5 is greater than the maximum of 1
+    """
+    path = tuple(path)
+    validators = _field_validators(path)
+    for f in fields(obj):
+        name = (key_of or {}).get(f.name, f.name)
+        if name not in validators:
+            continue
+        value = _plain(getattr(obj, f.name))
+        try:
+            err = _field_error(path, name, _frozen(value))
+        except TypeError:  # unhashable (a mapping): checked without the memo
+            err = _field_error.__wrapped__(path, name, value)
+        if err is not None:
+            key = ".".join(path + (name,))
+            raise ValueError(f"{type(obj).__name__}.{f.name} (configuration key {key}) = "
+                             f"{short_repr(value)}: {err}")
+
+
+def _frozen(value: Any) -> Any:
+    """A list as a hashable tuple, tagged so that ``[1]`` and ``1`` stay two keys."""
+    if isinstance(value, list):
+        return ("__list__",) + tuple(_frozen(v) for v in value)
+    return (type(value).__name__, value)
+
+
+def _thawed(value: Any) -> Any:
+    if value[0] == "__list__":
+        return [_thawed(v) for v in value[1:]]
+    return value[1]
+
+
+@functools.lru_cache(maxsize=4096)
+def _field_error(path: tuple[str, ...], name: str, value: Any) -> str | None:
+    """What the schema says is wrong with ``value`` (:func:`_frozen`) at ``path.name``, or
+    None; memoised: the same values are checked again each time a stage builds its
+    parameters (0.3 ms a section unmemoised)."""
+    if isinstance(value, tuple):  # frozen (a plain value is never a tuple: _plain)
+        value = _thawed(value)
+    err = next(iter(_field_validators(path)[name].iter_errors(value)), None)
+    return None if err is None else _short(err.message)
+
+
+def _short(text: str, limit: int = 200) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -200,7 +351,7 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
 
 
 # ------------------------------------------------------------------ evaluation section
-TS_WHICH: tuple[str, ...] = ("any", "dominant")
+TS_WHICH: tuple[str, ...] = schema_enum("evaluation", "ts_which")
 """Which RPs decide an image's translation symmetry (``evaluation.ts_which``): any
 pattern, or the dominant one."""
 
@@ -250,28 +401,6 @@ class EvaluationParams:
     ts_t_coarse: tuple[float, ...]
     ts_which: str
     decimals: int
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.iod_h < 1.0:
-            raise ValueError(f"EvaluationParams.iod_h must be in (0, 1), got {self.iod_h}")
-        if not 0.0 <= self.min_rp_precision <= 1.0:
-            raise ValueError("EvaluationParams.min_rp_precision must be in [0, 1], got "
-                             f"{self.min_rp_precision}")
-        if not 0.0 < self.significance_alpha < 1.0:
-            raise ValueError("EvaluationParams.significance_alpha must be in (0, 1), got "
-                             f"{self.significance_alpha}")
-        if self.ts_which not in TS_WHICH:
-            raise ValueError(f"EvaluationParams.ts_which must be one of {TS_WHICH}, got "
-                             f"{self.ts_which!r}")
-        for name in ("h_curve", "vp_px_thresholds", "vp_deg_thresholds", "vp_aa_thresholds",
-                     "ts_t_fine", "ts_t_coarse"):
-            v = getattr(self, name)
-            if len(v) == 0 or any(not (float(x) > 0) for x in v):
-                raise ValueError(f"EvaluationParams.{name} must be a non-empty list of "
-                                 f"positive numbers, got {v!r}")
-        if any(float(x) >= 1 for x in self.h_curve):
-            raise ValueError(f"EvaluationParams.h_curve values must be in (0, 1), got "
-                             f"{self.h_curve!r}")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "EvaluationParams":

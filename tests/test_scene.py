@@ -310,7 +310,8 @@ def test_the_rows_of_stage_one_rps_hidden_for_low_confidence_give_the_image_vp()
 
 
 def test_a_vp_switch_that_is_not_true_or_false_is_refused():
-    with pytest.raises(ValueError, match="hidden_rows must be true or false"):
+    with pytest.raises(ValueError, match=r"hidden_rows \(configuration key "
+                       r"scene\.vp\.hidden_rows\) = .maybe.: .* not of type .boolean."):
         SC.SceneParams.from_dict({"vp": {"hidden_rows": "maybe"}})
     with pytest.raises(ValueError, match="union_rows"):
         SC.SceneParams.from_dict({"vp": {"union_rows": 1}})

@@ -56,7 +56,7 @@ from typing import Any, Callable, Protocol, Sequence
 import numpy as np
 
 from ..io import InputError
-from ..params import checked_mapping, config_section
+from ..params import checked_mapping, config_section, schema_enum
 from ..types import BBox, ImageResult, Pattern
 from .grammar import (NounPhrase, capitalise, choose_phrase, noun_phrases, rewrite_phrase,
                       tokenize)
@@ -77,7 +77,7 @@ class CaptionMissing(KeyError):
 
 
 # ----------------------------------------------------------------------------- params
-CAPTIONERS: tuple[str, ...] = ("template", "transformers", "csv")
+CAPTIONERS: tuple[str, ...] = schema_enum("caption", "captioner")
 """The captioners ``caption.captioner`` may name."""
 
 
@@ -113,17 +113,6 @@ class CaptionParams:
     grounding_coverage: float
     max_new_tokens: int
     seed: int
-
-    def __post_init__(self) -> None:
-        if self.captioner not in CAPTIONERS:
-            raise ValueError(f"CaptionParams.captioner must be one of {CAPTIONERS}, got "
-                             f"{self.captioner!r}")
-        if not 0.0 <= float(self.grounding_coverage) <= 1.0:
-            raise ValueError(f"CaptionParams.grounding_coverage must be in [0, 1], got "
-                             f"{self.grounding_coverage}")
-        if int(self.max_new_tokens) < 1:
-            raise ValueError(f"CaptionParams.max_new_tokens must be >= 1, got "
-                             f"{self.max_new_tokens}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "CaptionParams":

@@ -57,11 +57,6 @@ class FeatureParams:
     upsample_below: int
     upsample_factor: float
 
-    def __post_init__(self) -> None:
-        if self.upsample_factor < 1.0:
-            raise ValueError("FeatureParams.upsample_factor must be >= 1, "
-                             f"got {self.upsample_factor}")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "FeatureParams":
         """Build from a mapping; raises ValueError naming any unknown key."""

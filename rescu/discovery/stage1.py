@@ -58,17 +58,17 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..params import config_section, params_from_dict
+from ..params import config_section, params_from_dict, schema_enum
 from ..io import read_h5, write_h5
 from .instances import (drop_duplicate_instances, feature_points,  # noqa: F401
                         instance_boxes, instance_extents, layout_spread)
 from .search import (SearchContext, SearchParams, matrix_objective, objective_parts, prune,
                      search)
 from ..types import Features, Instance, Pattern, RPMatrix
-from .urp import (ORIENTATION_MODES, AffinityMatchGroups, Gates, match_candidates, root_sift,
+from .urp import (AffinityMatchGroups, Gates, match_candidates, root_sift,
                   urp_affinity, urp_terms)
 
-ADAPTIVE_NAMES = ("P_d", "P_s", "P_theta")
+ADAPTIVE_NAMES: tuple[str, ...] = schema_enum("stage1", "adaptive")
 
 
 @dataclass(frozen=True)
@@ -178,33 +178,6 @@ class Stage1Params(AffinityMatchGroups, SearchParams):
         for name in ("grid_P_d", "grid_P_s", "grid_P_theta", "adaptive", "refine_shifts",
                      "refine_scales"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
-        bad = [a for a in self.adaptive if a not in ADAPTIVE_NAMES]
-        if bad:
-            raise ValueError(f"Stage1Params.adaptive: unknown name(s) {bad}; "
-                             f"allowed {list(ADAPTIVE_NAMES)}")
-        if self.orientation_mode not in ORIENTATION_MODES:
-            raise ValueError(f"Stage1Params.orientation_mode must be one of "
-                             f"{ORIENTATION_MODES}, got {self.orientation_mode!r}")
-        if self.min_instances < 2 or self.min_words < 2:
-            raise ValueError("Stage1Params: min_instances and min_words must be >= 2")
-        if not 0 < self.max_nested_cover <= 1:
-            raise ValueError("Stage1Params.max_nested_cover must be in (0, 1], got "
-                             f"{self.max_nested_cover!r}")
-        if not self.min_centre_distance >= 0:
-            raise ValueError("Stage1Params.min_centre_distance must be >= 0, got "
-                             f"{self.min_centre_distance!r}")
-        if int(self.grid_retry_initials) != self.grid_retry_initials \
-                or self.grid_retry_initials < 0:
-            raise ValueError("Stage1Params.grid_retry_initials must be an integer >= 0, got "
-                             f"{self.grid_retry_initials!r}")
-        if self.refine_boxes and (not self.refine_shifts or not self.refine_scales
-                                  or min(self.refine_scales) <= 0
-                                  or max(abs(v) for v in self.refine_shifts) > 1):
-            raise ValueError("Stage1Params: refine_shifts and refine_scales must be non-empty, "
-                             f"the shifts in [-1, 1] and the scales > 0, got {self.refine_shifts!r}, "
-                             f"{self.refine_scales!r}")
-        if int(self.seed) != self.seed or self.seed < 0:
-            raise ValueError(f"Stage1Params.seed must be an integer >= 0, got {self.seed!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Stage1Params":

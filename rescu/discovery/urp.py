@@ -40,9 +40,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..params import config_defaults, config_section
+from ..params import config_defaults, config_section, schema_enum
 
-ORIENTATION_MODES = ("wrapped", "relative", "paper")
+ORIENTATION_MODES: tuple[str, ...] = schema_enum("stage1", "orientation_mode")
 
 _D = config_defaults("stage1")
 
@@ -66,11 +66,6 @@ class AffinityParams:
     sigma_s: float
     sigma_theta: float
     orientation_mode: str
-
-    def __post_init__(self) -> None:
-        if self.orientation_mode not in ORIENTATION_MODES:
-            raise ValueError(f"orientation_mode must be one of {ORIENTATION_MODES}, "
-                             f"got {self.orientation_mode!r}")
 
 
 @dataclass(frozen=True)

@@ -107,21 +107,6 @@ class MergeParams:
     max_line_residual: float
     max_object_line_residual: float
 
-    def __post_init__(self) -> None:
-        if not self.similarity_ratio > 0:
-            raise ValueError(f"similarity_ratio must be > 0, got {self.similarity_ratio}")
-        if not self.size_tolerance >= 1:
-            raise ValueError(f"size_tolerance must be >= 1, got {self.size_tolerance}")
-        if not 0 < self.duplicate_iou <= 1:
-            raise ValueError(f"duplicate_iou must be in (0, 1], got {self.duplicate_iou}")
-        if not 0 <= self.conflict_cover <= 1:
-            raise ValueError(f"conflict_cover must be in [0, 1], got {self.conflict_cover}")
-        if self.max_line_residual < 0:
-            raise ValueError(f"max_line_residual must be >= 0, got {self.max_line_residual}")
-        if self.max_object_line_residual < 0:
-            raise ValueError(f"max_object_line_residual must be >= 0, got "
-                             f"{self.max_object_line_residual}")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "MergeParams":
         """Build from a mapping; raises ValueError naming any unknown key."""

@@ -87,10 +87,6 @@ class BackboneParams:
     finetune: bool
     device: str
 
-    def __post_init__(self) -> None:
-        if not self.input_scales or any(s <= 0 for s in self.input_scales):
-            raise ValueError(f"input_scales must be positive, got {self.input_scales}")
-
 
 @dataclass(frozen=True)
 @config_section("stage2", "proposals")
@@ -131,9 +127,6 @@ class ProposalSectionParams:
     lattice_neighbours: int
     lattice_steps: int
     lattice_scales: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        self.proposal_params()  # validates method
 
     def proposal_params(self) -> ProposalParams:
         """This section as :class:`rescu.extension.proposals.ProposalParams`
@@ -202,11 +195,9 @@ class ExampleParams:
     n_aug_proposals: int
 
     def __post_init__(self) -> None:
-        if not 0 <= self.occlude_prob <= 1:
-            raise ValueError(f"occlude_prob must be in [0, 1], got {self.occlude_prob}")
         frac = tuple(self.occlude_fraction)
-        if len(frac) != 2 or not 0 <= frac[0] <= frac[1] <= 1:
-            raise ValueError(f"occlude_fraction must be (min, max) with 0 <= min <= max <= 1,"
+        if frac[0] > frac[1]:
+            raise ValueError(f"occlude_fraction must be (min, max) with min <= max,"
                              f" got {self.occlude_fraction}")
 
 
@@ -237,13 +228,6 @@ class HeadParams:
     val_split: float
     patience: int
     min_delta: float
-
-    def __post_init__(self) -> None:
-        if len(self.hidden_sizes) != 2:
-            raise ValueError(f"hidden_sizes must have 2 entries (3 dense layers), got "
-                             f"{self.hidden_sizes}")
-        if not 0 <= self.val_split < 1:
-            raise ValueError(f"val_split must be in [0, 1), got {self.val_split}")
 
 
 @dataclass(frozen=True)
@@ -300,14 +284,6 @@ class WholeObjectGates:
     score_threshold: float
     max_distance_ratio: float
     max_new_fraction: float
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.score_threshold <= 1:
-            raise ValueError(f"stage2.predict.whole_objects.score_threshold must be in "
-                             f"[0, 1], got {self.score_threshold}")
-        if self.max_distance_ratio <= 0 or self.max_new_fraction < 0:
-            raise ValueError("stage2.predict.whole_objects: max_distance_ratio must be > 0 "
-                             "and max_new_fraction >= 0")
 
 
 @dataclass(frozen=True)
@@ -367,13 +343,6 @@ class PredictParams:
     visible_half_margin: float
     merge: MergeSectionParams = field(default_factory=MergeSectionParams)
     whole_objects: WholeObjectGates = field(default_factory=WholeObjectGates)
-
-    def __post_init__(self) -> None:
-        for k in ("visible_half_min_score", "visible_half_threshold"):
-            if not 0 <= getattr(self, k) <= 1:
-                raise ValueError(f"{k} must be in [0, 1], got {getattr(self, k)}")
-        if self.visible_half_margin < 0:
-            raise ValueError(f"visible_half_margin must be >= 0, got {self.visible_half_margin}")
 
 
 @dataclass(frozen=True)

@@ -107,24 +107,7 @@ class PromptParams:
     sizes: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
-        if not self.target_side >= 16:
-            raise ValueError(f"target_side must be >= 16 pixels, got {self.target_side}")
-        if not self.max_side >= 64:
-            raise ValueError(f"max_side must be >= 64 pixels, got {self.max_side}")
-        if self.rounds not in (1, 2):
-            raise ValueError(f"rounds must be 1 or 2, got {self.rounds}")
-        for k in ("round_fraction", "nms_iou", "max_covered", "min_inside", "relative_score"):
-            v = getattr(self, k)
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"{k} must be in [0, 1], got {v}")
-        if not -1.0 <= self.min_score <= 1.0:
-            raise ValueError(f"min_score must be in [-1, 1], got {self.min_score}")
-        if not self.min_box_px >= 1:
-            raise ValueError(f"min_box_px must be >= 1, got {self.min_box_px}")
         object.__setattr__(self, "sizes", tuple(float(r) for r in self.sizes))
-        if not self.sizes or not all(0.25 <= r <= 4.0 for r in self.sizes):
-            raise ValueError(f"sizes must be 1 to several ratios in [0.25, 4], got "
-                             f"{list(self.sizes)}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "PromptParams":

@@ -24,9 +24,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..params import checked_mapping, config_defaults
+from ..params import check_schema_fields, checked_mapping, config_defaults, schema_enum
 
-PROPOSAL_METHODS = ("edgeboxes", "instance_scale", "both")
+PROPOSAL_METHODS: tuple[str, ...] = schema_enum("stage2", "proposals", "method")
 
 #: The :class:`ProposalParams` field of each ``stage2.proposals`` key named otherwise.
 FIELD_OF_KEY = {"max_proposals": "max_boxes", "window_scales": "scales",
@@ -89,10 +89,9 @@ class ProposalParams:
     edge_sigma: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.method not in PROPOSAL_METHODS:
-            raise ValueError(f"method must be one of {PROPOSAL_METHODS}, got {self.method!r}")
-        if not 0 < self.stride_fraction <= 1:
-            raise ValueError(f"stride_fraction must be in (0, 1], got {self.stride_fraction}")
+        # the fields the section sets, against its schema (keys renamed: FIELD_OF_KEY)
+        check_schema_fields(self, ("stage2", "proposals"),
+                            {f: k for k, f in FIELD_OF_KEY.items()})
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ProposalParams":

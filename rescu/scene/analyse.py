@@ -87,14 +87,6 @@ class SceneParams:
     rectify_padding: float
     rectify_min_w: float
 
-    def __post_init__(self) -> None:
-        if self.rectify_max_side < 8:
-            raise ValueError("SceneParams.rectify_max_side must be >= 8")
-        if self.rectify_padding < 0:
-            raise ValueError("SceneParams.rectify_padding must be >= 0")
-        if not 0 < self.rectify_min_w < 1:
-            raise ValueError("SceneParams.rectify_min_w must be in (0, 1)")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "SceneParams":
         """Build from the nested mapping ``{"vp": {...}, "symmetry": {...}, ...}``.

@@ -102,22 +102,6 @@ class ClaimParams:
     max_image_nfa: float
     min_image_convergence_deg: float
 
-    def __post_init__(self) -> None:
-        if int(self.min_row_instances) < 3:
-            raise ValueError("ClaimParams.min_row_instances must be >= 3 (a line through "
-                             "two points has no residual)")
-        if int(self.min_rows) < 2:
-            raise ValueError("ClaimParams.min_rows must be >= 2 (one row meets a VP "
-                             "anywhere along it)")
-        if not float(self.max_image_nfa) > 0.0:
-            raise ValueError(f"ClaimParams.max_image_nfa must be > 0, got "
-                             f"{self.max_image_nfa}")
-        if not 0.0 < float(self.parallel_alpha) < 1.0:
-            raise ValueError(f"ClaimParams.parallel_alpha must be in (0, 1), got "
-                             f"{self.parallel_alpha}")
-        if float(self.point_noise) <= 0 or float(self.max_residual_deg) <= 0:
-            raise ValueError("ClaimParams.point_noise and max_residual_deg must be > 0")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "ClaimParams":
         """Build from a config mapping; unknown keys raise ValueError naming them."""

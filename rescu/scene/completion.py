@@ -150,31 +150,6 @@ class CompletionParams:
     grid_tolerance: float
     grid_max_missing: int
 
-    def __post_init__(self) -> None:
-        if self.max_gaps < 1:
-            raise ValueError("CompletionParams.max_gaps must be >= 1")
-        if self.cr_tolerance < 0 or self.fit_tolerance < 0:
-            raise ValueError("CompletionParams.cr_tolerance and fit_tolerance must be >= 0")
-        if self.max_step_ratio < 1:
-            raise ValueError("CompletionParams.max_step_ratio must be >= 1")
-        if not 0 <= self.similarity_ratio <= 1:
-            raise ValueError("CompletionParams.similarity_ratio must be in [0, 1]")
-        if not -1 <= self.min_similarity <= 1:
-            raise ValueError("CompletionParams.min_similarity must be in [-1, 1]")
-        if self.search_radius < 0 or self.search_step_px <= 0:
-            raise ValueError("CompletionParams.search_radius must be >= 0 and "
-                             "search_step_px > 0")
-        if self.patch_size < 4:
-            raise ValueError("CompletionParams.patch_size must be >= 4")
-        if self.end_instances < 0:
-            raise ValueError("CompletionParams.end_instances must be >= 0")
-        if self.min_row_instances < 3:
-            raise ValueError("CompletionParams.min_row_instances must be >= 3")
-        if not 0 < self.grid_tolerance < 0.5:
-            raise ValueError("CompletionParams.grid_tolerance must be in (0, 0.5)")
-        if self.grid_max_missing < 1:
-            raise ValueError("CompletionParams.grid_max_missing must be >= 1")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "CompletionParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""

@@ -64,13 +64,6 @@ class SymmetryParams:
     threshold: float
     min_instances: int
 
-    def __post_init__(self) -> None:
-        if self.threshold < 0:
-            raise ValueError("SymmetryParams.threshold must be >= 0")
-        if self.min_instances < 4:
-            raise ValueError("SymmetryParams.min_instances must be >= 4 (a cross ratio "
-                             "needs four points)")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "SymmetryParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""

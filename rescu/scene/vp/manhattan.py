@@ -115,23 +115,10 @@ class ImageVPParams:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "focal_range", tuple(float(v) for v in self.focal_range))
-        if self.hypotheses < 1:
-            raise ValueError("ImageVPParams.hypotheses must be >= 1")
-        if not 0 < self.inlier_angle_deg < 45 or not 0 < self.refine_angle_deg < 45:
-            raise ValueError("ImageVPParams.inlier_angle_deg and refine_angle_deg must be "
-                             "in (0, 45)")
-        if self.min_lines < 2:
-            raise ValueError("ImageVPParams.min_lines must be >= 2")
-        if self.focal_px is not None and not self.focal_px > 0:
-            raise ValueError("ImageVPParams.focal_px must be > 0 or null")
-        lo, hi = self.focal_range if len(self.focal_range) == 2 else (0.0, 0.0)
-        if not 0 < lo <= hi:
-            raise ValueError("ImageVPParams.focal_range must be [low, high] with "
-                             "0 < low <= high")
-        if self.focal_steps < 1:
-            raise ValueError("ImageVPParams.focal_steps must be >= 1")
-        if self.line_weight < 0 or self.rp_weight < 0:
-            raise ValueError("ImageVPParams.line_weight and rp_weight must be >= 0")
+        lo, hi = self.focal_range
+        if lo > hi:
+            raise ValueError(f"ImageVPParams.focal_range must be [low, high] with low <= high, "
+                             f"got {list(self.focal_range)}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "ImageVPParams":

@@ -107,30 +107,6 @@ class VPParams:
     spacing_alpha: float
     seed: int
 
-    def __post_init__(self) -> None:
-        if self.ransac_iterations < 1:
-            raise ValueError("VPParams.ransac_iterations must be >= 1")
-        if not 0 < self.inlier_angle_deg < 90:
-            raise ValueError("VPParams.inlier_angle_deg must be in (0, 90)")
-        if not 0 <= self.ac_threshold_deg < 90:
-            raise ValueError("VPParams.ac_threshold_deg must be in [0, 90)")
-        if self.min_lines < 2:
-            raise ValueError("VPParams.min_lines must be >= 2")
-        if not 0 <= self.infinity_alpha < 1:
-            raise ValueError("VPParams.infinity_alpha must be in [0, 1)")
-        if self.infinity_noise_px < 0:
-            raise ValueError("VPParams.infinity_noise_px must be >= 0")
-        if not 0 <= self.joint_alpha < 1:
-            raise ValueError("VPParams.joint_alpha must be in [0, 1)")
-        if not 0 <= self.spacing_alpha < 1:
-            raise ValueError("VPParams.spacing_alpha must be in [0, 1)")
-        if self.min_row_instances < 2:
-            raise ValueError("VPParams.min_row_instances must be >= 2")
-        for name in ("ml_refine", "register_centres", "union_rows", "hidden_rows"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"VPParams.{name} must be true or false, got "
-                                 f"{getattr(self, name)!r}")
-
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> "VPParams":
         """Build from a mapping; unknown keys raise ValueError naming them."""
