@@ -11,12 +11,29 @@ the result once with :func:`validate_config`.
 from __future__ import annotations
 
 import importlib.resources
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 from .io import InputError
 from .params import deep_merge  # noqa: F401  (part of this module's API)
 from .params import config_value_problem, load_yaml, short_repr
+from .sections import SECTIONS, section_at, section_params, stage2_variant  # noqa: F401
+
+if TYPE_CHECKING:  # annotations only: the sections' modules import this one's caller
+    from .captions.caption import CaptionParams
+    from .data.synth import SynthParams
+    from .discovery.features import FeatureParams
+    from .discovery.grasp import GraspParams
+    from .discovery.sources import DenseParams
+    from .discovery.stage1 import Stage1Params
+    from .extension.params import Stage2Params
+    from .extension.prompted import PromptParams
+    from .params import EvaluationParams
+    from .scene.analyse import SceneParams
+    from .scene.claims import ClaimParams
+    from .scene.completion import CompletionParams
+    from .scene.vp.manhattan import ImageVPParams
 
 DEFAULTS_DIR = importlib.resources.files("rescu") / "defaults"
 DEFAULT_CONFIG = DEFAULTS_DIR / "config.yaml"
@@ -138,6 +155,40 @@ def schema_errors(config: dict[str, Any]) -> list[tuple[list[str], str]]:
     return out
 
 
+@dataclass(frozen=True)
+class Sections:
+    """Every section's parameters of one configuration, built once
+    (:func:`typed_config`); a dotted section is named by its last key
+    (``scene.claims`` -> ``claims``)."""
+
+    features: FeatureParams
+    stage1: Stage1Params
+    grasp: GraspParams
+    dense: DenseParams
+    prompt: PromptParams
+    stage2: Stage2Params
+    scene: SceneParams
+    completion: CompletionParams
+    image_vp: ImageVPParams
+    claims: ClaimParams
+    caption: CaptionParams
+    synthetic: SynthParams
+    evaluation: EvaluationParams
+
+
+def typed_config(config: Mapping[str, Any]) -> Sections:
+    """The parameters of every section of ``config`` (a merged configuration, e.g.
+    :func:`load_config`'s), as frozen objects (:func:`section_params`): what a driver
+    builds once and passes down. Raises ValueError as :func:`section_params`.
+
+    >>> s = typed_config(load_config(stage2=False))
+    >>> s.dense.mode, s.claims.min_rows, type(s.stage2).__name__
+    ('objects', 2, 'Stage2Params')
+    """
+    return Sections(**{name.rsplit(".", 1)[-1]: section_params(name, section_at(config, name))
+                       for name in SECTIONS})
+
+
 def check_params(config: dict[str, Any], stage2: bool = True) -> None:
     """Build every parameter dataclass the pipeline builds from ``config``, once.
 
@@ -153,20 +204,8 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
             raise InputError(f"results_dir = {rd!r}: the file system's root, your home "
                              f"folder or empty; results (and their sweeps of stale files) "
                              f"need a folder of their own, e.g. results")
-    from .captions.caption import CaptionParams
-    from .scene.completion import CompletionParams
-    from .params import EvaluationParams
-    from .discovery.features import FeatureParams
-    from .discovery.grasp import GraspParams
     from .discovery.ablation import SOURCE_ROWS, ablation_overrides
-    from .scene.analyse import SceneParams
-    from .scene.vp.manhattan import ImageVPParams
-    from .scene.claims import ClaimParams
-    from .discovery.stage1 import Stage1Params
-    from .discovery.sources import DenseParams
-    from .extension.prompted import PromptParams
-    from .extension.params import Stage2Params, predict_only_error
-    from .data.synth import SynthParams
+    from .extension.params import predict_only_error
 
     def build(section: str, make: Any) -> Any:
         try:
@@ -174,29 +213,25 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
         except (ValueError, TypeError) as e:
             raise InputError(f"{section}: {e}") from None
 
-    build("features", lambda: FeatureParams.from_dict(config["features"]))
+    for name in SECTIONS:
+        build(name, lambda: section_params(name, section_at(config, name)))
     s1 = config["stage1"]
-    build("stage1", lambda: Stage1Params.from_dict(s1))
     for least, most, what in (("min_instances", "max_cols", "instances"),
                               ("min_words", "max_rows", "words")):
         if s1[least] > s1[most]:
             raise InputError(f"stage1.{least} = {s1[least]} is more than "
                              f"stage1.{most} = {s1[most]}: no RP could have enough {what}")
-    build("grasp", lambda: GraspParams.from_dict(config["grasp"]))
-    build("dense", lambda: DenseParams.from_dict(config["dense"]))
-    build("prompt", lambda: PromptParams.from_dict(config["prompt"]))
     ablation = config.get("ablation") or {}
     for name, spec in ablation.get("variants", {}).items():
         build(f"ablation.variants.{name}",
-              lambda: Stage1Params.from_dict({**s1, **ablation_overrides(spec)}))
+              lambda: section_params("stage1", {**s1, **ablation_overrides(spec)}))
         if ablation.get("sources", True) and name in SOURCE_ROWS:
             raise InputError(f"ablation.variants.{name}: the name of a source row "
                              f"(ablation.sources); rename the variant")
     s2 = config["stage2"]
-    build("stage2", lambda: Stage2Params.from_dict(s2))
     ab2 = config.get("stage2_ablation") or {}
     for name, over in (ab2.get("variants") or {}).items():
-        build(f"stage2_ablation.variants.{name}", lambda: Stage2Params.variant(s2, over))
+        build(f"stage2_ablation.variants.{name}", lambda: stage2_variant(s2, over))
     for name, over in (ab2.get("predict_variants") or {}).items():
         why = predict_only_error(over)
         if why:
@@ -206,15 +241,7 @@ def check_params(config: dict[str, Any], stage2: bool = True) -> None:
             raise InputError(f"stage2_ablation: {name!r} is both a variant and a "
                              f"predict variant")
         build(f"stage2_ablation.predict_variants.{name}",
-              lambda: Stage2Params.variant(s2, over))
-    scene = config["scene"]
-    build("scene", lambda: SceneParams.from_config(scene))
-    build("scene.completion", lambda: CompletionParams.from_dict(scene.get("completion") or {}))
-    build("scene.image_vp", lambda: ImageVPParams.from_dict(scene.get("image_vp") or {}))
-    build("scene.claims", lambda: ClaimParams.from_dict(scene.get("claims") or {}))
-    build("caption", lambda: CaptionParams.from_dict(config["caption"]))
-    build("synthetic", lambda: SynthParams.from_dict(config["synthetic"]))
-    build("evaluation", lambda: EvaluationParams.from_dict(config["evaluation"]))
+              lambda: stage2_variant(s2, over))
     if stage2:
         check_backbone_weights(s2)
         check_device(s2)

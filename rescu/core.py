@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Union
 import numpy as np
 
 from . import io
+from .sections import section_params
 from .names import METHODS
 # the failure rule lives in rescu.failures; its names stay importable from here
 from .failures import attempt, empty_result, failed_output
@@ -55,9 +56,14 @@ from .failures import blocking, degraded_result, is_degraded  # noqa: F401
 from .types import Failure, Features, ImageResult, Pattern, RPMatrix
 
 if TYPE_CHECKING:  # annotations only: each step imports its modules when it runs
+    from .captions.caption import CaptionParams
+    from .config import Sections
+    from .discovery.features import FeatureParams
+    from .discovery.grasp import GraspParams
     from .discovery.sources import DenseParams
     from .discovery.stage1 import Stage1Params
     from .extension.params import Stage2Params
+    from .scene.claims import ClaimParams
 
 #: Section ``stage2``: the mapping, or parameters already built (an ablation variant's)
 Stage2Section = Union[Mapping[str, Any], "Stage2Params"]
@@ -192,12 +198,13 @@ def _prepared(meta: dict[str, Any], im: io.LoadedImage | None,
 
 
 # --------------------------------------------------------------------------- stage I
-def extract_features(prep: Prepared, params: dict[str, Any]) -> Features:
-    """SIFT features of the processed image (config section ``features``), as stored
+def extract_features(prep: Prepared, params: Mapping[str, Any] | FeatureParams) -> Features:
+    """SIFT features of the processed image (config section ``features``: its mapping or
+    its parameters, :func:`rescu.config.section_params`), as stored
     (float32 arrays, :func:`rescu.discovery.features.save_features`)."""
     from .discovery import features as F
 
-    f = F.extract_features(prep.rgb, F.FeatureParams.from_dict(params),
+    f = F.extract_features(prep.rgb, section_params("features", params),
                            scale_factor=prep.scale_factor)
     return Features(xy=f.xy.astype(np.float32).reshape(-1, 2),
                     scale=f.scale.astype(np.float32), angle=f.angle.astype(np.float32),
@@ -207,21 +214,22 @@ def extract_features(prep: Prepared, params: dict[str, Any]) -> Features:
                     scale_factor=float(f.scale_factor))
 
 
-def find_dense(prep: Prepared, params: dict[str, Any]) -> ImageResult:
+def find_dense(prep: Prepared, params: Mapping[str, Any] | DenseParams) -> ImageResult:
     """The dense source's RPs (:func:`rescu.extension.dense.find_dense`, config section
     ``dense``), instances in original pixels, ``method="dense"``."""
     from .extension import dense as D
 
     res = empty_result(prep.meta, "dense", None)
-    res.patterns = D.find_dense(prep.rgb, D.DenseParams.from_dict(params),
+    res.patterns = D.find_dense(prep.rgb, section_params("dense", params),
                                 scale_factor=prep.scale_factor)
     return res
 
 
-def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, Any],
-                      method: str = "rescu-i", rgb: np.ndarray | None = None,
-                      dense: ImageResult | None = None,
-                      dense_params: dict[str, Any] | None = None,
+def discover_patterns(feats: Features,
+                      params: Mapping[str, Any] | Stage1Params | GraspParams,
+                      meta: dict[str, Any], method: str = "rescu-i",
+                      rgb: np.ndarray | None = None, dense: ImageResult | None = None,
+                      dense_params: Mapping[str, Any] | DenseParams | None = None,
                       dense_map: tuple[np.ndarray, float] | None = None
                       ) -> tuple[ImageResult, Any]:
     """RESCU-I (``method="rescu-i"``, section ``stage1``) or GRASP (``"grasp"``, section
@@ -245,13 +253,14 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
     from .discovery.sources import add_dense, skips_stage1
 
     found = None if method == "grasp" else dense
+    dp = None if dense_params is None else section_params("dense", dense_params)
     if method == "grasp":
         from .discovery import grasp as G
 
-        out = G.discover_grasp(feats, G.GraspParams.from_dict(params))
+        out = G.discover_grasp(feats, section_params("grasp", params))
     else:
-        p = S1.Stage1Params.from_dict(params)
-        if skips_stage1(found, dense_params):
+        p = section_params("stage1", params)
+        if skips_stage1(found, dp):
             out = S1.Stage1Output(rps=[], chosen={}, objective=0.0, chosen_by="skipped")
         else:
             out = S1.discover(feats, p)
@@ -262,11 +271,11 @@ def discover_patterns(feats: Features, params: dict[str, Any], meta: dict[str, A
         gray = _gray(rgb) if rgb is not None and p.refine_boxes and out.rps else None
         res.patterns = rescu_i_patterns(feats, out.rps, p, gray, float(meta["scale_factor"]))
         if found is not None:
-            add_dense(res, found, dense_params)
+            add_dense(res, found, dp)
             if rgb is not None:
                 from .extension.dense import score_and_split
 
-                score_and_split(res, found, dense_params, rgb, meta, fmap=dense_map)
+                score_and_split(res, found, dp, rgb, meta, fmap=dense_map)
     res.extra.update(chosen_params=out.chosen, chosen_by=out.chosen_by,
                      objective=out.objective, n_features=len(feats))
     return res, out
@@ -310,9 +319,7 @@ def _stage2(params: Stage2Section) -> Stage2Params:
     """Section ``stage2`` as :class:`rescu.extension.params.Stage2Params` (a mapping is
     checked and converted; parameters already built, e.g. an ablation variant's, are
     used as they are)."""
-    from .extension.params import Stage2Params
-
-    return params if isinstance(params, Stage2Params) else Stage2Params.from_dict(params)
+    return section_params("stage2", params)
 
 
 def as_stored(arrays: dict[str, Any]) -> dict[str, Any]:
@@ -359,8 +366,8 @@ def analyse_scene(prep: Prepared, src: ImageResult,
     from .scene import analyse as SC
     from .scene import completion as CO
 
-    p = SC.SceneParams.from_config(params)
-    cp = CO.CompletionParams.from_dict(params.get("completion") or {})
+    p = section_params("scene", params)
+    cp = section_params("scene.completion", params.get("completion"))
     completed = CO.complete_rows(src, prep.gray(), cp, scale_factor=prep.scale_factor,
                                  vp_params=p.vp)
     res = SC.analyse_scene(completed, p)
@@ -379,25 +386,23 @@ def image_vanishing_points(prep: Prepared, src: ImageResult, params: dict[str, A
     """The image's VPs from RP rows and LSD lines together (section ``scene``, its
     ``image_vp`` entry); ``focal_px`` the true focal length (original pixels) when
     known (:mod:`rescu.scene.image_vp`)."""
-    from .scene import analyse as SC
     from .scene.image_vp import image_vanishing_points as joint
-    from .scene.vp.manhattan import ImageVPParams
 
-    return joint(prep.rgb, prep.scale_factor, src, SC.SceneParams.from_config(params),
-                 ImageVPParams.from_dict(params.get("image_vp")), focal_px)
+    return joint(prep.rgb, prep.scale_factor, src, section_params("scene", params),
+                 section_params("scene.image_vp", params.get("image_vp")), focal_px)
 
 
-def describe(prep: Prepared, src: ImageResult, params: dict[str, Any],
-             claims: dict[str, Any] | None = None) -> ImageResult:
+def describe(prep: Prepared, src: ImageResult, params: Mapping[str, Any] | CaptionParams,
+             claims: Mapping[str, Any] | ClaimParams | None = None) -> ImageResult:
     """Only the supported claims (:func:`rescu.scene.claims.supported_claims`, ``claims``
     the config's ``scene.claims``), then the base and enhanced caption of them (section
     ``caption``)."""
     from .captions import caption as CAP
-    from .scene.claims import ClaimParams, supported_claims
+    from .scene.claims import supported_claims
 
-    p = CAP.CaptionParams.from_dict(params)
+    p = section_params("caption", params)
     captioner = CAP.make_captioner(p, log=log.warning)
-    res = supported_claims(src, ClaimParams.from_dict(claims))
+    res = supported_claims(src, section_params("scene.claims", claims))
     res.caption = CAP.caption_result(prep.rgb, res, Path(prep.meta["image"]).name,
                                      captioner, p)
     return res
@@ -417,13 +422,12 @@ def find_prompted(prep: Prepared, src: ImageResult, examples: np.ndarray,
     ``examples`` (K), ``reference`` and ``threshold`` (scores). It is the dominant
     pattern (:func:`rescu.scene.counting.dominant_pattern`).
     """
-    from .extension.params import Stage2Params
-    from .extension.prompted import PromptParams, find_like
+    from .extension.prompted import find_like
     from .extension.proposal_features import get_backbone
     from .types import Instance
 
-    p = PromptParams.from_dict(cfg["prompt"])
-    backbone = get_backbone(Stage2Params.from_dict(cfg["stage2"]))
+    p = section_params("prompt", cfg["prompt"])
+    backbone = get_backbone(section_params("stage2", cfg["stage2"]))
     s = float(prep.scale_factor)
     with _threads(cfg, "in_process"):
         found = find_like(prep.rgb, np.asarray(examples, np.float64) * s, backbone, p)
@@ -546,48 +550,52 @@ def _chain(prep: Prepared, cfg: dict[str, Any], method: str, keep: bool,
     meta = prep.meta
     kept: dict[str, Any] = {}
     out = RunOutput(empty_result(meta, method, None), prep, {}, kept)
-    if examples is not None and not cfg["prompt"]["unprompted"]:
+    from .config import typed_config
+
+    typed = typed_config(cfg)  # every section's parameters, built once
+    if examples is not None and not typed.prompt.unprompted:
         src = empty_result(meta, method, None)
     else:
-        src = _discover(prep, cfg, method, kept, out)
+        src = _discover(prep, cfg, typed, method, kept, out)
         if src is None:
             return out
-    return _describe(prep, cfg, src, kept, out, keep, examples)
+    return _describe(prep, cfg, typed, src, kept, out, keep, examples)
 
 
-def _discover(prep: Prepared, cfg: dict[str, Any], method: str, kept: dict[str, Any],
-              out: RunOutput) -> ImageResult | None:
+def _discover(prep: Prepared, cfg: dict[str, Any], typed: Sections, method: str,
+              kept: dict[str, Any], out: RunOutput) -> ImageResult | None:
     """Discovery without examples (features, dense source, stage I, stage II); None, with
     ``out.result`` the failure, when a step the rest needs failed."""
     meta = prep.meta
     s1_method = "grasp" if method == "grasp" else "rescu-i"
 
-    feats, f = attempt("features", lambda: extract_features(prep, cfg["features"]))
+    feats, f = attempt("features", lambda: extract_features(prep, typed.features))
     if f is not None:
         out.result = empty_result(meta, method, f)
         return None
     kept["features"] = feats
     found = None
-    if s1_method == "rescu-i" and cfg["dense"]["enabled"]:
+    if s1_method == "rescu-i" and typed.dense.enabled:
         with _threads(cfg, "in_process"):
-            found, f = attempt("dense", lambda: find_dense(prep, cfg["dense"]))
+            found, f = attempt("dense", lambda: find_dense(prep, typed.dense))
         found = as_written(found) if f is None else empty_result(meta, "dense", f)
         kept["dense"] = found
     got, f = attempt(s1_method, lambda: discover_patterns(
-        feats, cfg["grasp"] if s1_method == "grasp" else cfg["stage1"], meta, s1_method,
-        prep.rgb, found, cfg["dense"]))
+        feats, typed.grasp if s1_method == "grasp" else typed.stage1, meta, s1_method,
+        prep.rgb, found, typed.dense))
     if f is not None:
         out.result = empty_result(meta, method, f)
         return None
     src = as_written(got[0])
     kept["stage1"], kept["rp_matrices"] = src, got[1]
     if method == "rescu-ii":
-        src = _extend(prep, src, cfg, kept)
+        src = _extend(prep, src, cfg, typed, kept)
     return src
 
 
-def _describe(prep: Prepared, cfg: dict[str, Any], src: ImageResult, kept: dict[str, Any],
-              out: RunOutput, keep: bool, examples: np.ndarray | None) -> RunOutput:
+def _describe(prep: Prepared, cfg: dict[str, Any], typed: Sections, src: ImageResult,
+              kept: dict[str, Any], out: RunOutput, keep: bool,
+              examples: np.ndarray | None) -> RunOutput:
     """The prompted pattern (with ``examples``), the scene, the image VPs and the
     caption, each step's failure keeping the previous result."""
     def step(stage: str, fn: Callable[[ImageResult], ImageResult]) -> None:
@@ -610,17 +618,17 @@ def _describe(prep: Prepared, cfg: dict[str, Any], src: ImageResult, kept: dict[
     kept["scene"] = src
     step("image-vp", lambda s: image_vanishing_points(prep, s, cfg["scene"]))
     kept["joint"] = src
-    step("caption", lambda s: describe(prep, s, cfg["caption"], cfg["scene"].get("claims")))
+    step("caption", lambda s: describe(prep, s, typed.caption, typed.claims))
     out.result = src
     if not keep:
         out.intermediate = {}
     return out
 
 
-def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
+def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any], typed: Sections,
             kept: dict[str, Any]) -> ImageResult:
     """Stage II's three steps on a good stage-I result; a failure keeps ``s1``."""
-    p = cfg["stage2"]
+    p = typed.stage2
     with _threads(cfg, "in_process"):
         feats2, f = attempt("stage2-features", lambda: stage2_features(prep, s1, p))
     if f is None:
@@ -630,7 +638,7 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
             if f is None:
                 kept["head"] = ckpt
                 res, f = attempt("stage2-predict", lambda: _one_box(
-                    prep, s1, stage2_predict(feats2, ckpt, s1, p), cfg))
+                    prep, s1, stage2_predict(feats2, ckpt, s1, p), cfg, typed.dense))
     if f is not None:
         return failed_output(prep.meta, s1, "rescu-ii", f)
     kept["rescu-ii"] = res = as_written(res)
@@ -638,7 +646,7 @@ def _extend(prep: Prepared, s1: ImageResult, cfg: dict[str, Any],
 
 
 def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
-             cfg: dict[str, Any]) -> ImageResult:
+             cfg: dict[str, Any], d: DenseParams) -> ImageResult:
     """RESCU-II's ``res`` with one box per object (as the pipeline's prediction step:
     :func:`rescu.extension.objects.one_box_after_stage2`) on this process's dense map."""
     from .extension.dense import dense_map
@@ -648,8 +656,7 @@ def _one_box(prep: Prepared, s1: ImageResult, res: ImageResult,
         with _threads(cfg, "in_process"):
             return dense_map(prep.rgb, dp)
 
-    d = cfg["dense"]
-    return one_box_after_stage2(res, s1, d if d["enabled"] else None, prep.scale_factor,
+    return one_box_after_stage2(res, s1, d if d.enabled else None, prep.scale_factor,
                                 get_map)
 
 

@@ -53,9 +53,10 @@ if TYPE_CHECKING:  # annotations only
     from .discovery.sources import DenseParams
 
 from . import core, io
-from .core import (RETAIN_BYTES, degraded_result, empty_result, is_degraded,  # noqa: F401
-                   limit_threads, retain_freed_memory)
-from .core import blocking as _blocking
+from .sections import section_params, stage2_variant
+from .core import RETAIN_BYTES, limit_threads, retain_freed_memory  # noqa: F401
+from .failures import blocking as _blocking
+from .failures import degraded_result, empty_result, is_degraded  # noqa: F401
 from .types import Failure, Features, ImageResult, Pattern
 
 __all__ = ["RETAIN_BYTES", "degraded_result", "empty_result", "is_degraded", "limit_threads",
@@ -210,10 +211,10 @@ def stage1(features_h5: str, meta_path: str, out_json: str, out_h5: str,
         rgb = None if png is None else read_prepared(png, meta_path)[0]
         fmap = None
         if dense_map_h5 is not None and found is not None and dense_params is not None:
-            from .extension.dense import DenseParams, load_map
+            from .extension.dense import load_map
 
             try:
-                fmap = load_map(dense_map_h5, DenseParams.from_dict(dense_params))
+                fmap = load_map(dense_map_h5, section_params("dense", dense_params))
             except io.InputError as e:  # a cache: made again below when needed
                 log.warning("%s; the scoring makes the map again", e)
         res, out = core.discover_patterns(feats, params, meta, method, rgb, found,
@@ -247,13 +248,13 @@ def dense(png: str, meta_path: str, out_json: str, params: dict[str, Any],
         prep = read_prepared_image(png, meta_path)
         res = core.find_dense(prep, params)
         if out_map is not None:
-            dp = D.DenseParams.from_dict(params)
+            dp = section_params("dense", params)
             D.save_map(out_map, D.dense_map(prep.rgb, dp), dp)  # made above: no new pass
         io.write_json(out_json, res)
 
     def empty(f: Failure) -> None:
         if out_map is not None:
-            D.save_map(out_map, None, D.DenseParams.from_dict(params), json.dumps(f))
+            D.save_map(out_map, None, section_params("dense", params), json.dumps(f))
         io.write_json(out_json, empty_result(meta, "dense", f))
 
     return _guard("dense", _blocking(meta.get("failure")), run, empty)
@@ -296,7 +297,7 @@ def ablation(features_h5: str, meta_path: str, out_jsons: dict[str, str],
         done: list[tuple[Any, list[Pattern]]] = []
         shared: dict[Any, Any] = {}      # matches and URP tables the variants have in common
         for name, over in overrides.items():
-            p = S1.Stage1Params.from_dict({**params, **over})
+            p = section_params("stage1", {**params, **over})
             o = S1.discover(feats, p, shared)
             res = empty_result(meta, f"rescu-i[{name}]", None)
             res.patterns = core.rescu_i_patterns(feats, o.rps, p, gray, float(meta["scale_factor"]))
@@ -323,14 +324,14 @@ def _source_rows(feats: Features, meta: dict[str, Any], gray: np.ndarray | None,
     from .discovery import sources as D
     from .discovery import stage1 as S1
 
-    p = S1.Stage1Params.from_dict(params)
+    p = section_params("stage1", params)
     sparse = next((pats for q, pats in done if q == p), None)
     if sparse is None:
         sparse = core.rescu_i_patterns(feats, S1.discover(feats, p).rps, p, gray,
                                    float(meta["scale_factor"]))
     found = D.read_dense(dense_json)  # unreadable: costs the dense rows, not the variants
     dense, failure = found.patterns, found.extra.get("failure")
-    rows = A.source_rows(sparse, dense, D.DenseParams.from_dict(dense_params), failure)
+    rows = A.source_rows(sparse, dense, section_params("dense", dense_params), failure)
     for name, (pats, extra) in rows.items():
         res = empty_result(meta, f"rescu-i[{name}]", None)
         res.patterns, res.extra = pats, {**res.extra, **extra}
@@ -388,7 +389,8 @@ def _one_box(res: Any, s1: Any, meta: dict[str, Any], dense_map_h5: str | None,
             log.warning("%s; RESCU-II keeps every box stage II found", e)
             return None
 
-    one_box_after_stage2(res, s1, dense_params if dense_map_h5 is not None else None,
+    one_box_after_stage2(res, s1, section_params("dense", dense_params)
+                         if dense_map_h5 is not None and dense_params is not None else None,
                          float(meta["scale_factor"]), get_map)
 
 
@@ -430,7 +432,7 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
     ``params``; ``out_jsons`` maps each variant to its per-image JSON (method
     ``rescu-ii[<variant>]``). Costs one prediction per variant, no backbone pass.
     """
-    from .extension.params import Stage2Params, predict_only_error
+    from .extension.params import predict_only_error
     from .extension.train import load_checkpoint
 
     meta = io.read_json(meta_path)
@@ -439,7 +441,7 @@ def stage2_predict_variants(feats_h5: str, ckpt_path: str, stage1_json: str,
         why = predict_only_error(over)
         if why:
             raise ValueError(f"prediction-only stage-II variant {name!r}: {why}")
-        plist[name] = Stage2Params.variant(params, over)
+        plist[name] = stage2_variant(params, over)
     ckpt = load_checkpoint(ckpt_path)
 
     def run() -> None:
@@ -474,7 +476,6 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
     ``rescu-ii[<variant>]``).
     """
     from .extension.proposal_features import compute_stage2_features
-    from .extension.params import Stage2Params
     from .extension.predict import predict_stage2
     from .extension.train import train_heads
 
@@ -484,7 +485,7 @@ def stage2_ablation(png: str, meta_path: str, stage1_json: str, out_jsons: dict[
         if not isinstance(over, dict):
             raise ValueError(f"stage-II ablation variant {name!r} must be a mapping of "
                              f"stage2 keys, got {over!r}")
-    plist = {name: Stage2Params.variant(params, over) for name, over in variants.items()}
+    plist = {name: stage2_variant(params, over) for name, over in variants.items()}
 
     def run() -> None:
         from .extension.backbone import remembered_maps
@@ -534,14 +535,14 @@ def scene(png: str, meta_path: str, in_json: str, out_json: str, out_rectified_d
 
 def line_vp(png: str, meta_path: str, out_json: str, params: dict[str, Any]) -> Failure | None:
     """The explicit-line baseline (LSD + RANSAC) VP as a per-image JSON (method "lsd")."""
-    from .scene import analyse as SC
+    from .scene.analyse import SceneParams  # the section's module: part of this step
     from .scene.vp.lsd import line_vanishing_point
 
     meta = io.read_json(meta_path)
 
     def run() -> None:
         rgb, _ = read_prepared(png, meta_path)
-        p = SC.SceneParams.from_config(params)
+        p: SceneParams = section_params("scene", params)
         vp = line_vanishing_point(rgb, p.vp, scale_factor=float(meta["scale_factor"]))
         res = empty_result(meta, "lsd", None)
         res.vanishing_point = vp

@@ -756,7 +756,7 @@ def test_one_box_per_object_after_the_split():
             _pat(bases, confidence=0.6, source="dense"), _pat(heads, confidence=0.9),
             _pat(apart, confidence=0.5, source="dense")])
         found = ImageResult(image="x", width=800, height=192, method="dense")
-        params = {**_params(mode="objects").__dict__, **over}
+        params = _params(mode="objects", **over)
         score_and_split(res, found, params, np.zeros((192, 800, 3), np.uint8),
                         {"scale_factor": 1.0}, fmap=(f, 1.0))
         return res

@@ -195,3 +195,55 @@ def test_the_schema_restates_no_default_value():
 
 
 _ABSENT = object()
+
+
+BUILDERS = {"from_dict", "from_config", "variant"}
+
+
+def _builder_calls(path) -> list[str]:
+    """Calls of a section's builder (``X.from_dict``, ``X.from_config``, ``X.variant``)
+    in the file ``path`` outside the builders' own definitions, as ``"line: text"``."""
+    text = path.read_text()
+    tree = ast.parse(text)
+    lines = text.splitlines()
+    inside: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef) and node.name in BUILDERS:
+            inside.update(range(node.lineno, node.end_lineno + 1))
+    return [f"{n.lineno}: {lines[n.lineno - 1].strip()}" for n in ast.walk(tree)
+            if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)
+            and n.func.attr in BUILDERS and n.lineno not in inside]
+
+
+def test_sections_become_parameters_only_in_the_config_loader():
+    """No step rebuilds its parameters from a mapping itself: the drivers (``rescu.core``,
+    ``rescu.pipeline``, the workflow's scripts) ask ``rescu.sections.section_params`` (the
+    registry of sections) and the library's functions take the built objects."""
+    from pathlib import Path
+
+    root = Path(rescu.__file__).resolve().parents[1]
+    files = sorted((root / "rescu").rglob("*.py")) + sorted((root / "workflow").rglob("*.py"))
+    loader = {root / "rescu" / "config.py", root / "rescu" / "sections.py"}
+    found = {str(p.relative_to(root)): c for p in files if p not in loader
+             for c in [_builder_calls(p)] if c}
+    assert found == {}
+    smk = [f"{p.name}: {line.strip()}" for p in sorted((root / "workflow").rglob("*.smk"))
+           + [root / "Snakefile"] for line in p.read_text().splitlines()
+           if any(f".{b}(" in line for b in BUILDERS)]
+    assert smk == []
+
+
+def test_section_params_is_the_registry_of_every_section():
+    from rescu.config import SECTIONS, load_config, section_params
+
+    cfg = load_config(stage2=False)
+    for name in SECTIONS:
+        at = cfg
+        for k in name.split("."):
+            at = at[k]
+        p = section_params(name, at)
+        assert dataclasses.is_dataclass(p) and section_params(name, p) is p
+    with pytest.raises(ValueError, match="no parameters for a configuration section 'x'"):
+        section_params("x")
+    with pytest.raises(ValueError, match="bogus"):
+        section_params("dense", {"bogus": 1})

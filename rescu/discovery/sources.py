@@ -331,7 +331,7 @@ def parts_of(part: Pattern, whole: Pattern, params: DenseParams,
     ...     Instance(bbox=b, score=1.0, source="stage1") for b in boxes])
     >>> whole = rp([(0, 0, 40, 40), (60, 0, 40, 40)])
     >>> corners = rp([(-4, -4, 8, 8), (36, 36, 8, 8), (62, 2, 8, 8), (200, 0, 8, 8)])
-    >>> p = DenseParams.from_dict(None)
+    >>> p = DenseParams()
     >>> parts_of(corners, whole, p), parts_of(whole, corners, p), parts_of(whole, whole, p)
     (True, False, False)
     """
@@ -440,7 +440,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
     >>> halves = [(x + dx, 0, 20, 40) for x, _, _, _ in coins for dx in (0, 20)]
     >>> r = ImageResult(image="x", width=160, height=40, method="rescu-i", patterns=[
     ...     rp(0.5, rims), rp(0.2, coins[:2]), rp(0.8, halves), rp(0.9, coins)])
-    >>> split_by_confidence(r, 0.3, DenseParams.from_dict(None))
+    >>> split_by_confidence(r, 0.3, DenseParams())
     >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
     ([3], ['same objects', 'same objects', 'low confidence'])
     """
@@ -500,7 +500,7 @@ def drop_second_boxes(res: ImageResult, second: Sequence[np.ndarray],
     >>> r = ImageResult(image="x", width=99, height=9, method="rescu-i",
     ...                 patterns=[rp(4), rp(3)])
     >>> drop_second_boxes(r, [np.array([0, 0, 1, 0], bool), np.array([0, 1, 1], bool)],
-    ...                   DenseParams.from_dict(None))
+    ...                   DenseParams())
     >>> [p.count for p in r.patterns], [c["dropped"] for c in r.extra["candidate_patterns"]]
     ([3], ['same objects'])
     """
@@ -535,18 +535,19 @@ def read_dense(path: str) -> ImageResult:
                            extra={"failure": failure_record("dense", e)})
 
 
-def skips_stage1(found: ImageResult | None, params: Mapping[str, Any] | None) -> bool:
-    """Whether RESCU-I need not run the stage-I search: the ``dense`` section ``params``
-    keeps the dense RPs alone (``mode: dense``) and the dense step's result ``found``
-    did not fail (a failed one leaves stage I's RPs in place, so the search runs)."""
+def skips_stage1(found: ImageResult | None, params: DenseParams | None) -> bool:
+    """Whether RESCU-I need not run the stage-I search: the ``dense`` parameters
+    ``params`` keep the dense RPs alone (``mode: dense``) and the dense step's result
+    ``found`` did not fail (a failed one leaves stage I's RPs in place, so the search
+    runs)."""
     return (found is not None and not found.extra.get("failure") and params is not None
-            and DenseParams.from_dict(params).mode == "dense")
+            and params.mode == "dense")
 
 
-def add_dense(res: ImageResult, found: ImageResult, params: Mapping[str, Any] | None
-              ) -> None:
+def add_dense(res: ImageResult, found: ImageResult, params: DenseParams | None) -> None:
     """``res.patterns`` (stage I's) combined in place with the dense step's result
-    ``found`` (:func:`combine_sources` with the ``dense`` section ``params``), and
+    ``found`` (:func:`combine_sources` with the ``dense`` parameters ``params``, None:
+    the defaults), and
     ``res.extra["n_dense_patterns"]``; a failed dense step (``found.extra["failure"]``)
     leaves the patterns alone and is recorded as ``res.extra["dense_failure"]``."""
     failure = found.extra.get("failure")
@@ -554,5 +555,5 @@ def add_dense(res: ImageResult, found: ImageResult, params: Mapping[str, Any] | 
         res.extra["dense_failure"] = failure
         return
     res.patterns = combine_sources(res.patterns, found.patterns,
-                                   DenseParams.from_dict(params))
+                                   params if params is not None else DenseParams())
     res.extra["n_dense_patterns"] = sum(map(is_whole_object, res.patterns))

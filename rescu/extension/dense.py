@@ -45,7 +45,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -688,7 +688,7 @@ def find_dense(rgb: np.ndarray, params: DenseParams, backbone: Any = None,
     :func:`dense_levels`: 0 the coarse one))
 
     >>> import numpy as np
-    >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams.from_dict(None))
+    >>> find_dense(np.zeros((64, 64, 3), np.uint8), DenseParams())
     []
     """
     from .backbone import shared_backbone
@@ -746,7 +746,7 @@ def _turned_completion(rgb: np.ndarray, levels: Sequence[tuple[np.ndarray, float
     return turned
 
 
-def score_and_split(res: ImageResult, found: ImageResult, dense_params: Mapping[str, Any],
+def score_and_split(res: ImageResult, found: ImageResult, dense_params: DenseParams,
                     rgb: np.ndarray,
                     meta: dict[str, Any], backbone: Any = None,
                     fmap: tuple[np.ndarray, float] | None = None) -> None:
@@ -768,7 +768,7 @@ def score_and_split(res: ImageResult, found: ImageResult, dense_params: Mapping[
     ----------
     res : :class:`rescu.types.ImageResult`, RESCU-I's result (instances in original pixels)
     found : :class:`rescu.types.ImageResult`, the dense step's result
-    dense_params : the ``dense`` config section (mapping)
+    dense_params : the ``dense`` parameters
     rgb : (H, W, 3) uint8, the prepared image
     meta : its meta (``scale_factor``: processed = original x scale_factor)
     backbone : FrozenBackbone or None (None: ``dense.backbone``)
@@ -779,7 +779,7 @@ def score_and_split(res: ImageResult, found: ImageResult, dense_params: Mapping[
     from ..discovery.tiling import board_outline
     from .objects import one_box_applies, one_box_per_object, score_patterns
 
-    dp = DenseParams.from_dict(dense_params)
+    dp = dense_params
     if dp.mode != "objects" or found.extra.get("failure"):
         return
     unscored = any("confidence" not in p.extra for p in res.patterns)

@@ -706,7 +706,7 @@ def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: f
                                         params.min_object_separation), params)
 
 
-def one_box_after_stage2(res: Any, s1: Any, dense: dict[str, Any] | None,
+def one_box_after_stage2(res: Any, s1: Any, dense: DenseParams | None,
                          scale_factor: float,
                          get_map: Callable[[DenseParams], tuple[np.ndarray, float] | None]) -> Any:
     """RESCU-II's result ``res`` with one box per object, as RESCU-I's
@@ -723,7 +723,7 @@ def one_box_after_stage2(res: Any, s1: Any, dense: dict[str, Any] | None,
     ----------
     res, s1 : :class:`rescu.types.ImageResult`, RESCU-II's and the stage-I result it
         extends
-    dense : the configuration's ``dense`` section, or None
+    dense : the ``dense`` parameters, or None
     scale_factor : prepared pixels per original pixel
     get_map : DenseParams -> :func:`rescu.extension.dense.dense_map` of the prepared
         image, or None
@@ -732,13 +732,10 @@ def one_box_after_stage2(res: Any, s1: Any, dense: dict[str, Any] | None,
     -------
     ``res``
     """
-    from ..discovery.sources import DenseParams
-
     if dense is None or s1.extra.get("dense_failure"):
         return res
-    dp = DenseParams.from_dict(dense)
-    if one_box_applies(dp):
-        fmap = get_map(dp)
+    if one_box_applies(dense):
+        fmap = get_map(dense)
         if fmap is not None:
-            one_box_per_object(res, fmap, scale_factor, dp)
+            one_box_per_object(res, fmap, scale_factor, dense)
     return res

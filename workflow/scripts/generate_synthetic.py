@@ -1,8 +1,10 @@
 """Snakemake adapter: generate the synthetic benchmark (rescu.data.synth)."""
 from pathlib import Path
 
+from rescu.sections import section_params
+from rescu.data.synth import generate_dataset
 from rescu.pipeline import setup_logging
-from rescu.data.synth import SynthParams, generate_dataset
 
 setup_logging(snakemake.log[0])
-generate_dataset(Path(snakemake.output.annotations).parent, SynthParams.from_dict(snakemake.params.synth))
+generate_dataset(Path(snakemake.output.annotations).parent,
+                 section_params("synthetic", snakemake.params.synth))

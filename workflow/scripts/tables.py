@@ -1,6 +1,7 @@
 """Snakemake adapter: the evaluation tables (rescu.evaluation.tables), one function per rule."""
 from rescu.evaluation import tables as T
-from rescu.evaluation.core import EvaluationParams, write_markdown, write_tsv
+from rescu.sections import section_params
+from rescu.evaluation.core import write_markdown, write_tsv
 from rescu.pipeline import setup_logging
 
 setup_logging(snakemake.log[0])
@@ -21,7 +22,7 @@ elif rule == "summary":
     write_markdown(T.summary_markdown(parts, T.summary_header(p.backbone)), out.md)
 else:
     refs = T.dataset_refs(p.datasets, list(p.datasets))
-    ev = EvaluationParams.from_dict(p.evaluation)
+    ev = section_params("evaluation", p.evaluation)
     figures = p.get("figures")
     if rule == "rp_tables":
         T.rp_tables(refs, p.results, ev, out.tsv, out.md, out.scores, out.curves, figures,
