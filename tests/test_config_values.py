@@ -127,3 +127,45 @@ def test_a_configuration_is_checked_once_per_content(monkeypatch) -> None:
     C.validate_config(cfg, stage2=False)
     C.validate_config(cfg, stage2=False)
     assert len(calls) == first + 1
+
+
+def test_the_users_config_lists_the_usual_keys_with_their_defaults():
+    """config/config.yaml (the file a user edits) names the keys a user usually changes,
+    commented out, with their values: each is the default's (the example dataset aside),
+    and the file itself overrides nothing."""
+    import yaml
+
+    from rescu.params import config_defaults
+
+    text = (Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text()
+    assert yaml.safe_load(text) == {}
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("# results_dir:"))
+    shown = yaml.safe_load("\n".join(line[2:] for line in lines[start:]
+                                     if line.startswith("# ")))
+    defaults = config_defaults()
+    leaves = []
+
+    def walk(d, ref, path):
+        for k, v in d.items():
+            assert k in ref, f"config/config.yaml shows {'.'.join(path + (k,))}: no such key"
+            if isinstance(v, dict):
+                walk(v, ref[k], path + (k,))
+            else:
+                leaves.append(".".join(path + (k,)))
+                assert v == ref[k], (f"config/config.yaml shows {leaves[-1]} = {v!r}, "
+                                     f"the default is {ref[k]!r}")
+
+    shown.pop("datasets")  # an example entry, not a default
+    walk(shown, defaults, ())
+    assert 20 <= len(leaves) <= 60
+
+
+def test_each_default_has_a_one_line_comment():
+    """The default configuration's comments say what a key does in one line (at most 160
+    characters with the key); why a value was chosen is in config/README.md and docs/."""
+    from rescu.config import DEFAULT_CONFIG
+
+    long = [f"{n}: {line[:60]}..." for n, line in
+            enumerate(DEFAULT_CONFIG.read_text().splitlines(), 1) if len(line) > 160]
+    assert long == []

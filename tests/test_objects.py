@@ -993,3 +993,19 @@ def test_integral_map_of_a_read_only_map_is_made_once():
     assert integral_map(f) is kept and np.array_equal(kept, ii)
     with pytest.raises(ValueError):
         kept[0, 0, 0] = 1.0                               # shared: read-only
+
+
+def test_the_separation_gates_are_off_with_null():
+    """``dense.min_separation`` / ``min_object_separation`` null: no RP set aside as one
+    structure, and one box per object does not act (no sentinel number for off)."""
+    from rescu.extension.objects import one_box_applies
+
+    assert not one_box_applies(_params(mode="objects", min_object_separation=None))
+    assert one_box_applies(_params(mode="objects"))
+    band = _pat([[x * 40, 10, 30, 30] for x in range(4)], confidence=0.9)
+    band.extra["separation"] = -1.0
+    res = ImageResult(image="x", width=200, height=60, method="rescu-i", patterns=[band])
+    split_by_confidence(res, 0.0, _params(min_separation=None))
+    assert [p.count for p in res.patterns] == [4]
+    split_by_confidence(res, 0.0, _params(min_separation=0.0))
+    assert res.patterns == [] and res.extra["candidate_patterns"][0]["dropped"] == "one structure"

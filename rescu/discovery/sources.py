@@ -164,15 +164,16 @@ class DenseParams:
     min_confidence : float
         RPs whose confidence is below this are not reported: RESCU-I moves them to the
         result's ``candidate_patterns`` (:func:`split_by_confidence`); 0 reports all.
-    min_separation : float
+    min_separation : float or None
         A stage-I RP whose neighbouring instances are joined by more of the same (its
         :func:`rescu.extension.boxmaps.separation` below this) samples one structure (a
         ledge, a board's frame, a rim, a road marking), not separate objects: not
-        reported (``"one structure"``); -2 reports all.
-    min_object_separation : float
+        reported (``"one structure"``); None: off, every RP reported.
+    min_object_separation : float or None
         The same for an RP of whole objects (the dense source's), its separation measured
         on the central third of its boxes (:data:`rescu.extension.boxmaps.OBJECT_PROBE`):
-        a cup's rim or a band of texture sampled by abutting boxes; -2 reports all.
+        a cup's rim or a band of texture sampled by abutting boxes; None: off, every RP
+        reported and every box kept.
     separation_reach : float
         Neighbours farther apart than this x their mean box side are not compared.
     checkerboard_min_corners : int
@@ -237,8 +238,8 @@ class DenseParams:
     confidence_score_scale: float
     confidence_stage1_score_scale: float
     min_confidence: float
-    min_separation: float
-    min_object_separation: float
+    min_separation: float | None
+    min_object_separation: float | None
     separation_reach: float
     checkerboard_min_corners: int
     checkerboard_border: int
@@ -275,7 +276,7 @@ class DenseParams:
 #: (``tests/test_dense.py``). So changing one of them reruns RESCU-I, not the dense step.
 DENSE_STEP_FIXED: dict[str, Any] = {
     "enabled": True, "mode": "both", "confidence_stage1_score_scale": 0.0,
-    "min_separation": -2.0, "min_object_separation": -2.0, "checkerboard_min_corners": 0,
+    "min_separation": None, "min_object_separation": None, "checkerboard_min_corners": 0,
     "checkerboard_border": 0, "checkerboard_min_alternation": 0.75, "checkerboard_seed": 0}
 
 
@@ -285,7 +286,7 @@ def dense_step_section(dense: Mapping[str, Any]) -> dict[str, Any]:
 
     >>> s = dense_step_section({"min_separation": 0.3, "max_side": 640, "mode": "objects"})
     >>> s["min_separation"], s["max_side"], s["mode"]
-    (-2.0, 640, 'both')
+    (None, 640, 'both')
     """
     return {**dense, **DENSE_STEP_FIXED}
 
@@ -463,7 +464,7 @@ def split_by_confidence(res: ImageResult, min_confidence: float,
             sep = p.extra.get("separation")
             floor = (params.min_object_separation if is_whole_object(p)
                      else params.min_separation)
-            if sep is not None and float(sep) < floor:
+            if sep is not None and floor is not None and float(sep) < floor:
                 dropped.append((p, "one structure"))
                 continue
             if any(parts_of(p, q, params, any_size=True) for q in kept):

@@ -760,7 +760,7 @@ def score_and_split(res: ImageResult, found: ImageResult, dense_params: DensePar
     ``res.extra["checkerboard"]``) are not reported either. Then one box per object: a
     reported instance whose nearest earlier one (of a more confident RP, or earlier in
     its own) is a box on the same object, with no gap between the two on the
-    map, is dropped (``dense.min_object_separation`` -2: off;
+    map, is dropped (``dense.min_object_separation`` null: off;
     :func:`rescu.extension.objects.one_box_per_object`). Nothing in the other modes or
     after a failed dense step (``found``'s failure).
 

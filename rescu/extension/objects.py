@@ -673,9 +673,11 @@ def score_patterns(rgb: np.ndarray, patterns: Sequence[Any], scale_factor: float
 
 def one_box_applies(params: DenseParams) -> bool:
     """Whether :func:`one_box_per_object` acts under ``params`` (DenseParams): mode
-    ``objects`` and ``min_object_separation`` above -2 (callers skip making or reading
-    the map otherwise)."""
-    return params.mode == "objects" and params.min_object_separation > -2.0
+    ``objects`` and ``min_object_separation`` set (not None) and above -2, the bottom of
+    its range, below which no separation falls (callers skip making or reading the map
+    otherwise)."""
+    sep = params.min_object_separation
+    return params.mode == "objects" and sep is not None and sep > -2.0
 
 
 def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: float,
@@ -686,7 +688,7 @@ def one_box_per_object(res: Any, fmap: tuple[np.ndarray, float], scale_factor: f
     and ``params.min_object_separation`` on the central thirds of the boxes, then
     :func:`rescu.discovery.sources.drop_second_boxes`. RESCU-I after its split, and
     RESCU-II after stage II has added its instances. Nothing unless ``params.mode`` is
-    ``objects`` and ``params.min_object_separation`` > -2.
+    ``objects`` and ``params.min_object_separation`` set and > -2 (:func:`one_box_applies`).
 
     Parameters
     ----------
