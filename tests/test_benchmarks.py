@@ -716,3 +716,22 @@ def test_tree_memory_counts_a_child_and_a_step_server_outside_the_tree(tmp_path,
     assert code == 0 and got["exit"] == 0 and got["most_processes"] >= 3
     assert got["peak_sum_pss_mib"] >= 240 and got["peak_sum_rss_mib"] >= 240
     assert 140 <= got["peak_process_rss_mib"] <= 220
+
+
+def test_complete_dominant_seeds():
+    """complete_dominant.py's examples: the dominant RP's instances, or (oracle) the
+    instances on ground-truth objects of the RP that has the most of them."""
+    import numpy as np
+
+    cd = load("complete_dominant")
+    inst = lambda *xs: [{"bbox": [x, 0.0, 10.0, 10.0]} for x in xs]  # noqa: E731
+    d = {"dominant_pattern": 0, "patterns": [{"id": 0, "instances": inst(0, 100, 200)},
+                                             {"id": 1, "instances": inst(300, 400, 500, 900)}]}
+    k, ex = cd.seeds(None, d, "dominant", None)
+    assert k == 0 and [e["bbox"][0] for e in ex] == [0, 100, 200]
+    # objects (centres) under the second RP's first three boxes: the centre rule
+    gt = (np.array([[300, 0, 10, 10], [400, 0, 10, 10], [500, 0, 10, 10]], float), 20.0)
+    k, ex = cd.seeds(None, d, "oracle", gt)
+    assert k == 1 and [e["bbox"][0] for e in ex] == [300, 400, 500]
+    assert cd.seeds(None, d, "oracle", None) is None
+    assert cd.seeds(None, dict(d, dominant_pattern=None), "dominant", None) is None
