@@ -99,6 +99,33 @@ def test_find_like_turned_objects(backbone):
     assert plain.count < turned.count
 
 
+def test_find_like_half_turned_objects(backbone):
+    """Bars facing both ways (a car park's two rows seen from above): the map of the photo
+    turned by 180 degrees finds the reversed ones, with boxes where they are."""
+    rng = np.random.default_rng(4)
+    img = np.full((240, 420, 3), 120, np.uint8) + rng.integers(0, 10, (240, 420, 3),
+                                                               dtype=np.uint8)
+    obj = np.zeros((32, 64, 3), np.uint8)             # a red front, a chequered back
+    obj[:, :32] = (220, 30, 30)
+    obj[:, 32:] = ((np.indices((32, 32)).sum(0) // 4) % 2 * 255)[..., None]
+    ahead = [(20, 30), (150, 30), (280, 30)]
+    for x, y in ahead:
+        img[y:y + 32, x:x + 64] = obj
+    back = [(30, 150), (160, 150), (290, 150)]
+    for x, y in back:
+        img[y:y + 32, x:x + 64] = obj[::-1, ::-1]
+    ex = np.array([[20, 30, 64, 32]], float)
+    base = {**PromptParams().__dict__, "turn": False}
+    one_way = find_like(img, ex, backbone, PromptParams.from_dict({**base, "half_turn": False}))
+    both = find_like(img, ex, backbone, PromptParams.from_dict({**base, "half_turn": True}))
+    from rescu.evaluation.metrics import match_boxes
+
+    truth = np.array([(x, y, 64, 32) for x, y in ahead + back], float)
+    assert len(match_boxes(both.boxes, truth, 0.5)) == 6 and both.count == 6, both.boxes
+    assert len(match_boxes(one_way.boxes, truth, 0.5)) == 3    # the reversed ones missed
+    assert not both.turned.any()          # not turned by a quarter: width and height kept
+    assert np.allclose(both.boxes[:, 2:], [64, 32], atol=1.0)
+
 def test_find_like_other_sizes(backbone):
     """Objects 0.6x the example's side: found on the map of the photo resized by 1 / 0.6
     when ``sizes`` holds 0.6, with boxes of their own size; without, boxes of the

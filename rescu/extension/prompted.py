@@ -10,15 +10,17 @@ instance. The method, one implementation for prompts (:func:`rescu.api.discover`
    size ImageNet objects have in its crops), its longer side at most ``max_side``.
 2. **Map.** The backbone's stride-8 + stride-16 hypercolumn
    (:func:`rescu.extension.turned.hypercolumn`, unit norm per cell) of the resized photo,
-   and with ``turn`` the same of the photo turned by 90 degrees (objects lying the other
-   way: cars parked across a row, fish swimming up).
+   with ``turn`` the same of the photo turned by 90 degrees (objects lying the other
+   way: cars parked across a row, fish swimming up), and with ``half_turn`` of the photo
+   turned by 180 degrees (objects facing the other way: the cars of the opposite row of
+   a car park seen from above).
 3. **Template.** The example's window of ``kh x kw`` cells, kept as a window (its layout
    matters: a car's front is not its side), the mean over the examples.
 4. **Correlation.** At every cell the normalised inner product of the stacked window
    around it with the template (a cosine in ``C x kh x kw`` dimensions; at the border
    over the cells inside the map). Local maxima within half a window are candidates, a
-   box of the examples' size on each (turned back, width and height swapped, for the
-   turned map); non-maximum suppression (IoU) and a coverage rule (a box mostly covered by
+   box of the examples' size on each (turned back: width and height swapped for the
+   quarter-turned map); non-maximum suppression (IoU) and a coverage rule (a box mostly covered by
    more likely ones is the gap between two objects, not a third one).
 5. **Second round.** The template becomes the mean window of the confident finds
    (score at least ``round_fraction`` of the way from the photo's median score to the
@@ -61,6 +63,15 @@ class PromptParams:
         are then seen smaller than ``target_side``).
     turn : bool
         Also look for the objects turned by 90 degrees (one more backbone pass).
+    half_turn : bool
+        Also look for the objects turned by 180 degrees, facing the other way (one more
+        backbone pass).
+    half_turn_margin : float
+        A find on the map of the photo turned by 180 degrees is kept only where it scores
+        at least this much more than the unturned template does at its centre: an object
+        that looks the same both ways (a cell, a window) is left to the unturned map, so
+        the turned one adds the objects that truly face the other way and not a second
+        chance for every patch to pass the threshold.
     rounds : int
         1: the examples' template only; 2: a second round from the confident finds.
     round_fraction : float
@@ -87,7 +98,8 @@ class PromptParams:
     sizes : tuple of float
         Object sides looked for, as ratios to the examples' mean side, each in
         [0.25, 4]: a ratio ``r`` other than 1 adds the map of the resized photo resized
-        again by ``1 / r`` (capped by ``max_side``; turned too with ``turn``), where
+        again by ``1 / r`` (capped by ``max_side``; turned too with ``turn`` and
+        ``half_turn``), where
         objects ``r`` x the examples' side look like them; their boxes are ``r`` x the
         examples' size.
     """
@@ -95,6 +107,8 @@ class PromptParams:
     target_side: float
     max_side: int
     turn: bool
+    half_turn: bool
+    half_turn_margin: float
     rounds: int
     round_fraction: float
     nms_iou: float
@@ -128,7 +142,8 @@ class Finds:
     is_example : (N,) bool
         Which boxes are the examples.
     turned : (N,) bool
-        Found on the turned map (width and height are the examples' swapped).
+        Found on a map of the photo turned by 90 degrees (width and height are the
+        examples' swapped).
     candidates : (M, 4) float, candidate_scores : (M,) float
         Every candidate above the peak floor before the threshold, examples excluded
         (for studies of the threshold).
@@ -297,6 +312,20 @@ def _peaks(sim: np.ndarray, kh: int, kw: int, floor: float) -> tuple[np.ndarray,
     return np.c_[ys, xs], sim[ys, xs].astype(np.float64)
 
 
+def _score_at(sim: np.ndarray, centres: np.ndarray, kh: int, kw: int) -> np.ndarray:
+    """The values of :func:`correlation`'s map ``sim`` (of the unturned, unzoomed resized
+    photo, a ``kh x kw`` template) for the windows centred nearest ``centres`` (n, 2)
+    ``x, y`` in its pixels: (n,) float.
+
+    >>> sim = np.arange(20.0).reshape(4, 5)
+    >>> _score_at(sim, np.array([[20.0, 12.0], [0.0, 0.0]]), 2, 2).tolist()
+    [8.0, 0.0]
+    """
+    r = np.round(centres[:, 1] / CELL - kh / 2.0).astype(int) + kh // 2
+    c = np.round(centres[:, 0] / CELL - kw / 2.0).astype(int) + kw // 2
+    return sim[np.clip(r, 0, sim.shape[0] - 1), np.clip(c, 0, sim.shape[1] - 1)].astype(float)
+
+
 def _scaled(rgb: np.ndarray, s: float) -> np.ndarray:
     import cv2
 
@@ -308,12 +337,12 @@ def _scaled(rgb: np.ndarray, s: float) -> np.ndarray:
 
 @dataclass
 class _View:
-    """One map the objects are looked for on: ``turned`` = of the photo turned by 90
-    degrees (counterclockwise, ``np.rot90``); ``wh`` the resized photo's (width, height)
-    before turning."""
+    """One map the objects are looked for on: of the photo turned counterclockwise by
+    ``quarters`` x 90 degrees (0, 1 or 2: ``np.rot90``); ``wh`` the resized photo's (width,
+    height) before turning."""
 
     f: np.ndarray
-    turned: bool
+    quarters: int
     wh: tuple[int, int]
     zoom: float = 1.0
 
@@ -325,12 +354,18 @@ class _View:
         ``zoom`` x enlarges (``wh``: the view's (width, height) before turning)."""
         cy = (cells[:, 0] + kh / 2.0) * CELL
         cx = (cells[:, 1] + kw / 2.0) * CELL
-        if not self.turned:
-            b = np.c_[cx - bw / 2, cy - bh / 2, np.full(len(cx), bw), np.full(len(cx), bh)]
+        W, H = self.wh
+        n = np.full(len(cx), 1.0)
+        if self.quarters == 0:
+            b = np.c_[cx - bw / 2, cy - bh / 2, n * bw, n * bh]
+        elif self.quarters == 1:
+            ox, oy = W - cy, cx  # turned point (x', y') <- photo point (W - y', x')
+            b = np.c_[ox - bh / 2, oy - bw / 2, n * bh, n * bw]
+        elif self.quarters == 2:
+            ox, oy = W - cx, H - cy  # turned point (x', y') <- photo point (W - x', H - y')
+            b = np.c_[ox - bw / 2, oy - bh / 2, n * bw, n * bh]
         else:
-            W = self.wh[0]  # turned point (x', y') <- photo point (W - y', x')
-            ox, oy = W - cy, cx
-            b = np.c_[ox - bh / 2, oy - bw / 2, np.full(len(cx), bh), np.full(len(cx), bw)]
+            raise ValueError(f"quarters must be 0, 1 or 2, got {self.quarters}")
         return b / self.zoom
 
 
@@ -396,10 +431,12 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
     bw, bh = float(exs[:, 2].mean()), float(exs[:, 3].mean())
     kw = max(1, int(round(bw / CELL)))
     kh = max(1, int(round(bh / CELL)))
-    views = [_View(hypercolumn(backbone, img), False, (sw, sh))]
-    if p.turn:
-        views.append(_View(hypercolumn(backbone, np.ascontiguousarray(np.rot90(img))),
-                           True, (sw, sh)))
+    turns = [0] + [1] * p.turn + [2] * p.half_turn     # quarter turns looked at
+
+    def turned(im: np.ndarray, q: int) -> np.ndarray:
+        return im if q == 0 else np.ascontiguousarray(np.rot90(im, q))
+
+    views = [_View(hypercolumn(backbone, turned(img, q)), q, (sw, sh)) for q in turns]
     for r in p.sizes:
         # objects r x the examples' side look like the examples in the photo resized by
         # 1 / r more (capped by max_side)
@@ -409,10 +446,7 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
         zi = _scaled(img, z)
         zwh = (zi.shape[1], zi.shape[0])
         zx = zwh[0] / sw
-        views.append(_View(hypercolumn(backbone, zi), False, zwh, zx))
-        if p.turn:
-            views.append(_View(hypercolumn(backbone, np.ascontiguousarray(np.rot90(zi))),
-                               True, zwh, zx))
+        views += [_View(hypercolumn(backbone, turned(zi, q)), q, zwh, zx) for q in turns]
     plain = views[0].f
     # the examples' windows: kh x kw cells centred on each example's centre
     ecells = np.c_[np.round((exs[:, 1] + exs[:, 3] / 2) / CELL - kh / 2.0),
@@ -424,12 +458,20 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
     def search(template: np.ndarray, floor: float):
         boxes, scores, where, cells = [], [], [], []
         level.clear()
+        unturned = None
         for vi, v in enumerate(views):
             sim = correlation(v.f, template)
+            unturned = sim if vi == 0 else unturned
             level.append(float(np.median(sim)))
             pk, val = _peaks(sim, kh, kw, floor)
             tl = pk - [kh // 2, kw // 2]  # top-left cells of the windows
-            boxes.append(v.boxes(tl, kh, kw, bw, bh))
+            bx = v.boxes(tl, kh, kw, bw, bh)
+            if v.quarters == 2 and len(bx):
+                # facing the other way: more like the template turned than unturned
+                ahead = _score_at(unturned, bx[:, :2] + bx[:, 2:] / 2, kh, kw)
+                keep = val >= ahead + p.half_turn_margin
+                val, tl, bx = val[keep], tl[keep], bx[keep]
+            boxes.append(bx)
             scores.append(val)
             where.append(np.full(len(val), vi))
             cells.append(tl)
@@ -478,7 +520,8 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
     return Finds(boxes=np.r_[ex, b[good] * back].reshape(-1, 4),
                  scores=np.r_[np.ones(len(ex)), sc[good]],
                  is_example=np.r_[np.ones(len(ex), bool), np.zeros(int(good.sum()), bool)],
-                 turned=np.r_[np.zeros(len(ex), bool), vi[good] == 1],
+                 turned=np.r_[np.zeros(len(ex), bool),
+                              np.array([views[v].quarters == 1 for v in vi[good]], bool)],
                  candidates=(b * back).reshape(-1, 4), candidate_scores=sc,
                  reference=ref, background=background, scale=float(s),
                  threshold=float(thr))
