@@ -257,6 +257,26 @@ def test_enhance_rejects_non_string() -> None:
 
 
 # ----------------------------------------------------------------------------- captioners
+def test_example_box_that_found_nothing_else_is_said_so() -> None:
+    """"Count these" with one example box and no other find: the caption speaks of the
+    example, not of a discovery that found no pattern; an unprompted pattern of one
+    instance still reads "No recurring pattern found."."""
+    asked = pattern(1)
+    asked.extra["source"] = "prompt"
+    t = C.TemplateCaptioner()
+    r = result(asked)
+    assert t.caption(RGB, r, "x.jpg") == "Nothing else like the example box was found."
+    out = C.caption_result(RGB, r, "x.jpg", t, C.CaptionParams())
+    assert out == {"base": "Nothing else like the example box was found.",
+                   "enhanced": "Nothing else like the example box was found."}
+    assert C.summary_line(r) == "1 instance: nothing else like the example box"
+    # a captioner's own sentence keeps it, followed by what was (not) found
+    other = C.caption_result(RGB, r, "x.jpg", type("Cap", (), {
+        "caption": lambda self, *a: "A tank of fish."})(), C.CaptionParams())
+    assert other["base"] == "A tank of fish. Nothing else like the example box was found."
+    assert t.caption(RGB, result(pattern(1)), "x.jpg") == "No recurring pattern found."
+
+
 def test_template_captioner_layouts() -> None:
     t = C.TemplateCaptioner()
     assert t.caption(RGB, result(pattern(5)), "x.jpg") == "A group of similar objects in a row."

@@ -159,6 +159,31 @@ NO_PATTERN = "No recurring pattern found."
 more instances in ``patterns``; RPs set apart in ``candidate_patterns`` do not count)."""
 
 
+NOTHING_LIKE_EXAMPLE = "Nothing else like the example box was found."
+"""Caption of a "count these" image where nothing but the one example box was found (its
+prompted pattern has one instance): no recurring pattern, said of what the user asked."""
+
+
+def no_pattern_caption(result: ImageResult) -> str:
+    """The caption of an image whose dominant RP has fewer than two instances:
+    :data:`NOTHING_LIKE_EXAMPLE` when the user gave an example box (a "count these"
+    pattern, ``extra["source"] == "prompt"``) and nothing else was found like it, else
+    :data:`NO_PATTERN`.
+
+    >>> from rescu.types import ImageResult, Instance, Pattern
+    >>> ex = Pattern(id=0, score=1.0, instances=[Instance(bbox=(0, 0, 9, 9))],
+    ...              extra={"source": "prompt"})
+    >>> no_pattern_caption(ImageResult(image="a.jpg", width=20, height=20, method="rescu-ii",
+    ...                                 patterns=[ex]))
+    'Nothing else like the example box was found.'
+    >>> no_pattern_caption(ImageResult(image="a.jpg", width=20, height=20, method="rescu-ii"))
+    'No recurring pattern found.'
+    """
+    if any(p.extra.get("source") == "prompt" for p in result.patterns):
+        return NOTHING_LIKE_EXAMPLE
+    return NO_PATTERN
+
+
 def pattern_confidence(pattern: Pattern) -> tuple[str, float]:
     """``("confidence", c)`` when discovery gave the RP a confidence in [0, 1]
     (``pattern.extra["confidence"]``), else ``("score", pattern.score)``."""
@@ -403,7 +428,7 @@ class TemplateCaptioner:
     def caption(self, rgb: np.ndarray, result: ImageResult, image_name: str) -> str:
         facts = scene_facts(result)
         if facts.count < 2:
-            return NO_PATTERN
+            return no_pattern_caption(result)
         where = {"row": " in a row", "column": " in a column",
                  "grid": " arranged in a grid"}.get(facts.layout, "")
         more = ", next to other repeated items" if facts.n_patterns > 1 else ""
@@ -582,7 +607,9 @@ def caption_result(rgb: np.ndarray, result: ImageResult, image_name: str,
         File name of the image (used by the CSV captioner).
     captioner : Captioner
         Without an RP of two or more instances both captions end with
-        :data:`NO_PATTERN` (the template captioner's caption is just that).
+        :data:`NO_PATTERN`, or :data:`NOTHING_LIKE_EXAMPLE` where an example box found
+        nothing else (:func:`no_pattern_caption`; the template captioner's caption is
+        just that).
         From :func:`make_captioner`.
     params : CaptionParams, optional
         For ``grounding_coverage``.
@@ -600,9 +627,10 @@ def caption_result(rgb: np.ndarray, result: ImageResult, image_name: str,
         grounding = _GROUNDERS[params.grounding_model]
     base = captioner.caption(rgb, result, image_name)
     if scene_facts(result).count < 2:  # nothing recurs: both captions say so
-        if NO_PATTERN not in base:
+        none = no_pattern_caption(result)
+        if none not in base:
             base = base.rstrip() + (" " if base.rstrip().endswith((".", "!", "?"))
-                                    else ". " if base.strip() else "") + NO_PATTERN
+                                    else ". " if base.strip() else "") + none
         return {"base": base, "enhanced": base}
     enhanced = enhance_caption(base, result, grounding=grounding, rgb=rgb,
                                coverage=params.grounding_coverage)
