@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from rescu.data.example import example_image
-from rescu.extension.prompted import PromptParams, check_examples, correlation, find_like
+from rescu.extension.prompted import (PromptParams, _negative_cells, check_examples, correlation,
+                                      find_like, fit_photo_model, linear_map)
 
 RESCU = Path(sys.executable).parent / "rescu"
 
@@ -64,6 +64,34 @@ def test_correlation_peaks_where_the_template_is():
     assert sim.max() == pytest.approx(1.0, abs=1e-5) and sim.min() >= -1.0 - 1e-5
 
 
+def test_photo_model_probability_map():
+    """The per-photo model: a logistic regression of unit-norm windows, its probability
+    laid out as the correlation's (the window whose top-left cell is ``(i - kh // 2, j -
+    kw // 2)`` at ``(i, j)``), negatives on a grid kept half a window from positives."""
+    rng = np.random.default_rng(1)
+    f = rng.normal(size=(6, 18, 25)).astype(np.float32)
+    pos_cells = np.array([[2, 3], [9, 15]])
+    pos = np.stack([f[:, r:r + 3, q:q + 4] for r, q in pos_cells])
+    neg_cells = _negative_cells((18, 25), 3, 4, pos_cells, 80)
+    assert 40 <= len(neg_cells) <= 120
+    for r, q in pos_cells:      # none within half a window of a positive
+        assert np.all((np.abs(neg_cells[:, 0] - r) > 1.5) | (np.abs(neg_cells[:, 1] - q) > 2))
+    inside = neg_cells[(neg_cells >= 0).all(1) & (neg_cells[:, 0] <= 15) & (neg_cells[:, 1] <= 21)]
+    neg = np.stack([f[:, r:r + 3, q:q + 4] for r, q in inside])
+    w, b = fit_photo_model(pos, neg, c=10.0)
+    prob = linear_map(f, w, b)
+    assert prob.shape == (18, 25) and prob.min() >= 0.0 and prob.max() <= 1.0
+    r, q = pos_cells[1]
+    x = f[:, r:r + 3, q:q + 4].ravel()
+    manual = 1.0 / (1.0 + np.exp(-(w.ravel() @ x / np.linalg.norm(x) + b)))
+    assert prob[r + 1, q + 2] == pytest.approx(manual, abs=1e-4)
+    # the positives score above every negative window
+    assert min(prob[r + 1, q + 2] for r, q in pos_cells) > max(
+        prob[r + 1, q + 2] for r, q in inside)
+    with pytest.raises(ValueError, match="positive and negative"):
+        fit_photo_model(pos, neg[:0])
+
+
 def test_find_like_finds_every_copy_from_one_example(backbone):
     img, boxes = example_image(n=5)
     found = find_like(img, np.array([boxes[2]]), backbone, PromptParams())
@@ -75,6 +103,11 @@ def test_find_like_finds_every_copy_from_one_example(backbone):
     # two examples: the same five, both examples first
     two = find_like(img, np.array(boxes[:2]), backbone, PromptParams())
     assert two.count == 5 and two.is_example.sum() == 2
+    # with the photo model (a score: the geometric mean of a cosine and a probability)
+    model = find_like(img, np.array([boxes[2]]), backbone, PromptParams.from_dict(
+        {**PromptParams().__dict__, "photo_model": True, "min_score": 0.55}))
+    assert model.count == 5 and len(match_boxes(model.boxes, np.array(boxes), 0.5)) == 5
+    assert model.scores.min() >= 0.55 and model.scores.max() <= 1.0
 
 
 def test_find_like_turned_objects(backbone):

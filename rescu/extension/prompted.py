@@ -27,7 +27,14 @@ instance. The method, one implementation for prompts (:func:`rescu.api.discover`
    best find's), each from the map it was found on, averaged with the examples' (half
    each), so the instances' own variety tempers the one example's particulars; step 4
    again.
-6. **Threshold.** A find is kept when its score is at least ``min_score`` and at least
+6. **Photo model** (``photo_model``, optional). A logistic regression of the positive windows
+   (the examples' and the first round's confident finds') against windows on a grid
+   over the rest of the photo (:func:`fit_photo_model`); a find's score becomes the
+   geometric mean of its correlation and the model's probability at its window
+   (:func:`linear_map`). The correlation ranks the finds of one photo; the probability
+   says where "like the examples" ends in this photo, so that one threshold carries
+   over from photo to photo.
+7. **Threshold.** A find is kept when its score is at least ``min_score`` and at least
    ``b + relative_score x (r - b)``, ``r`` the examples' own score against the final
    template (what an instance scores, measured where we know there is one), ``b`` the
    median score over the whole photo (what a typical patch of it scores): the score
@@ -46,7 +53,8 @@ import numpy as np
 
 from ..params import config_section, params_from_dict
 
-__all__ = ["PromptParams", "Finds", "check_examples", "find_like"]
+__all__ = ["PromptParams", "Finds", "check_examples", "find_like", "fit_photo_model",
+           "linear_map"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +80,18 @@ class PromptParams:
         that looks the same both ways (a cell, a window) is left to the unturned map, so
         the turned one adds the objects that truly face the other way and not a second
         chance for every patch to pass the threshold.
+    photo_model : bool
+        Score each find also by a per-photo model: a logistic regression of the windows
+        of the examples (and of the first round's confident finds) against windows from
+        the rest of the photo (:func:`fit_photo_model`); a find's score is then the
+        geometric mean of its correlation and the model's probability. The correlation
+        ranks the instances of one photo; the probability says where, in this photo,
+        "like the examples" ends, so one threshold carries over from photo to photo.
+    negatives : int
+        The photo model's negative windows: about this many, on a regular grid of the
+        unturned map, none within half a window of a positive one.
+    model_c : float
+        The photo model's inverse L2 regularisation (scikit-learn's ``C``).
     rounds : int
         1: the examples' template only; 2: a second round from the confident finds.
     round_fraction : float
@@ -86,7 +106,9 @@ class PromptParams:
         A box cut by the photo's border keeps at least this share of its area inside, or
         it is dropped.
     min_score : float
-        Least correlation score of a reported find (cosine, in [-1, 1]).
+        Least score of a reported find: its correlation (cosine, in [-1, 1]), or with
+        ``photo_model`` the geometric mean of its correlation (0 where negative) and the
+        model's probability (in [0, 1]).
     relative_score : float
         ... and at least ``b + relative_score x (r - b)``: ``r`` the examples' mean score
         against the final template, ``b`` the photo's median score.
@@ -119,6 +141,9 @@ class PromptParams:
     min_box_px: float
     unprompted: bool
     sizes: tuple[float, ...] = (1.0,)
+    photo_model: bool = False
+    negatives: int = 3000
+    model_c: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sizes", tuple(float(r) for r in self.sizes))
@@ -138,7 +163,8 @@ class Finds:
     boxes : (N, 4) float
         ``x, y, w, h`` in pixels of the image given, the examples first.
     scores : (N,) float
-        Correlation scores (1 for the examples), in the order of ``boxes``.
+        Scores (1 for the examples), in the order of ``boxes``: the correlation, or
+        with ``photo_model`` its geometric mean with the photo model's probability.
     is_example : (N,) bool
         Which boxes are the examples.
     turned : (N,) bool
@@ -148,10 +174,10 @@ class Finds:
         Every candidate above the peak floor before the threshold, examples excluded
         (for studies of the threshold).
     reference : float
-        The examples' mean score against the final template.
+        The examples' mean score against the final template (and photo model).
     background : float
-        The median score of the final template over the whole photo (every cell, both
-        views): what a typical patch of the photo scores.
+        The median score over the whole photo (every cell, the mean over the views):
+        what a typical patch of the photo scores.
     scale : float
         Resized photo px per given px.
     threshold : float
@@ -299,6 +325,83 @@ def correlation(f: np.ndarray, template: np.ndarray) -> np.ndarray:
                           torch.ones(1, 1, kh, kw))[0, 0]
         out = num / energy.clamp_min(1e-9).sqrt()
     return out.numpy().astype(np.float32)
+
+
+def fit_photo_model(pos: np.ndarray, neg: np.ndarray, c: float = 1.0
+                    ) -> tuple[np.ndarray, float]:
+    """A linear model of the positive windows against the negative ones, of one photo.
+
+    A logistic regression (L2, inverse strength ``c``, the classes weighed equally) on
+    the windows scaled to unit norm, as :func:`correlation` compares them.
+
+    Parameters
+    ----------
+    pos, neg : (n, C, kh, kw) float
+        Windows of the instances and of the rest of the photo (at least one each).
+    c : float
+        scikit-learn's ``C``.
+
+    Returns
+    -------
+    weights : (C, kh, kw) float32, bias : float
+        For :func:`linear_map`.
+
+    >>> rng = np.random.default_rng(0)
+    >>> neg = rng.normal(size=(50, 2, 1, 1)); pos = neg[:5] + np.array([3.0, 0])[:, None, None]
+    >>> w, b = fit_photo_model(pos, neg)
+    >>> bool(w[0, 0, 0] > abs(w[1, 0, 0]))
+    True
+    """
+    from sklearn.linear_model import LogisticRegression
+
+    pos, neg = np.asarray(pos, np.float64), np.asarray(neg, np.float64)
+    if not len(pos) or not len(neg):
+        raise ValueError(f"need positive and negative windows, got {len(pos)} and {len(neg)}")
+    x = np.concatenate([pos, neg]).reshape(len(pos) + len(neg), -1)
+    x = x / (np.linalg.norm(x, axis=1, keepdims=True) + 1e-9)
+    y = np.r_[np.ones(len(pos)), np.zeros(len(neg))]
+    clf = LogisticRegression(C=float(c), class_weight="balanced", max_iter=500)
+    clf.fit(x, y)
+    return clf.coef_[0].reshape(pos.shape[1:]).astype(np.float32), float(clf.intercept_[0])
+
+
+def linear_map(f: np.ndarray, weights: np.ndarray, bias: float) -> np.ndarray:
+    """The probability of :func:`fit_photo_model`'s model at every window of a map,
+    laid out as :func:`correlation`'s (window of top-left cell ``(i - kh // 2, j - kw //
+    2)`` at ``(i, j)``, each window scaled to unit norm): (h, w) float32 in [0, 1].
+
+    >>> f = np.ones((1, 4, 4), np.float32)
+    >>> round(float(linear_map(f, np.ones((1, 1, 1), np.float32), 0.0)[2, 2]), 3)
+    0.731
+    """
+    import torch
+    import torch.nn.functional as F
+
+    c, kh, kw = weights.shape
+    t = torch.from_numpy(np.ascontiguousarray(weights, np.float32))[None]
+    x = torch.from_numpy(np.ascontiguousarray(f, np.float32))[None]
+    pad = (kw // 2, kw - 1 - kw // 2, kh // 2, kh - 1 - kh // 2)
+    with torch.no_grad():
+        num = F.conv2d(F.pad(x, pad), t)[0, 0]
+        energy = F.conv2d(F.pad((x * x).sum(1, keepdim=True), pad),
+                          torch.ones(1, 1, kh, kw))[0, 0]
+        out = torch.sigmoid(num / energy.clamp_min(1e-9).sqrt() + bias)
+    return out.numpy().astype(np.float32)
+
+
+def _negative_cells(shape: tuple[int, int], kh: int, kw: int, positives: np.ndarray,
+                    n: int) -> np.ndarray:
+    """Top-left cells (m, 2) of about ``n`` windows on a regular grid over a map of
+    ``shape`` (h, w), none within half a window of a ``positives`` (k, 2) top-left cell."""
+    h, w = shape
+    ys = np.arange(-(kh // 2), h - kh // 2)
+    xs = np.arange(-(kw // 2), w - kw // 2)
+    step = max(1, int(np.ceil(np.sqrt(len(ys) * len(xs) / max(n, 1)))))
+    g = np.stack(np.meshgrid(ys[::step], xs[::step], indexing="ij"), -1).reshape(-1, 2)
+    far = np.ones(len(g), bool)
+    for q in np.asarray(positives, int).reshape(-1, 2):
+        far &= (np.abs(g[:, 0] - q[0]) > kh / 2) | (np.abs(g[:, 1] - q[1]) > kw / 2)
+    return g[far]
 
 
 def _peaks(sim: np.ndarray, kh: int, kw: int, floor: float) -> tuple[np.ndarray, np.ndarray]:
@@ -454,15 +557,18 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
     template = _windows(plain, ecells, kh, kw).mean(0)
 
     level: list[float] = []
+    sims: list[np.ndarray] = []  # the last search's correlation map of each view
 
     def search(template: np.ndarray, floor: float):
         boxes, scores, where, cells = [], [], [], []
         level.clear()
+        sims.clear()
         unturned = None
         for vi, v in enumerate(views):
             sim = correlation(v.f, template)
             unturned = sim if vi == 0 else unturned
             level.append(float(np.median(sim)))
+            sims.append(sim)
             pk, val = _peaks(sim, kh, kw, floor)
             tl = pk - [kh // 2, kw // 2]  # top-left cells of the windows
             bx = v.boxes(tl, kh, kw, bw, bh)
@@ -508,12 +614,36 @@ def find_like(rgb: np.ndarray, examples: np.ndarray, backbone: Any,
                          for i, v in zip(np.flatnonzero(conf), vi[conf])])
         # the examples weigh as much as all the finds together
         template = 0.5 * (wins.mean(0) + _windows(plain, ecells, kh, kw).mean(0))
+        pos_cells = np.r_[ecells, tl[conf & (vi == 0)]]
+        positives = np.concatenate([_windows(plain, ecells, kh, kw), wins])
         b, sc, vi, tl = not_examples(*search(template, floor))
+    else:
+        pos_cells, positives = ecells, _windows(plain, ecells, kh, kw)
     # the examples' own score against the final template
     ewin = _windows(plain, ecells, kh, kw)
     t = template.ravel() / (np.linalg.norm(template) + 1e-9)
-    ref = float(np.mean([w.ravel() @ t / (np.linalg.norm(w) + 1e-9) for w in ewin]))
+    ecos = np.array([w.ravel() @ t / (np.linalg.norm(w) + 1e-9) for w in ewin])
+    ref = float(np.mean(ecos))
     background = float(np.mean(level))
+    negcells = (_negative_cells(plain.shape[1:], kh, kw, pos_cells, p.negatives)
+                if p.photo_model else np.zeros((0, 2), int))
+    if len(negcells):  # (a photo no larger than the examples has no negatives)
+        # the instances against the rest of this photo: the probability, read at each
+        # find's window on its own view, tempers the correlation (geometric mean)
+        neg = _windows(plain, negcells, kh, kw)
+        weights, bias = fit_photo_model(positives, neg, p.model_c)
+        maps = [linear_map(v.f, weights, bias) for v in views]
+        centre = tl + [kh // 2, kw // 2]
+        prob = np.array([maps[v][min(max(r, 0), maps[v].shape[0] - 1),
+                                 min(max(q, 0), maps[v].shape[1] - 1)]
+                         for v, (r, q) in zip(vi, centre)], np.float64)
+        sc = np.sqrt(np.clip(sc, 0.0, None) * prob)
+        eprob = maps[0][
+            np.clip(ecells[:, 0] + kh // 2, 0, plain.shape[1] - 1),
+            np.clip(ecells[:, 1] + kw // 2, 0, plain.shape[2] - 1)]
+        ref = float(np.mean(np.sqrt(np.clip(ecos, 0.0, None) * eprob)))
+        background = float(np.mean([np.median(np.sqrt(np.clip(c, 0.0, None) * m))
+                                    for c, m in zip(sims, maps)]))
     thr = max(p.min_score, background + p.relative_score * (ref - background))
     good = sc >= thr
     back = np.array([1 / sx, 1 / sy, 1 / sx, 1 / sy])
