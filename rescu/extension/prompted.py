@@ -312,19 +312,28 @@ def correlation(f: np.ndarray, template: np.ndarray) -> np.ndarray:
     1.0
     """
     import torch
+
+    t = torch.from_numpy(np.ascontiguousarray(template, np.float32))[None]
+    with torch.no_grad():
+        out = _window_products(f, t / (t.norm() + 1e-9))
+    return out.numpy().astype(np.float32)
+
+
+def _window_products(f: np.ndarray, t: Any) -> Any:
+    """The inner product of the weights ``t`` (torch, (1, C, kh, kw) float32) with every
+    ``kh x kw`` window of ``f`` (C, h, w) scaled to unit norm (cells outside the map are
+    zeros; the norm is that of the cells inside), laid out as :func:`correlation`'s:
+    torch (h, w). Call under ``torch.no_grad()``."""
+    import torch
     import torch.nn.functional as F
 
-    c, kh, kw = template.shape
-    t = torch.from_numpy(np.ascontiguousarray(template, np.float32))[None]
-    t = t / (t.norm() + 1e-9)
+    kh, kw = int(t.shape[2]), int(t.shape[3])
     x = torch.from_numpy(np.ascontiguousarray(f, np.float32))[None]
     pad = (kw // 2, kw - 1 - kw // 2, kh // 2, kh - 1 - kh // 2)
-    with torch.no_grad():
-        num = F.conv2d(F.pad(x, pad), t)[0, 0]
-        energy = F.conv2d(F.pad((x * x).sum(1, keepdim=True), pad),
-                          torch.ones(1, 1, kh, kw))[0, 0]
-        out = num / energy.clamp_min(1e-9).sqrt()
-    return out.numpy().astype(np.float32)
+    num = F.conv2d(F.pad(x, pad), t)[0, 0]
+    energy = F.conv2d(F.pad((x * x).sum(1, keepdim=True), pad),
+                      torch.ones(1, 1, kh, kw))[0, 0]
+    return num / energy.clamp_min(1e-9).sqrt()
 
 
 def fit_photo_model(pos: np.ndarray, neg: np.ndarray, c: float = 1.0
@@ -375,17 +384,10 @@ def linear_map(f: np.ndarray, weights: np.ndarray, bias: float) -> np.ndarray:
     0.731
     """
     import torch
-    import torch.nn.functional as F
 
-    c, kh, kw = weights.shape
     t = torch.from_numpy(np.ascontiguousarray(weights, np.float32))[None]
-    x = torch.from_numpy(np.ascontiguousarray(f, np.float32))[None]
-    pad = (kw // 2, kw - 1 - kw // 2, kh // 2, kh - 1 - kh // 2)
     with torch.no_grad():
-        num = F.conv2d(F.pad(x, pad), t)[0, 0]
-        energy = F.conv2d(F.pad((x * x).sum(1, keepdim=True), pad),
-                          torch.ones(1, 1, kh, kw))[0, 0]
-        out = torch.sigmoid(num / energy.clamp_min(1e-9).sqrt() + bias)
+        out = torch.sigmoid(_window_products(f, t) + bias)
     return out.numpy().astype(np.float32)
 
 
